@@ -1,0 +1,1 @@
+"""File formats: graphdeco PLY, safetensors, atomic writes."""

@@ -1,0 +1,112 @@
+"""Read and write 3DGS scenes in the graphdeco PLY layout.
+
+Vertex properties, all float32, in this order::
+
+    x y z nx ny nz f_dc_0..2 f_rest_0..(3*(K-1)-1) opacity scale_0..2 rot_0..3
+
+``f_rest`` is channel-major (all of red's higher-order coefficients, then green's, then blue's);
+``scale_*`` are log standard deviations, ``opacity`` is a logit and ``rot_*`` is a wxyz quaternion.
+Files from graphdeco, gsplat and nerfstudio exports use this layout; normals may be absent.
+A file we write and read back is bit-identical, and so is the float32 data of any file we read.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from fmgs.errors import ValidationError
+from fmgs.gaussians import GaussianSet, sh_degree_from_bases
+from fmgs.io.atomic import atomic_path
+
+_REST = re.compile(r"^f_rest_(\d+)$")
+
+
+def _column(vertex, name: str, path: Path) -> np.ndarray:
+    try:
+        return np.asarray(vertex[name], dtype=np.float32)
+    except (KeyError, ValueError) as e:
+        raise ValidationError(str(path), f"PLY vertex element lacks property {name!r}") from e
+
+
+def read_ply(path: str | os.PathLike) -> GaussianSet:
+    """Load a graphdeco-layout PLY as a float32 GaussianSet (validated: finite, non-zero quats)."""
+    from plyfile import PlyData, PlyParseError  # lazy: plyfile is a core extra
+
+    path = Path(path)
+    if not path.is_file():
+        raise ValidationError(str(path), "no such file")
+    try:
+        ply = PlyData.read(str(path))
+    except (PlyParseError, ValueError, EOFError, OSError) as e:
+        raise ValidationError(str(path), f"not a readable PLY file ({e})") from e
+    if "vertex" not in ply:
+        raise ValidationError(str(path), "PLY has no 'vertex' element")
+    v = ply["vertex"]
+    names = [p.name for p in v.properties]
+    rest = sorted((int(m.group(1)), n) for n in names if (m := _REST.match(n)))
+    if [i for i, _ in rest] != list(range(len(rest))) or len(rest) % 3:
+        raise ValidationError(
+            str(path), f"f_rest_* properties must be f_rest_0..f_rest_{{3k-1}}, got {len(rest)}"
+        )
+    k = len(rest) // 3 + 1
+    sh_degree_from_bases(k)
+
+    def cols(*ns: str) -> np.ndarray:
+        return np.stack([_column(v, n, path) for n in ns], axis=1)
+
+    n = len(v.data)
+    sh = np.empty((n, k, 3), dtype=np.float32)
+    sh[:, 0, :] = cols("f_dc_0", "f_dc_1", "f_dc_2")
+    if k > 1:
+        sh[:, 1:, :] = cols(*(name for _, name in rest)).reshape(n, 3, k - 1).transpose(0, 2, 1)
+    try:
+        return GaussianSet(
+            means=torch.from_numpy(cols("x", "y", "z")),
+            quats=torch.from_numpy(cols("rot_0", "rot_1", "rot_2", "rot_3")),
+            log_scales=torch.from_numpy(cols("scale_0", "scale_1", "scale_2")),
+            opacity_logits=torch.from_numpy(_column(v, "opacity", path).copy()),
+            sh=torch.from_numpy(sh),
+        )
+    except ValidationError as e:
+        raise ValidationError(f"{path}: {e.field}", e.reason, e.index) from e
+
+
+def ply_property_names(sh_degree: int) -> list[str]:
+    """The graphdeco property order for a given SH degree."""
+    k = (sh_degree + 1) ** 2
+    return (
+        ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]
+        + [f"f_rest_{i}" for i in range(3 * (k - 1))]
+        + ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
+    )
+
+
+def write_ply(gaussians: GaussianSet, path: str | os.PathLike) -> None:
+    """Write ``gaussians`` in the graphdeco layout (binary little-endian float32), atomically."""
+    from plyfile import PlyData, PlyElement
+
+    g = gaussians.to(device="cpu", dtype=torch.float32)
+    g.validate()
+    n, k = g.num, g.sh.shape[1]
+    sh = g.sh.detach().numpy()
+    columns = [
+        g.means.detach().numpy(),
+        np.zeros((n, 3), dtype=np.float32),
+        sh[:, 0, :],
+        sh[:, 1:, :].transpose(0, 2, 1).reshape(n, 3 * (k - 1)),
+        g.opacity_logits.detach().numpy()[:, None],
+        g.log_scales.detach().numpy(),
+        g.quats.detach().numpy(),
+    ]
+    flat = np.concatenate(columns, axis=1)
+    names = ply_property_names(g.sh_degree)
+    rec = np.empty(n, dtype=[(name, "<f4") for name in names])
+    for i, name in enumerate(names):
+        rec[name] = flat[:, i]
+    with atomic_path(path) as tmp:
+        PlyData([PlyElement.describe(rec, "vertex")], byte_order="<").write(str(tmp))

@@ -1,0 +1,102 @@
+"""One rasteriser interface over three backends.
+
+- ``reference``: pure PyTorch, differentiable, any device, float32/float64 (``reference.py``);
+- ``cpu``: compiled numba kernel for inference without gradients (``cpu_fast.py``), loaded lazily;
+- ``cuda``: gsplat on a CUDA device (``cuda_gsplat.py``), loaded lazily.
+
+``backend="auto"`` picks ``cuda`` for CUDA tensors, ``cpu`` when no gradient is needed, else ``reference``.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from fmgs.cameras import Camera
+from fmgs.checks import check_finite, check_shape, first_bad_row
+from fmgs.errors import ValidationError
+from fmgs.render.types import Projection, RasterConfig, RenderOutput
+
+__all__ = ["BACKENDS", "Projection", "RasterConfig", "RenderOutput", "rasterize", "validate_inputs"]
+
+BACKENDS = ("auto", "reference", "cpu", "cuda")
+
+
+def validate_inputs(
+    means: torch.Tensor,
+    quats: torch.Tensor,
+    scales: torch.Tensor,
+    opacities: torch.Tensor,
+    features: torch.Tensor,
+    background: torch.Tensor | None,
+) -> None:
+    """Raise ValidationError naming the field and first bad row of any malformed input."""
+    n = means.shape[0] if means.ndim == 2 else -1
+    check_shape("means", means, (n, 3))
+    check_shape("quats", quats, (n, 4))
+    check_shape("scales", scales, (n, 3))
+    check_shape("opacities", opacities, (n,))
+    check_shape("features", features, (n, None))
+    if features.shape[1] < 1:
+        raise ValidationError("features", "need at least one channel")
+    for name, t in (
+        ("means", means),
+        ("quats", quats),
+        ("scales", scales),
+        ("opacities", opacities),
+        ("features", features),
+    ):
+        check_finite(name, t)
+    if (row := first_bad_row((quats == 0).all(1))) is not None:
+        raise ValidationError("quats", "zero quaternion", row)
+    if (row := first_bad_row(scales <= 0)) is not None:
+        raise ValidationError("scales", "must be positive (pass exp(log_scales))", row)
+    if (row := first_bad_row((opacities < 0) | (opacities > 1))) is not None:
+        raise ValidationError("opacities", "must lie in [0, 1] (pass sigmoid(logits))", row)
+    if background is not None:
+        check_shape("background", background, (features.shape[1],))
+        check_finite("background", background)
+
+
+def rasterize(
+    means: torch.Tensor,
+    quats: torch.Tensor,
+    scales: torch.Tensor,
+    opacities: torch.Tensor,
+    features: torch.Tensor,
+    camera: Camera,
+    background: torch.Tensor | None = None,
+    config: RasterConfig | None = None,
+    backend: str = "auto",
+) -> RenderOutput:
+    """Alpha-blend per-Gaussian features [N,D] into a [H,W,D] image for ``camera``.
+
+    Inputs are activated: scales [N,3] positive (exp of log scales), opacities [N] in [0,1],
+    quaternions [N,4] wxyz of any non-zero norm. All on one device.
+    """
+    config = config or RasterConfig()
+    validate_inputs(means, quats, scales, opacities, features, background)
+    if backend not in BACKENDS:
+        raise ValidationError("backend", f"unknown backend {backend!r}; choose one of {BACKENDS}")
+    needs_grad = torch.is_grad_enabled() and any(
+        t.requires_grad for t in (means, quats, scales, opacities, features)
+    )
+    if backend == "auto":
+        if features.is_cuda:
+            backend = "cuda"
+        elif features.device.type == "cpu" and not needs_grad:
+            backend = "cpu"
+        else:
+            backend = "reference"
+    if backend == "reference":
+        from fmgs.render.reference import rasterize_reference
+
+        return rasterize_reference(means, quats, scales, opacities, features, camera, background, config)
+    if backend == "cpu":
+        if needs_grad:
+            raise ValidationError("backend", "the cpu backend has no gradients; use backend='reference'")
+        from fmgs.render.cpu_fast import rasterize_cpu
+
+        return rasterize_cpu(means, quats, scales, opacities, features, camera, background, config)
+    from fmgs.render.cuda_gsplat import rasterize_gsplat
+
+    return rasterize_gsplat(means, quats, scales, opacities, features, camera, background, config)

@@ -1,0 +1,251 @@
+"""Numba kernels of the CPU fast path: projection, tile binning, per-pixel blending.
+
+Each kernel mirrors a PyTorch twin (projection.py, binning.py, reference.py) operation for operation
+in float64, so decisions (alpha >= alpha_min, termination) match the reference. Imported lazily:
+importing this module compiles nothing until a kernel is first called (then cached on disk).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit, prange
+
+_M_LIMIT = 1e75
+_BOX_REL, _BOX_ABS = 1e-6, 1e-6
+# The power prefilter skips exp() only where alpha is surely below alpha_min; the exact test follows.
+_PREFILTER_SLACK = 1e-6
+
+
+@njit(cache=True, inline="always")
+def _clampm(v):  # pragma: no cover
+    return min(max(v, -_M_LIMIT), _M_LIMIT)
+
+
+@njit(cache=True, parallel=True)
+def project_kernel(
+    means,
+    quats,
+    scales,
+    opac,
+    R,
+    t,
+    fx,
+    fy,
+    cx,
+    cy,
+    W,
+    H,
+    near,
+    far,
+    fov_clip,
+    eps2d,
+    alpha_min,
+    means2d,
+    depths,
+    conics,
+    radii,
+    bbox,
+    visible,
+    pmax,
+):  # pragma: no cover
+    n = means.shape[0]
+    tan_x, tan_y = 0.5 * W / fx, 0.5 * H / fy
+    lim_xp, lim_xn = (W - cx) / fx + fov_clip * tan_x, cx / fx + fov_clip * tan_x
+    lim_yp, lim_yn = (H - cy) / fy + fov_clip * tan_y, cy / fy + fov_clip * tan_y
+    for i in prange(n):
+        mx, my, mz = means[i, 0], means[i, 1], means[i, 2]
+        px = R[0, 0] * mx + R[0, 1] * my + R[0, 2] * mz + t[0]
+        py = R[1, 0] * mx + R[1, 1] * my + R[1, 2] * mz + t[1]
+        z = R[2, 0] * mx + R[2, 1] * my + R[2, 2] * mz + t[2]
+        depths[i] = z
+        in_depth = z > near and z < far
+        zs = z if in_depth else 1.0
+        # rotation from the quaternion, scaled by its largest component first (denormal-safe)
+        qw, qx, qy, qz = quats[i, 0], quats[i, 1], quats[i, 2], quats[i, 3]
+        qm = max(abs(qw), abs(qx), abs(qy), abs(qz))
+        if qm > 0:
+            qw, qx, qy, qz = qw / qm, qx / qm, qy / qm, qz / qm
+        qn = math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
+        qn = max(qn, 2.2250738585072014e-308)
+        qw, qx, qy, qz = qw / qn, qx / qn, qy / qn, qz / qn
+        r00 = 1 - 2 * (qy * qy + qz * qz)
+        r01 = 2 * (qx * qy - qw * qz)
+        r02 = 2 * (qx * qz + qw * qy)
+        r10 = 2 * (qx * qy + qw * qz)
+        r11 = 1 - 2 * (qx * qx + qz * qz)
+        r12 = 2 * (qy * qz - qw * qx)
+        r20 = 2 * (qx * qz - qw * qy)
+        r21 = 2 * (qy * qz + qw * qx)
+        r22 = 1 - 2 * (qx * qx + qy * qy)
+        tx = zs * min(max(px / zs, -lim_xn), lim_xp)
+        ty = zs * min(max(py / zs, -lim_yn), lim_yp)
+        j00, j02 = fx / zs, -fx * tx / zs**2
+        j11, j12 = fy / zs, -fy * ty / zs**2
+        # rows of J @ R (2x3); then M = (J @ R) @ Rq @ diag(s), entries clamped
+        a0, a1, a2 = (
+            j00 * R[0, 0] + j02 * R[2, 0],
+            j00 * R[0, 1] + j02 * R[2, 1],
+            j00 * R[0, 2] + j02 * R[2, 2],
+        )
+        b0, b1, b2 = (
+            j11 * R[1, 0] + j12 * R[2, 0],
+            j11 * R[1, 1] + j12 * R[2, 1],
+            j11 * R[1, 2] + j12 * R[2, 2],
+        )
+        s0, s1, s2 = scales[i, 0], scales[i, 1], scales[i, 2]
+        m00 = _clampm((a0 * r00 + a1 * r10 + a2 * r20) * s0)
+        m01 = _clampm((a0 * r01 + a1 * r11 + a2 * r21) * s1)
+        m02 = _clampm((a0 * r02 + a1 * r12 + a2 * r22) * s2)
+        m10 = _clampm((b0 * r00 + b1 * r10 + b2 * r20) * s0)
+        m11 = _clampm((b0 * r01 + b1 * r11 + b2 * r21) * s1)
+        m12 = _clampm((b0 * r02 + b1 * r12 + b2 * r22) * s2)
+        a_raw = m00 * m00 + m01 * m01 + m02 * m02
+        b = m00 * m10 + m01 * m11 + m02 * m12
+        c_raw = m10 * m10 + m11 * m11 + m12 * m12
+        n01 = m00 * m11 - m01 * m10
+        n02 = m00 * m12 - m02 * m10
+        n12 = m01 * m12 - m02 * m11
+        det = (n01 * n01 + n02 * n02 + n12 * n12) + eps2d * (a_raw + c_raw) + eps2d * eps2d
+        a, c_ = a_raw + eps2d, c_raw + eps2d
+        conics[i, 0] = c_ / det
+        conics[i, 1] = -b / det
+        conics[i, 2] = a / det
+        u = fx * px / zs + cx
+        v = fy * py / zs + cy
+        means2d[i, 0] = u
+        means2d[i, 1] = v
+        o = opac[i]
+        lam = 0.5 * (a + c_) + math.sqrt((0.5 * (a - c_)) ** 2 + b * b)
+        radius = math.ceil(3.0 * math.sqrt(lam))
+        r2 = 2.0 * math.log(max(o / alpha_min, 1.0))
+        pmax[i] = r2 * (1 + _PREFILTER_SLACK) + _PREFILTER_SLACK
+        hx = math.sqrt(r2 * a) * (1 + _BOX_REL) + _BOX_ABS
+        hy = math.sqrt(r2 * c_) * (1 + _BOX_REL) + _BOX_ABS
+        x0 = max(math.ceil(min(max(u - hx - 0.5, -1.0), W + 1.0)), 0.0)
+        x1 = min(math.floor(min(max(u + hx - 0.5, -2.0), W + 1.0)), W - 1.0)
+        y0 = max(math.ceil(min(max(v - hy - 0.5, -1.0), H + 1.0)), 0.0)
+        y1 = min(math.floor(min(max(v + hy - 0.5, -2.0), H + 1.0)), H - 1.0)
+        vis = in_depth and o >= alpha_min and x0 <= x1 and y0 <= y1
+        visible[i] = vis
+        bbox[i, 0], bbox[i, 1], bbox[i, 2], bbox[i, 3] = int(x0), int(y0), int(x1), int(y1)
+        radii[i] = int(min(max(radius, 0.0), 2147483647.0)) if vis else 0
+
+
+@njit(cache=True)
+def bin_kernel(order, bbox, tile, tiles_x, tiles_y):  # pragma: no cover
+    """Counting sort of (tile, Gaussian) pairs; ``order`` is already front to back."""
+    n_tiles = tiles_x * tiles_y
+    counts = np.zeros(n_tiles + 1, dtype=np.int64)
+    for k in range(order.shape[0]):
+        g = order[k]
+        for ty in range(bbox[g, 1] // tile, bbox[g, 3] // tile + 1):
+            for tx in range(bbox[g, 0] // tile, bbox[g, 2] // tile + 1):
+                counts[ty * tiles_x + tx + 1] += 1
+    offsets = np.cumsum(counts)
+    fill = offsets[:-1].copy()
+    ids = np.empty(offsets[-1], dtype=np.int64)
+    for k in range(order.shape[0]):
+        g = order[k]
+        for ty in range(bbox[g, 1] // tile, bbox[g, 3] // tile + 1):
+            for tx in range(bbox[g, 0] // tile, bbox[g, 2] // tile + 1):
+                tid = ty * tiles_x + tx
+                ids[fill[tid]] = g
+                fill[tid] += 1
+    return ids, offsets
+
+
+@njit(cache=True, parallel=True)
+def raster_kernel(
+    ids,
+    offsets,
+    tile_order,
+    tile,
+    tiles_x,
+    W,
+    H,
+    means2d,
+    conics,
+    opac,
+    depths,
+    pmax,
+    bbox,
+    features,
+    background,
+    use_bg,
+    alpha_max,
+    alpha_min,
+    t_min,
+    image,
+    alpha_img,
+    depth_img,
+    pair_cnt,
+    pair_w,
+):  # pragma: no cover
+    """Blend each tile front to back: Gaussians outer, only the pixels inside each one's box inner.
+
+    Every pixel still sees its Gaussians in list order with the same arithmetic as the reference.
+    """
+    D = features.shape[1]
+    P = tile * tile
+    for q in prange(tile_order.shape[0]):
+        t = tile_order[q]
+        start, end = offsets[t], offsets[t + 1]
+        x_0 = (t % tiles_x) * tile
+        y_0 = (t // tiles_x) * tile
+        x_e = min(x_0 + tile, W) - 1
+        y_e = min(y_0 + tile, H) - 1
+        npix = (x_e - x_0 + 1) * (y_e - y_0 + 1)
+        T = np.ones(P)
+        done = np.zeros(P, dtype=np.bool_)
+        acc = np.zeros((P, D))
+        wsum = np.zeros(P)
+        zsum = np.zeros(P)
+        ndone = 0
+        for k in range(start, end):
+            g = ids[k]
+            u, v = means2d[g, 0], means2d[g, 1]
+            ca, cb, cc = conics[g, 0], conics[g, 1], conics[g, 2]
+            o, z, pm = opac[g], depths[g], pmax[g]
+            cnt = 0
+            wk = 0.0
+            for yy in range(max(bbox[g, 1], y_0), min(bbox[g, 3], y_e) + 1):
+                dy = yy + 0.5 - v
+                row = (yy - y_0) * tile - x_0
+                for xx in range(max(bbox[g, 0], x_0), min(bbox[g, 2], x_e) + 1):
+                    p = row + xx
+                    if done[p]:
+                        continue
+                    dx = xx + 0.5 - u
+                    power = ca * dx * dx + 2 * cb * dx * dy + cc * dy * dy
+                    if power > pm:
+                        continue
+                    alpha = min(o * math.exp(-0.5 * power), alpha_max)
+                    if alpha < alpha_min:
+                        continue
+                    Tp = T[p]
+                    t_next = Tp * (1.0 - alpha)
+                    if t_next < t_min:
+                        done[p] = True
+                        ndone += 1
+                        continue
+                    w = alpha * Tp
+                    for c in range(D):
+                        acc[p, c] += w * features[g, c]
+                    wsum[p] += w
+                    zsum[p] += w * z
+                    cnt += 1
+                    wk += w
+                    T[p] = t_next
+            pair_cnt[k] = cnt
+            pair_w[k] = wk
+            if ndone == npix:
+                break
+        for yy in range(y_0, y_e + 1):
+            for xx in range(x_0, x_e + 1):
+                p = (yy - y_0) * tile + (xx - x_0)
+                for c in range(D):
+                    image[yy, xx, c] = acc[p, c] + (T[p] * background[c] if use_bg else 0.0)
+                alpha_img[yy, xx] = wsum[p]
+                depth_img[yy, xx] = zsum[p] / wsum[p] if wsum[p] > 0 else 0.0

@@ -1,0 +1,149 @@
+"""Reference rasteriser: pure PyTorch, differentiable, any device, float32 or float64 features.
+
+Per tile, the front-to-back list of Gaussians is evaluated in chunks (pixels x Gaussians x channels
+bounded by ``RasterConfig.chunk_elems``) with the transmittance carried between chunks, so memory
+stays bounded for any scene. Geometry and blending weights are float64 (see projection.py); features
+are blended in their own dtype.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from fmgs.cameras import Camera
+from fmgs.render.binning import bin_tiles
+from fmgs.render.projection import gaussian_alpha, project
+from fmgs.render.types import RasterConfig, RenderOutput
+
+
+def rasterize_reference(
+    means: torch.Tensor,
+    quats: torch.Tensor,
+    scales: torch.Tensor,
+    opacities: torch.Tensor,
+    features: torch.Tensor,
+    camera: Camera,
+    background: torch.Tensor | None = None,
+    config: RasterConfig = RasterConfig(),
+) -> RenderOutput:
+    """Render features [N,D] of Gaussians (means [N,3], quats [N,4] wxyz, scales [N,3], opacities [N])."""
+    N, D = features.shape
+    W, H, T = camera.width, camera.height, config.tile_size
+    dev, fdt = features.device, features.dtype
+    proj = project(means, quats, scales, opacities, camera, config)
+    bins = bin_tiles(proj, W, H, T)
+    n_tiles = bins.tiles_x * bins.tiles_y
+    P = T * T
+
+    # Pixel centres of every tile, [n_tiles, P, 2]; pixels past the image edge are evaluated and cropped.
+    ly, lx = torch.meshgrid(torch.arange(T, device=dev), torch.arange(T, device=dev), indexing="ij")
+    tid = torch.arange(n_tiles, device=dev)
+    px = (tid % bins.tiles_x * T)[:, None] + lx.reshape(1, P)
+    py = (tid // bins.tiles_x * T)[:, None] + ly.reshape(1, P)
+    in_image = (px < W) & (py < H)
+    pix = torch.stack([px, py], -1).to(torch.float64) + 0.5
+
+    counts = (bins.offsets[1:] - bins.offsets[:-1]).tolist()
+    offsets = bins.offsets.tolist()
+    feat_out = torch.zeros(n_tiles, P, D, dtype=fdt, device=dev)
+    wsum_out = torch.zeros(n_tiles, P, dtype=torch.float64, device=dev)
+    zsum_out = torch.zeros(n_tiles, P, dtype=torch.float64, device=dev)
+    T_out = torch.ones(n_tiles, P, dtype=torch.float64, device=dev)
+    n_contrib = torch.zeros(N, dtype=torch.int64, device=dev)
+    weight_sum = torch.zeros(N, dtype=torch.float64, device=dev)
+
+    for tiles, kmax in _tile_batches(counts, P, D, config.chunk_elems):
+        tb = torch.tensor(tiles, device=dev)
+        B = len(tiles)
+        # Padded [B, kmax] list of Gaussian ids; padding points at Gaussian 0 with opacity 0.
+        k = torch.arange(kmax, device=dev)
+        starts = torch.tensor([offsets[t] for t in tiles], device=dev)
+        lens = torch.tensor([counts[t] for t in tiles], device=dev)
+        valid = k[None, :] < lens[:, None]
+        flat = (starts[:, None] + k[None, :]).clamp_max(max(len(bins.gauss_ids) - 1, 0))
+        gid = torch.where(valid, bins.gauss_ids[flat], 0)
+        kc = max(1, config.chunk_elems // (B * max(P, D)))
+        Tcar = torch.ones(B, P, dtype=torch.float64, device=dev)
+        done = torch.zeros(B, P, dtype=torch.bool, device=dev)
+        acc_f = torch.zeros(B, P, D, dtype=fdt, device=dev)
+        acc_w = torch.zeros(B, P, dtype=torch.float64, device=dev)
+        acc_z = torch.zeros(B, P, dtype=torch.float64, device=dev)
+        ok_pix = in_image[tb]
+        pix_b = pix[tb][:, :, None, :]  # [B,P,1,2]
+        for k0 in range(0, kmax, kc):
+            if bool(done[ok_pix].all()):
+                break  # every pixel of these tiles has terminated
+            g = gid[:, k0 : k0 + kc]
+            gv = valid[:, k0 : k0 + kc]
+            d = pix_b - proj.means2d[g][:, None, :, :]  # [B,P,k,2]
+            con = proj.conics[g][:, None]  # [B,1,k,3]
+            power = (
+                con[..., 0] * d[..., 0] ** 2
+                + 2 * con[..., 1] * d[..., 0] * d[..., 1]
+                + con[..., 2] * d[..., 1] ** 2
+            )
+            opac = torch.where(gv, proj.opacities[g], 0.0)[:, None, :]
+            alpha = gaussian_alpha(power, opac, config)
+            # Transmittance after each Gaussian, carried in as the first factor so the product is
+            # formed in the same sequential order as the compiled kernel's loop.
+            Tseq = torch.cumprod(torch.cat([Tcar[..., None], 1.0 - alpha], -1), -1)
+            T_before, T_after = Tseq[..., :-1], Tseq[..., 1:]
+            keep = (T_after >= config.transmittance_min) & ~done[..., None] & (alpha > 0)
+            w = torch.where(keep, alpha * T_before, 0.0)
+            acc_f = acc_f + torch.bmm(w.reshape(B, -1, w.shape[-1]).to(fdt), features[g]).reshape(B, P, D)
+            acc_w = acc_w + w.sum(-1)
+            acc_z = acc_z + (w * proj.depths[g][:, None, :]).sum(-1)
+            stop = ((T_after < config.transmittance_min) & (alpha > 0)).any(-1)
+            # Kept entries are a prefix and T_after falls along it: the carry is the last kept T_after.
+            last = torch.where(keep, T_after, torch.full_like(T_after, 2.0)).amin(-1)
+            Tcar = torch.where(keep.any(-1), last, Tcar)
+            done = done | stop
+            with torch.no_grad():
+                wk = torch.where(ok_pix[..., None], w.detach(), 0.0)
+                n_contrib.index_add_(0, g.reshape(-1), (wk > 0).sum(1).reshape(-1))
+                weight_sum.index_add_(0, g.reshape(-1), wk.sum(1).reshape(-1))
+        feat_out = feat_out.index_copy(0, tb, acc_f)
+        wsum_out = wsum_out.index_copy(0, tb, acc_w)
+        zsum_out = zsum_out.index_copy(0, tb, acc_z)
+        T_out = T_out.index_copy(0, tb, Tcar)
+
+    def untile(x: torch.Tensor) -> torch.Tensor:
+        x = x.reshape(bins.tiles_y, bins.tiles_x, T, T, *x.shape[2:]).transpose(1, 2)
+        return x.reshape(bins.tiles_y * T, bins.tiles_x * T, *x.shape[4:])[:H, :W]
+
+    image = untile(feat_out)
+    if background is not None:
+        image = image + untile(T_out)[..., None].to(fdt) * background.to(device=dev, dtype=fdt)
+    alpha_img = untile(wsum_out)
+    zsum = untile(zsum_out)
+    depth = zsum / torch.where(alpha_img > 0, alpha_img, torch.ones_like(alpha_img))
+    return RenderOutput(
+        image=image,
+        alpha=alpha_img.to(fdt),
+        depth=depth.to(fdt),
+        radii=proj.radii,
+        means2d=proj.means2d,
+        visible=proj.visible,
+        n_contrib=n_contrib.to(torch.int32),
+        weight_sum=weight_sum,
+    )
+
+
+def _tile_batches(counts: list[int], P: int, D: int, budget: int):
+    """Group non-empty tiles into batches of similar list length so B * P * kmax stays near budget.
+
+    Yields (tile indices, longest list in the batch). Sorting by length keeps padding small.
+    """
+    tiles = sorted((c, t) for t, c in enumerate(counts) if c > 0)
+    i = 0
+    while i < len(tiles):
+        kmax = tiles[i][0]
+        batch = []
+        while i < len(tiles):
+            c, t = tiles[i]
+            if batch and (len(batch) + 1) * max(P, D) * max(kmax, c) > budget:
+                break
+            kmax = max(kmax, c)
+            batch.append(t)
+            i += 1
+        yield batch, kmax

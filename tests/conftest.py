@@ -1,0 +1,36 @@
+"""Shared fixtures: data location, hypothesis profiles, the brute-force renderer on sys.path."""
+
+from __future__ import annotations
+
+import os
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+from hypothesis import HealthCheck, settings
+
+sys.path.insert(0, str(Path(__file__).parent))
+
+settings.register_profile(
+    "default", max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow]
+)
+settings.register_profile(
+    "thorough", max_examples=600, deadline=None, suppress_health_check=list(HealthCheck)
+)
+settings.load_profile(os.environ.get("FMGS_HYPOTHESIS_PROFILE", "default"))
+
+DATA_DIR = Path(os.environ.get("FMGS_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"))
+
+
+@pytest.fixture(scope="session")
+def data_dir() -> Path:
+    """../shared/data (or $FMGS_DATA); tests that need it skip with the reason when it is absent."""
+    if not DATA_DIR.is_dir():
+        pytest.skip(f"test data not found at {DATA_DIR} (set FMGS_DATA)")
+    return DATA_DIR
+
+
+@pytest.fixture(autouse=True)
+def _seed() -> None:
+    torch.manual_seed(0)

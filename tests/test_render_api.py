@@ -1,0 +1,88 @@
+"""The rasteriser interface: backend choice, lazy loading, clear errors."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import pytest
+import torch
+from scenes import random_scene
+
+from fmgs.errors import BackendUnavailableError, ValidationError
+from fmgs.render import rasterize
+
+
+def _run(code: str) -> str:
+    return subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, check=True
+    ).stdout.strip()
+
+
+def test_importing_the_library_loads_no_kernel():
+    out = _run(
+        "import sys, fmgs, fmgs.render, fmgs.io.ply, fmgs.sh;"
+        "print(sorted(m for m in ('numba', 'gsplat', 'fmgs.render.cpu_kernels', 'plyfile', 'safetensors')"
+        " if m in sys.modules))"
+    )
+    assert out == "[]"
+
+
+def test_client_package_imports_without_torch():
+    out = _run(
+        "import sys; sys.modules['torch'] = None\n"  # any torch import now raises ImportError
+        "import fmgs_client; print('ok', 'torch' in sys.modules and sys.modules['torch'] is not None)"
+    )
+    assert out == "ok False"
+
+
+def test_auto_backend_choice():
+    sc = random_scene(seed=0, n=10, d=3, width=8, height=8, focal=10.0)
+    a = rasterize(*sc.args(), backend="auto")  # no grad -> cpu kernel
+    b = rasterize(*sc.args(), backend="reference")
+    assert torch.allclose(a.image, b.image, atol=1e-6)
+    m = sc.means.float().clone().requires_grad_(True)
+    out = rasterize(m, *sc.args()[1:], backend="auto")  # grad -> reference
+    out.image.sum().backward()
+    assert m.grad is not None
+    assert out.image.grad_fn is not None
+
+
+def test_cpu_backend_refuses_gradients():
+    sc = random_scene(seed=0, n=4, d=3, width=8, height=8, focal=10.0)
+    f = sc.features.float().clone().requires_grad_(True)
+    m, q, s, o, _, cam = sc.args()
+    with pytest.raises(ValidationError, match="no gradients"):
+        rasterize(m, q, s, o, f, cam, backend="cpu")
+    with torch.no_grad():
+        rasterize(m, q, s, o, f, cam, backend="cpu")
+
+
+def test_unknown_backend_and_bad_shapes():
+    sc = random_scene(seed=0, n=4, d=3, width=8, height=8, focal=10.0)
+    with pytest.raises(ValidationError, match="unknown backend"):
+        rasterize(*sc.args(), backend="vulkan")
+    m, q, s, o, f, cam = sc.args()
+    with pytest.raises(ValidationError, match=r"^features: expected shape \[4,\*\]"):
+        rasterize(m, q, s, o, f[:3], cam)
+    with pytest.raises(ValidationError, match=r"^scales at index 0: must be positive"):
+        rasterize(m, q, -s, o, f, cam)
+    with pytest.raises(ValidationError, match=r"^opacities at index 0: must lie in \[0, 1\]"):
+        rasterize(m, q, s, o + 2, f, cam)
+    with pytest.raises(ValidationError, match=r"^background: expected shape \[3\]"):
+        rasterize(m, q, s, o, f, cam, background=torch.zeros(4))
+
+
+def test_empty_scene():
+    sc = random_scene(seed=0, n=1, d=3, width=8, height=8, focal=10.0)
+    m, q, s, o, f, cam = sc.args()
+    for backend in ("reference", "cpu"):
+        out = rasterize(m[:0], q[:0], s[:0], o[:0], f[:0], cam, background=torch.ones(3), backend=backend)
+        assert torch.equal(out.image, torch.ones(8, 8, 3)) and (out.alpha == 0).all()
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="checks the message shown when CUDA is absent")
+def test_cuda_backend_without_cuda_says_why():
+    sc = random_scene(seed=0, n=4, d=3, width=8, height=8, focal=10.0)
+    with pytest.raises(BackendUnavailableError, match="CUDA device"):
+        rasterize(*sc.args(), backend="cuda")

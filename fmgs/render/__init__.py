@@ -46,12 +46,15 @@ def validate_inputs(
         ("features", features),
     ):
         check_finite(name, t)
-    if (row := first_bad_row((quats == 0).all(1))) is not None:
-        raise ValidationError("quats", "zero quaternion", row)
-    if (row := first_bad_row(scales <= 0)) is not None:
-        raise ValidationError("scales", "must be positive (pass exp(log_scales))", row)
-    if (row := first_bad_row((opacities < 0) | (opacities > 1))) is not None:
-        raise ValidationError("opacities", "must lie in [0, 1] (pass sigmoid(logits))", row)
+    checks = (
+        ("quats", "zero quaternion", lambda: (quats == 0).all(1)),
+        ("scales", "must be positive (pass exp(log_scales))", lambda: scales <= 0),
+        ("opacities", "must lie in [0, 1] (pass sigmoid(logits))", lambda: (opacities < 0) | (opacities > 1)),
+    )
+    for name, reason, bad in checks:
+        mask = bad()
+        if bool(mask.any()):
+            raise ValidationError(name, reason, first_bad_row(mask))
     if background is not None:
         check_shape("background", background, (features.shape[1],))
         check_finite("background", background)

@@ -42,11 +42,13 @@ def project_kernel(
     fov_clip,
     eps2d,
     alpha_min,
+    tile,
     means2d,
     depths,
     conics,
     radii,
     bbox,
+    tbox,
     visible,
     pmax,
 ):  # pragma: no cover
@@ -130,30 +132,82 @@ def project_kernel(
         vis = in_depth and o >= alpha_min and x0 <= x1 and y0 <= y1
         visible[i] = vis
         bbox[i, 0], bbox[i, 1], bbox[i, 2], bbox[i, 3] = int(x0), int(y0), int(x1), int(y1)
+        if vis:  # inclusive tile range, so binning does no integer division
+            tbox[i, 0], tbox[i, 1] = int(x0) // tile, int(y0) // tile
+            tbox[i, 2], tbox[i, 3] = int(x1) // tile, int(y1) // tile
         radii[i] = int(min(max(radius, 0.0), 2147483647.0)) if vis else 0
 
 
 @njit(cache=True)
-def bin_kernel(order, bbox, tile, tiles_x, tiles_y):  # pragma: no cover
+def stable_argsort_positive(keys):  # pragma: no cover
+    """Stable argsort of positive finite float64 keys: LSD radix sort on their bit patterns.
+
+    For positive IEEE doubles the bit pattern orders like the value; equal keys keep index order,
+    the same order as torch.sort(stable=True) and numpy's kind="stable".
+    """
+    n = keys.shape[0]
+    bits = keys.view(np.uint64)
+    idx = np.arange(n)
+    tmp = np.empty(n, dtype=np.int64)
+    count = np.empty(65537, dtype=np.int64)
+    for shift in range(0, 64, 16):
+        count[:] = 0
+        for i in range(n):
+            count[((bits[idx[i]] >> np.uint64(shift)) & np.uint64(0xFFFF)) + 1] += 1
+        if count[1:].max() == n:
+            continue  # every key has the same digit here: the pass would not move anything
+        for d in range(65536):
+            count[d + 1] += count[d]
+        for i in range(n):
+            d = (bits[idx[i]] >> np.uint64(shift)) & np.uint64(0xFFFF)
+            tmp[count[d]] = idx[i]
+            count[d] += 1
+        idx, tmp = tmp, idx
+    return idx
+
+
+@njit(cache=True)
+def bin_kernel(order, tbox, tiles_x, tiles_y):  # pragma: no cover
     """Counting sort of (tile, Gaussian) pairs; ``order`` is already front to back."""
     n_tiles = tiles_x * tiles_y
     counts = np.zeros(n_tiles + 1, dtype=np.int64)
     for k in range(order.shape[0]):
         g = order[k]
-        for ty in range(bbox[g, 1] // tile, bbox[g, 3] // tile + 1):
-            for tx in range(bbox[g, 0] // tile, bbox[g, 2] // tile + 1):
+        for ty in range(tbox[g, 1], tbox[g, 3] + 1):
+            for tx in range(tbox[g, 0], tbox[g, 2] + 1):
                 counts[ty * tiles_x + tx + 1] += 1
     offsets = np.cumsum(counts)
     fill = offsets[:-1].copy()
     ids = np.empty(offsets[-1], dtype=np.int64)
     for k in range(order.shape[0]):
         g = order[k]
-        for ty in range(bbox[g, 1] // tile, bbox[g, 3] // tile + 1):
-            for tx in range(bbox[g, 0] // tile, bbox[g, 2] // tile + 1):
+        for ty in range(tbox[g, 1], tbox[g, 3] + 1):
+            for tx in range(tbox[g, 0], tbox[g, 2] + 1):
                 tid = ty * tiles_x + tx
                 ids[fill[tid]] = g
                 fill[tid] += 1
     return ids, offsets
+
+
+@njit(cache=True, inline="always")
+def exp_neg_table(x, table):  # pragma: no cover
+    """exp(x) for x <= 0 within 2 ulp: exp(-j/256) from ``table`` times a degree-5 Taylor term.
+
+    The reduction r = x + j/256 is exact, |r| < 1/256, so the truncation error is below 1e-17.
+    Arguments past the table fall back to math.exp.
+    """
+    y = -x * 256.0
+    j = int(y)
+    if j >= table.shape[0]:
+        return math.exp(x)
+    r = (j - y) * 0.00390625
+    return table[j] * (1.0 + r * (1.0 + r * (0.5 + r * (1.0 / 6.0 + r * (1.0 / 24.0 + r * (1.0 / 120.0))))))
+
+
+def exp_table(alpha_min: float) -> np.ndarray:
+    """exp(-j/256) for j = 0..J, covering every exponent the alpha_min prefilter lets through."""
+    x_max = math.log(1.0 / alpha_min) * (1 + _PREFILTER_SLACK) + _PREFILTER_SLACK
+    return np.exp(-np.arange(int(x_max * 256) + 2) / 256.0)
 
 
 @njit(cache=True, parallel=True)
@@ -177,6 +231,7 @@ def raster_kernel(
     alpha_max,
     alpha_min,
     t_min,
+    exp_tab,
     image,
     alpha_img,
     depth_img,
@@ -185,7 +240,8 @@ def raster_kernel(
 ):  # pragma: no cover
     """Blend each tile front to back: Gaussians outer, only the pixels inside each one's box inner.
 
-    Every pixel still sees its Gaussians in list order with the same arithmetic as the reference.
+    Every pixel sees its Gaussians in list order and applies the reference's rule in float64; a
+    terminated pixel is marked by a negative transmittance, which also skips it cheaply.
     """
     D = features.shape[1]
     P = tile * tile
@@ -198,7 +254,6 @@ def raster_kernel(
         y_e = min(y_0 + tile, H) - 1
         npix = (x_e - x_0 + 1) * (y_e - y_0 + 1)
         T = np.ones(P)
-        done = np.zeros(P, dtype=np.bool_)
         acc = np.zeros((P, D))
         wsum = np.zeros(P)
         zsum = np.zeros(P)
@@ -206,28 +261,31 @@ def raster_kernel(
         for k in range(start, end):
             g = ids[k]
             u, v = means2d[g, 0], means2d[g, 1]
-            ca, cb, cc = conics[g, 0], conics[g, 1], conics[g, 2]
+            ca, cb2, cc = conics[g, 0], 2.0 * conics[g, 1], conics[g, 2]
             o, z, pm = opac[g], depths[g], pmax[g]
+            xlo, xhi = max(bbox[g, 0], x_0), min(bbox[g, 2], x_e)
             cnt = 0
             wk = 0.0
             for yy in range(max(bbox[g, 1], y_0), min(bbox[g, 3], y_e) + 1):
                 dy = yy + 0.5 - v
+                bdy = cb2 * dy
+                cdy = cc * dy * dy
                 row = (yy - y_0) * tile - x_0
-                for xx in range(max(bbox[g, 0], x_0), min(bbox[g, 2], x_e) + 1):
+                for xx in range(xlo, xhi + 1):
                     p = row + xx
-                    if done[p]:
-                        continue
+                    Tp = T[p]
+                    if Tp < 0.0:
+                        continue  # terminated
                     dx = xx + 0.5 - u
-                    power = ca * dx * dx + 2 * cb * dx * dy + cc * dy * dy
+                    power = ca * dx * dx + bdy * dx + cdy
                     if power > pm:
-                        continue
-                    alpha = min(o * math.exp(-0.5 * power), alpha_max)
+                        continue  # alpha surely below alpha_min
+                    alpha = min(o * exp_neg_table(-0.5 * power, exp_tab), alpha_max)
                     if alpha < alpha_min:
                         continue
-                    Tp = T[p]
                     t_next = Tp * (1.0 - alpha)
                     if t_next < t_min:
-                        done[p] = True
+                        T[p] = -Tp  # keep |T| for the background term
                         ndone += 1
                         continue
                     w = alpha * Tp
@@ -245,7 +303,8 @@ def raster_kernel(
         for yy in range(y_0, y_e + 1):
             for xx in range(x_0, x_e + 1):
                 p = (yy - y_0) * tile + (xx - x_0)
+                Tf = abs(T[p])
                 for c in range(D):
-                    image[yy, xx, c] = acc[p, c] + (T[p] * background[c] if use_bg else 0.0)
+                    image[yy, xx, c] = acc[p, c] + (Tf * background[c] if use_bg else 0.0)
                 alpha_img[yy, xx] = wsum[p]
                 depth_img[yy, xx] = zsum[p] / wsum[p] if wsum[p] > 0 else 0.0

@@ -9,6 +9,7 @@ are blended in their own dtype.
 from __future__ import annotations
 
 import torch
+from torch.utils.checkpoint import checkpoint
 
 from fmgs.cameras import Camera
 from fmgs.render.binning import bin_tiles
@@ -30,6 +31,9 @@ def rasterize_reference(
     N, D = features.shape
     W, H, T = camera.width, camera.height, config.tile_size
     dev, fdt = features.device, features.dtype
+    needs_grad = torch.is_grad_enabled() and any(
+        t.requires_grad for t in (means, quats, scales, opacities, features)
+    )
     proj = project(means, quats, scales, opacities, camera, config)
     bins = bin_tiles(proj, W, H, T)
     n_tiles = bins.tiles_x * bins.tiles_y
@@ -45,10 +49,7 @@ def rasterize_reference(
 
     counts = (bins.offsets[1:] - bins.offsets[:-1]).tolist()
     offsets = bins.offsets.tolist()
-    feat_out = torch.zeros(n_tiles, P, D, dtype=fdt, device=dev)
-    wsum_out = torch.zeros(n_tiles, P, dtype=torch.float64, device=dev)
-    zsum_out = torch.zeros(n_tiles, P, dtype=torch.float64, device=dev)
-    T_out = torch.ones(n_tiles, P, dtype=torch.float64, device=dev)
+    done_tiles, parts = [], []  # per batch: tile ids and (features, weight sum, depth sum, final T)
     n_contrib = torch.zeros(N, dtype=torch.int64, device=dev)
     weight_sum = torch.zeros(N, dtype=torch.float64, device=dev)
 
@@ -75,37 +76,46 @@ def rasterize_reference(
                 break  # every pixel of these tiles has terminated
             g = gid[:, k0 : k0 + kc]
             gv = valid[:, k0 : k0 + kc]
-            d = pix_b - proj.means2d[g][:, None, :, :]  # [B,P,k,2]
-            con = proj.conics[g][:, None]  # [B,1,k,3]
-            power = (
-                con[..., 0] * d[..., 0] ** 2
-                + 2 * con[..., 1] * d[..., 0] * d[..., 1]
-                + con[..., 2] * d[..., 1] ** 2
+            args = (
+                pix_b,
+                g,
+                gv,
+                proj.means2d,
+                proj.conics,
+                proj.opacities,
+                proj.depths,
+                features,
+                Tcar,
+                done,
             )
-            opac = torch.where(gv, proj.opacities[g], 0.0)[:, None, :]
-            alpha = gaussian_alpha(power, opac, config)
-            # Transmittance after each Gaussian, carried in as the first factor so the product is
-            # formed in the same sequential order as the compiled kernel's loop.
-            Tseq = torch.cumprod(torch.cat([Tcar[..., None], 1.0 - alpha], -1), -1)
-            T_before, T_after = Tseq[..., :-1], Tseq[..., 1:]
-            keep = (T_after >= config.transmittance_min) & ~done[..., None] & (alpha > 0)
-            w = torch.where(keep, alpha * T_before, 0.0)
-            acc_f = acc_f + torch.bmm(w.reshape(B, -1, w.shape[-1]).to(fdt), features[g]).reshape(B, P, D)
-            acc_w = acc_w + w.sum(-1)
-            acc_z = acc_z + (w * proj.depths[g][:, None, :]).sum(-1)
-            stop = ((T_after < config.transmittance_min) & (alpha > 0)).any(-1)
-            # Kept entries are a prefix and T_after falls along it: the carry is the last kept T_after.
-            last = torch.where(keep, T_after, torch.full_like(T_after, 2.0)).amin(-1)
-            Tcar = torch.where(keep.any(-1), last, Tcar)
+            if needs_grad:
+                # Recompute the chunk in backward instead of keeping its [B,P,k] intermediates: the
+                # saved inputs are references to the shared tensors, so memory stays one chunk deep.
+                df, dw, dz, Tcar, stop, w = checkpoint(_blend_chunk, *args, config, use_reentrant=False)
+            else:
+                df, dw, dz, Tcar, stop, w = _blend_chunk(*args, config)
+            acc_f = acc_f + df
+            acc_w = acc_w + dw
+            acc_z = acc_z + dz
             done = done | stop
             with torch.no_grad():
                 wk = torch.where(ok_pix[..., None], w.detach(), 0.0)
                 n_contrib.index_add_(0, g.reshape(-1), (wk > 0).sum(1).reshape(-1))
                 weight_sum.index_add_(0, g.reshape(-1), wk.sum(1).reshape(-1))
-        feat_out = feat_out.index_copy(0, tb, acc_f)
-        wsum_out = wsum_out.index_copy(0, tb, acc_w)
-        zsum_out = zsum_out.index_copy(0, tb, acc_z)
-        T_out = T_out.index_copy(0, tb, Tcar)
+        done_tiles.append(tb)
+        parts.append((acc_f, acc_w, acc_z, Tcar))
+
+    # One scatter per output (tiles without Gaussians keep zero sums and T = 1).
+    tb_all = torch.cat(done_tiles) if done_tiles else torch.zeros(0, dtype=torch.int64, device=dev)
+
+    def assemble(i: int, fill: float, dtype: torch.dtype, *shape: int) -> torch.Tensor:
+        base = torch.full((n_tiles, P, *shape), fill, dtype=dtype, device=dev)
+        return base.index_copy(0, tb_all, torch.cat([p[i] for p in parts])) if parts else base
+
+    feat_out = assemble(0, 0.0, fdt, D)
+    wsum_out = assemble(1, 0.0, torch.float64)
+    zsum_out = assemble(2, 0.0, torch.float64)
+    T_out = assemble(3, 1.0, torch.float64)
 
     def untile(x: torch.Tensor) -> torch.Tensor:
         x = x.reshape(bins.tiles_y, bins.tiles_x, T, T, *x.shape[2:]).transpose(1, 2)
@@ -127,6 +137,39 @@ def rasterize_reference(
         n_contrib=n_contrib.to(torch.int32),
         weight_sum=weight_sum,
     )
+
+
+def _blend_chunk(
+    pix_b, g, gv, means2d, conics, opacities, depths, features, Tcar, done, config: RasterConfig
+):
+    """Blend one chunk of k Gaussians into B tiles of P pixels, front to back.
+
+    pix_b [B,P,1,2] pixel centres; g [B,k] Gaussian ids (gv marks real entries, the rest is padding);
+    Tcar [B,P] transmittance carried in; done [B,P] pixels already terminated.
+    Returns feature, weight and depth sums [B,P,D], [B,P], [B,P], the carried-out transmittance, the
+    pixels that terminated here, and the weights [B,P,k] (for statistics).
+    """
+    B, P = Tcar.shape
+    d = pix_b - means2d[g][:, None, :, :]  # [B,P,k,2]
+    con = conics[g][:, None]  # [B,1,k,3]
+    power = (
+        con[..., 0] * d[..., 0] ** 2 + 2 * con[..., 1] * d[..., 0] * d[..., 1] + con[..., 2] * d[..., 1] ** 2
+    )
+    opac = torch.where(gv, opacities[g], 0.0)[:, None, :]
+    alpha = gaussian_alpha(power, opac, config)
+    # Transmittance after each Gaussian, carried in as the first factor so the product is formed in
+    # the same sequential order as the compiled kernel's loop.
+    Tseq = torch.cumprod(torch.cat([Tcar[..., None], 1.0 - alpha], -1), -1)
+    T_before, T_after = Tseq[..., :-1], Tseq[..., 1:]
+    keep = (T_after >= config.transmittance_min) & ~done[..., None] & (alpha > 0)
+    w = torch.where(keep, alpha * T_before, 0.0)
+    df = torch.bmm(w.reshape(B, -1, w.shape[-1]).to(features.dtype), features[g]).reshape(B, P, -1)
+    dw = w.sum(-1)
+    dz = (w * depths[g][:, None, :]).sum(-1)
+    stop = ((T_after < config.transmittance_min) & (alpha > 0)).any(-1)
+    # Kept entries are a prefix and T_after falls along it: the carry is the last kept T_after.
+    last = torch.where(keep, T_after, torch.full_like(T_after, 2.0)).amin(-1)
+    return df, dw, dz, torch.where(keep.any(-1), last, Tcar), stop, w
 
 
 def _tile_batches(counts: list[int], P: int, D: int, budget: int):

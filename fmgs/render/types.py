@@ -24,7 +24,7 @@ class RasterConfig:
     """The EWA Jacobian clamps x/z, y/z to the image's field of view plus this fraction of it."""
     tile_size: int = 16
     """Tile edge in pixels for binning Gaussians."""
-    chunk_elems: int = 1 << 22
+    chunk_elems: int = 1 << 20
     """Reference path: pixel x Gaussian (x channel) elements evaluated at once; bounds memory."""
 
     def __post_init__(self) -> None:

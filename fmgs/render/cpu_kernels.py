@@ -64,6 +64,15 @@ def project_kernel(
         depths[i] = z
         in_depth = z > near and z < far
         zs = z if in_depth else 1.0
+        if not in_depth:  # culled: only the (unused) centre is reported, as the PyTorch twin does
+            means2d[i, 0] = fx * px / zs + cx
+            means2d[i, 1] = fy * py / zs + cy
+            conics[i, 0] = conics[i, 1] = conics[i, 2] = 0.0
+            radii[i] = 0
+            visible[i] = False
+            pmax[i] = 0.0
+            bbox[i, 0] = bbox[i, 1] = bbox[i, 2] = bbox[i, 3] = 0
+            continue
         # rotation from the quaternion, scaled by its largest component first (denormal-safe)
         qw, qx, qy, qz = quats[i, 0], quats[i, 1], quats[i, 2], quats[i, 3]
         qm = max(abs(qw), abs(qx), abs(qy), abs(qz))
@@ -210,7 +219,7 @@ def exp_table(alpha_min: float) -> np.ndarray:
     return np.exp(-np.arange(int(x_max * 256) + 2) / 256.0)
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, parallel=True, fastmath={"contract"})
 def raster_kernel(
     ids,
     offsets,

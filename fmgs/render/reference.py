@@ -39,13 +39,9 @@ def rasterize_reference(
     n_tiles = bins.tiles_x * bins.tiles_y
     P = T * T
 
-    # Pixel centres of every tile, [n_tiles, P, 2]; pixels past the image edge are evaluated and cropped.
+    # Pixel offsets inside a tile; pixels past the image edge are evaluated and cropped.
     ly, lx = torch.meshgrid(torch.arange(T, device=dev), torch.arange(T, device=dev), indexing="ij")
-    tid = torch.arange(n_tiles, device=dev)
-    px = (tid % bins.tiles_x * T)[:, None] + lx.reshape(1, P)
-    py = (tid // bins.tiles_x * T)[:, None] + ly.reshape(1, P)
-    in_image = (px < W) & (py < H)
-    pix = torch.stack([px, py], -1).to(torch.float64) + 0.5
+    lx, ly = lx.reshape(1, P), ly.reshape(1, P)
 
     counts = (bins.offsets[1:] - bins.offsets[:-1]).tolist()
     offsets = bins.offsets.tolist()
@@ -69,8 +65,10 @@ def rasterize_reference(
         acc_f = torch.zeros(B, P, D, dtype=fdt, device=dev)
         acc_w = torch.zeros(B, P, dtype=torch.float64, device=dev)
         acc_z = torch.zeros(B, P, dtype=torch.float64, device=dev)
-        ok_pix = in_image[tb]
-        pix_b = pix[tb][:, :, None, :]  # [B,P,1,2]
+        px = (tb % bins.tiles_x * T)[:, None] + lx  # [B,P] pixel column
+        py = (tb // bins.tiles_x * T)[:, None] + ly  # [B,P] pixel row
+        ok_pix = (px < W) & (py < H)
+        pix_b = (torch.stack([px, py], -1).to(torch.float64) + 0.5)[:, :, None, :]  # [B,P,1,2] centres
         for k0 in range(0, kmax, kc):
             if bool(done[ok_pix].all()):
                 break  # every pixel of these tiles has terminated

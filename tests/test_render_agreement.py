@@ -59,11 +59,11 @@ def test_tiles_and_chunks_do_not_change_the_result(params, tile, chunk):
         _check(out, ref, torch.float64, f"{backend} tile={tile} chunk={chunk}")
 
 
-@given(scene_params)
-def test_cpu_projection_twin(params):
-    """The numba projection kernel and the PyTorch projection agree (float64)."""
+@given(scene_params, st.sampled_from([torch.float32, torch.float64]))
+def test_cpu_projection_twin(params, dtype):
+    """The numba projection kernel and the PyTorch projection agree (both widen inputs to float64)."""
     sc = random_scene(**params)
-    m, q, s, o, _, cam = sc.args(torch.float64)
+    m, q, s, o, _, cam = sc.args(dtype)
     cfg = RasterConfig()
     a = project(m, q, s, o, cam, cfg)
     b = project_cpu(m, q, s, o, cam, cfg)

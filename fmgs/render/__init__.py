@@ -46,15 +46,18 @@ def validate_inputs(
         ("features", features),
     ):
         check_finite(name, t)
-    checks = (
-        ("quats", "zero quaternion", lambda: (quats == 0).all(1)),
-        ("scales", "must be positive (pass exp(log_scales))", lambda: scales <= 0),
-        ("opacities", "must lie in [0, 1] (pass sigmoid(logits))", lambda: (opacities < 0) | (opacities > 1)),
-    )
-    for name, reason, bad in checks:
-        mask = bad()
-        if bool(mask.any()):
-            raise ValidationError(name, reason, first_bad_row(mask))
+    # Reductions first (no temporaries); the masks are built only to name the first bad row.
+    if quats.numel() and bool(quats.abs().amax(1).min() == 0):
+        raise ValidationError("quats", "zero quaternion", first_bad_row((quats == 0).all(1)))
+    if scales.numel() and bool(scales.min() <= 0):
+        raise ValidationError("scales", "must be positive (pass exp(log_scales))", first_bad_row(scales <= 0))
+    if opacities.numel():
+        lo, hi = torch.aminmax(opacities)
+        if bool(lo < 0) or bool(hi > 1):
+            bad = (opacities < 0) | (opacities > 1)
+            raise ValidationError(
+                "opacities", "must lie in [0, 1] (pass sigmoid(logits))", first_bad_row(bad)
+            )
     if background is not None:
         check_shape("background", background, (features.shape[1],))
         check_finite("background", background)

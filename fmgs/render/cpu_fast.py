@@ -37,8 +37,12 @@ def _np(t: torch.Tensor) -> np.ndarray:
 
 
 def _f64(t: torch.Tensor) -> np.ndarray:
-    """Geometry goes to the kernels as float64 (numba's float() keeps float32 scalars as float32)."""
     return np.ascontiguousarray(t.detach().cpu().numpy(), dtype=np.float64)
+
+
+def _geom(t: torch.Tensor) -> np.ndarray:
+    """Geometry as float32 or float64 without a copy; the kernels widen every value to float64."""
+    return _np(t) if t.dtype in (torch.float32, torch.float64) else _f64(t)
 
 
 def project_cpu(
@@ -59,7 +63,7 @@ def project_cpu(
     }
     V = camera.viewmat.numpy()
     k.project_kernel(
-        *(_f64(x) for x in (means, quats, scales, opacities)),
+        *(_geom(x) for x in (means, quats, scales, opacities)),
         np.ascontiguousarray(V[:3, :3]),
         np.ascontiguousarray(V[:3, 3]),
         camera.fx, camera.fy, camera.cx, camera.cy,
@@ -107,7 +111,7 @@ def rasterize_cpu(
     with numba.parallel_chunksize(1):
         k.raster_kernel(
             ids, offsets, tile_order, T, tiles_x, W, H,
-            p["means2d"], p["conics"], _f64(opacities), p["depths"], p["pmax"], p["bbox"],
+            p["means2d"], p["conics"], _geom(opacities), p["depths"], p["pmax"], p["bbox"],
             feats, bg, background is not None,
             config.alpha_max, config.alpha_min, config.transmittance_min, _exp_table(config.alpha_min),
             image, alpha, depth, pair_cnt, pair_w,

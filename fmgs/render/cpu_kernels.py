@@ -57,7 +57,8 @@ def project_kernel(
     lim_xp, lim_xn = (W - cx) / fx + fov_clip * tan_x, cx / fx + fov_clip * tan_x
     lim_yp, lim_yn = (H - cy) / fy + fov_clip * tan_y, cy / fy + fov_clip * tan_y
     for i in prange(n):
-        mx, my, mz = means[i, 0], means[i, 1], means[i, 2]
+        # Inputs may be float32: every value is widened to float64 explicitly.
+        mx, my, mz = np.float64(means[i, 0]), np.float64(means[i, 1]), np.float64(means[i, 2])
         px = R[0, 0] * mx + R[0, 1] * my + R[0, 2] * mz + t[0]
         py = R[1, 0] * mx + R[1, 1] * my + R[1, 2] * mz + t[1]
         z = R[2, 0] * mx + R[2, 1] * my + R[2, 2] * mz + t[2]
@@ -74,7 +75,12 @@ def project_kernel(
             bbox[i, 0] = bbox[i, 1] = bbox[i, 2] = bbox[i, 3] = 0
             continue
         # rotation from the quaternion, scaled by its largest component first (denormal-safe)
-        qw, qx, qy, qz = quats[i, 0], quats[i, 1], quats[i, 2], quats[i, 3]
+        qw, qx, qy, qz = (
+            np.float64(quats[i, 0]),
+            np.float64(quats[i, 1]),
+            np.float64(quats[i, 2]),
+            np.float64(quats[i, 3]),
+        )
         qm = max(abs(qw), abs(qx), abs(qy), abs(qz))
         if qm > 0:
             qw, qx, qy, qz = qw / qm, qx / qm, qy / qm, qz / qm
@@ -105,7 +111,7 @@ def project_kernel(
             j11 * R[1, 1] + j12 * R[2, 1],
             j11 * R[1, 2] + j12 * R[2, 2],
         )
-        s0, s1, s2 = scales[i, 0], scales[i, 1], scales[i, 2]
+        s0, s1, s2 = np.float64(scales[i, 0]), np.float64(scales[i, 1]), np.float64(scales[i, 2])
         m00 = _clampm((a0 * r00 + a1 * r10 + a2 * r20) * s0)
         m01 = _clampm((a0 * r01 + a1 * r11 + a2 * r21) * s1)
         m02 = _clampm((a0 * r02 + a1 * r12 + a2 * r22) * s2)
@@ -127,7 +133,7 @@ def project_kernel(
         v = fy * py / zs + cy
         means2d[i, 0] = u
         means2d[i, 1] = v
-        o = opac[i]
+        o = np.float64(opac[i])
         lam = 0.5 * (a + c_) + math.sqrt((0.5 * (a - c_)) ** 2 + b * b)
         radius = math.ceil(3.0 * math.sqrt(lam))
         r2 = 2.0 * math.log(max(o / alpha_min, 1.0))
@@ -271,7 +277,7 @@ def raster_kernel(
             g = ids[k]
             u, v = means2d[g, 0], means2d[g, 1]
             ca, cb2, cc = conics[g, 0], 2.0 * conics[g, 1], conics[g, 2]
-            o, z, pm = opac[g], depths[g], pmax[g]
+            o, z, pm = np.float64(opac[g]), depths[g], pmax[g]
             xlo, xhi = max(bbox[g, 0], x_0), min(bbox[g, 2], x_e)
             cnt = 0
             wk = 0.0

@@ -1,0 +1,1 @@
+"""Datasets: COLMAP models and transforms.json read into one posed-image dataset type."""

@@ -1,0 +1,208 @@
+"""COLMAP sparse models, text and binary, read without COLMAP itself.
+
+Layout reference: COLMAP's documented output format (cameras, images, points3D in .txt or .bin).
+Poses are world-to-camera (qvec wxyz, tvec), OpenCV axes, so they convert to fmgs Cameras directly.
+"""
+
+from __future__ import annotations
+
+import struct
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from fmgs.errors import ValidationError
+
+# model id -> (name, number of parameters), as COLMAP numbers them.
+CAMERA_MODELS = {
+    0: ("SIMPLE_PINHOLE", 3),
+    1: ("PINHOLE", 4),
+    2: ("SIMPLE_RADIAL", 4),
+    3: ("RADIAL", 5),
+    4: ("OPENCV", 8),
+    5: ("OPENCV_FISHEYE", 8),
+    6: ("FULL_OPENCV", 12),
+    7: ("FOV", 5),
+    8: ("SIMPLE_RADIAL_FISHEYE", 4),
+    9: ("RADIAL_FISHEYE", 5),
+    10: ("THIN_PRISM_FISHEYE", 12),
+    11: ("RAD_TAN_THIN_PRISM_FISHEYE", 16),
+}
+MODEL_PARAMS = {name: n for name, n in CAMERA_MODELS.values()}
+UNDISTORTED = ("SIMPLE_PINHOLE", "PINHOLE")
+
+
+@dataclass
+class ColmapCamera:
+    id: int
+    model: str
+    width: int
+    height: int
+    params: list[float]
+
+    @property
+    def is_pinhole(self) -> bool:
+        """True when no undistortion is needed (pinhole models, or radial ones with zero coefficients)."""
+        if self.model in UNDISTORTED:
+            return True
+        k = 3 if self.model in ("SIMPLE_RADIAL", "RADIAL") else 4
+        return self.model in ("SIMPLE_RADIAL", "RADIAL", "OPENCV", "FULL_OPENCV") and not any(self.params[k:])
+
+
+@dataclass
+class ColmapImage:
+    id: int
+    qvec: np.ndarray  # [4] wxyz, world-to-camera
+    tvec: np.ndarray  # [3]
+    camera_id: int
+    name: str
+
+
+@dataclass
+class ColmapModel:
+    cameras: dict[int, ColmapCamera]
+    images: dict[int, ColmapImage]
+    points: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # [P,3] xyz
+    colors: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), dtype=np.uint8))  # [P,3] rgb
+
+
+def read_model(path: str | Path) -> ColmapModel:
+    """Read a COLMAP model folder (``cameras``, ``images``, ``points3D`` as .bin or .txt)."""
+    path = Path(path)
+    for ext, reader in ((".bin", _read_binary), (".txt", _read_text)):
+        if (path / f"cameras{ext}").is_file() and (path / f"images{ext}").is_file():
+            try:
+                return reader(path)
+            except (struct.error, ValueError, IndexError, UnicodeDecodeError) as e:
+                raise ValidationError(str(path), f"malformed COLMAP {ext[1:]} model ({e})") from e
+    raise ValidationError(str(path), "no COLMAP model here (need cameras and images as .bin or .txt)")
+
+
+def _check_camera(cam: ColmapCamera) -> ColmapCamera:
+    want = MODEL_PARAMS.get(cam.model)
+    if want is None:
+        raise ValidationError("cameras", f"camera {cam.id}: unknown model {cam.model!r}")
+    if len(cam.params) != want:
+        raise ValidationError(
+            "cameras", f"camera {cam.id}: {cam.model} takes {want} parameters, got {len(cam.params)}"
+        )
+    if not np.isfinite(cam.params).all() or cam.width < 1 or cam.height < 1:
+        raise ValidationError("cameras", f"camera {cam.id}: non-finite parameters or empty size")
+    return cam
+
+
+def _check_image(img: ColmapImage) -> ColmapImage:
+    if not (np.isfinite(img.qvec).all() and np.isfinite(img.tvec).all()) or not np.any(img.qvec):
+        raise ValidationError("images", f"image {img.id} ({img.name}): non-finite or zero pose")
+    return img
+
+
+def _lines(path: Path):
+    for line in path.read_text().splitlines():
+        line = line.strip()
+        if line and not line.startswith("#"):
+            yield line
+
+
+def _read_text(path: Path) -> ColmapModel:
+    cameras = {}
+    for line in _lines(path / "cameras.txt"):
+        p = line.split()
+        cam = ColmapCamera(int(p[0]), p[1], int(p[2]), int(p[3]), [float(x) for x in p[4:]])
+        cameras[cam.id] = _check_camera(cam)
+    images = {}
+    # images.txt holds two lines per image; the second (2D points) may be empty, so parse by shape:
+    # a pose line has 10 fields, the last being the name (which may contain spaces).
+    for line in (path / "images.txt").read_text().splitlines():
+        s = line.strip()
+        if not s or s.startswith("#"):
+            continue
+        p = s.split(maxsplit=9)
+        if len(p) < 10 or not p[0].isdigit() or not p[8].lstrip("-").isdigit():
+            continue  # a 2D-points line
+        try:
+            nums = [float(x) for x in p[1:8]]
+        except ValueError:
+            continue
+        img = ColmapImage(int(p[0]), np.array(nums[:4]), np.array(nums[4:7]), int(p[8]), p[9])
+        images[img.id] = _check_image(img)
+    pts, cols = [], []
+    if (path / "points3D.txt").is_file():
+        for line in _lines(path / "points3D.txt"):
+            p = line.split()
+            pts.append([float(x) for x in p[1:4]])
+            cols.append([int(x) for x in p[4:7]])
+    return ColmapModel(cameras, images, *_points(pts, cols))
+
+
+def _points(pts, cols):
+    P = np.asarray(pts, dtype=np.float64).reshape(-1, 3)
+    C = np.asarray(cols, dtype=np.uint8).reshape(-1, 3)
+    keep = np.isfinite(P).all(1)
+    return P[keep], C[keep]
+
+
+class _Reader:
+    def __init__(self, data: bytes) -> None:
+        self.data, self.pos = data, 0
+
+    def take(self, fmt: str):
+        out = struct.unpack_from("<" + fmt, self.data, self.pos)
+        self.pos += struct.calcsize("<" + fmt)
+        return out
+
+    def cstring(self) -> str:
+        end = self.data.index(b"\0", self.pos)
+        s = self.data[self.pos : end].decode("utf-8")
+        self.pos = end + 1
+        return s
+
+
+def _read_binary(path: Path) -> ColmapModel:
+    r = _Reader((path / "cameras.bin").read_bytes())
+    cameras = {}
+    for _ in range(r.take("Q")[0]):
+        cid, mid, w, h = r.take("iiQQ")
+        if mid not in CAMERA_MODELS:
+            raise ValidationError("cameras", f"camera {cid}: unknown model id {mid}")
+        name, n = CAMERA_MODELS[mid]
+        cameras[cid] = _check_camera(ColmapCamera(cid, name, w, h, list(r.take(f"{n}d"))))
+    r = _Reader((path / "images.bin").read_bytes())
+    images = {}
+    for _ in range(r.take("Q")[0]):
+        iid, *pose, cid = r.take("i7di")
+        name = r.cstring()
+        n2d = r.take("Q")[0]
+        r.pos += n2d * struct.calcsize("<ddq")
+        images[iid] = _check_image(ColmapImage(iid, np.array(pose[:4]), np.array(pose[4:]), cid, name))
+    pts, cols = [], []
+    if (path / "points3D.bin").is_file():
+        r = _Reader((path / "points3D.bin").read_bytes())
+        for _ in range(r.take("Q")[0]):
+            _, x, y, z, cr, cg, cb, _err = r.take("Q3d3Bd")
+            track = r.take("Q")[0]
+            r.pos += track * struct.calcsize("<ii")
+            pts.append([x, y, z])
+            cols.append([cr, cg, cb])
+    return ColmapModel(cameras, images, *_points(pts, cols))
+
+
+def write_binary(model: ColmapModel, path: str | Path) -> None:
+    """Write ``model`` as cameras.bin / images.bin / points3D.bin (no 2D observations or tracks)."""
+    path = Path(path)
+    path.mkdir(parents=True, exist_ok=True)
+    ids = {name: mid for mid, (name, _) in CAMERA_MODELS.items()}
+    out = [struct.pack("<Q", len(model.cameras))]
+    for c in model.cameras.values():
+        out.append(struct.pack(f"<iiQQ{len(c.params)}d", c.id, ids[c.model], c.width, c.height, *c.params))
+    (path / "cameras.bin").write_bytes(b"".join(out))
+    out = [struct.pack("<Q", len(model.images))]
+    for im in model.images.values():
+        out.append(struct.pack("<i7di", im.id, *im.qvec, *im.tvec, im.camera_id))
+        out.append(im.name.encode() + b"\0" + struct.pack("<Q", 0))
+    (path / "images.bin").write_bytes(b"".join(out))
+    out = [struct.pack("<Q", len(model.points))]
+    for i, (p, c) in enumerate(zip(model.points, model.colors, strict=True)):
+        out.append(struct.pack("<Q3d3BdQ", i + 1, *p, *c, 0.0, 0))
+    (path / "points3D.bin").write_bytes(b"".join(out))

@@ -1,0 +1,105 @@
+"""Dataset readers: COLMAP text and binary, transforms.json, the held-out split."""
+
+from __future__ import annotations
+
+import json
+import logging
+import shutil
+
+import numpy as np
+import pytest
+import torch
+
+from fmgs.data.colmap import read_model, write_binary
+from fmgs.data.dataset import load_dataset, read_colmap, read_transforms
+from fmgs.errors import ValidationError
+
+
+@pytest.fixture(scope="module")
+def snow(data_dir):
+    return data_dir / "snowmiku_small"
+
+
+def test_colmap_text_model(snow):
+    m = read_model(snow / "sparse/0")
+    assert len(m.images) == 97 and len(m.cameras) == 1
+    assert m.points.shape == (25_784, 3) and m.colors.dtype == np.uint8
+    cam = next(iter(m.cameras.values()))
+    assert cam.model == "PINHOLE" and (cam.width, cam.height) == (495, 371)
+
+
+def test_colmap_binary_round_trip(snow, tmp_path):
+    m = read_model(snow / "sparse/0")
+    write_binary(m, tmp_path / "bin")
+    b = read_model(tmp_path / "bin")
+    assert b.cameras.keys() == m.cameras.keys() and b.images.keys() == m.images.keys()
+    for i in m.images:
+        assert b.images[i].name == m.images[i].name
+        np.testing.assert_array_equal(b.images[i].qvec, m.images[i].qvec)
+        np.testing.assert_array_equal(b.images[i].tvec, m.images[i].tvec)
+    np.testing.assert_array_equal(b.points, m.points)
+    np.testing.assert_array_equal(b.colors, m.colors)
+
+
+def test_colmap_and_transforms_datasets_agree(snow):
+    a = load_dataset(snow)  # transforms.json wins when both exist
+    c = read_colmap(snow / "sparse/0", snow / "images")
+    assert len(a) == len(c) == 97
+    for fa, fc in zip(a.frames, c.frames, strict=True):
+        assert fa.image_path.name == fc.image_path.name
+        assert torch.allclose(fa.camera.viewmat, fc.camera.viewmat, atol=1e-9)
+    assert c.points is not None and a.points is None
+
+
+def test_split_every_eighth(snow):
+    ds = load_dataset(snow)
+    train, test = ds.split()
+    assert test == list(range(0, 97, 8)) and len(train) + len(test) == 97 and not set(train) & set(test)
+
+
+def test_image_loading_and_scaling(snow):
+    ds = load_dataset(snow)
+    img, cam = ds.image(3)
+    assert img.shape == (371, 495, 3) and img.dtype == torch.float32 and 0 <= img.min() and img.max() <= 1
+    small, cam2 = ds.image(3, scale=0.25)
+    assert small.shape == (cam2.height, cam2.width, 3) and cam2.fx == pytest.approx(cam.fx * cam2.width / 495)
+
+
+def test_missing_images_are_skipped_with_a_warning(snow, tmp_path, caplog):
+    meta = json.loads((snow / "transforms.json").read_text())
+    (tmp_path / "images").mkdir()
+    for fr in meta["frames"][:5]:
+        shutil.copy(snow / fr["file_path"], tmp_path / fr["file_path"])
+    (tmp_path / "transforms.json").write_text(json.dumps(meta))
+    with caplog.at_level(logging.WARNING):
+        ds = read_transforms(tmp_path / "transforms.json")
+    assert len(ds) == 5
+    assert sum("missing" in r.message for r in caplog.records) == 92
+
+
+def test_camera_angle_and_extensionless_paths(snow, tmp_path):
+    shutil.copy(snow / "images/20240212_003919.jpg", tmp_path / "r_0.jpg")
+    meta = {"camera_angle_x": 0.9, "frames": [{"file_path": "./r_0", "transform_matrix": np.eye(4).tolist()}]}
+    (tmp_path / "transforms.json").write_text(json.dumps(meta))
+    ds = read_transforms(tmp_path / "transforms.json")
+    cam = ds.frames[0].camera
+    assert (cam.width, cam.height) == (495, 371)
+    assert cam.fx == pytest.approx(0.5 * 495 / np.tan(0.45))
+
+
+def test_bad_inputs_are_named(tmp_path, snow):
+    with pytest.raises(ValidationError, match=r"no transforms\.json and no COLMAP model"):
+        load_dataset(tmp_path)
+    (tmp_path / "transforms.json").write_text("{not json")
+    with pytest.raises(ValidationError, match=r"cannot read transforms\.json"):
+        load_dataset(tmp_path)
+    bad = tmp_path / "m"
+    bad.mkdir()
+    (bad / "cameras.txt").write_text("1 OPENCV 10 10 5 5 5 5 0.1 0 0 0\n")
+    (bad / "images.txt").write_text("1 1 0 0 0 0 0 0 1 a.png\n\n")
+    (tmp_path / "imgs").mkdir()
+    with pytest.raises(ValidationError, match="undistort"):
+        read_colmap(bad, tmp_path / "imgs")
+    (bad / "cameras.txt").write_text("1 PINHOLE 10 10 5 5\n")
+    with pytest.raises(ValidationError, match="takes 4 parameters"):
+        read_model(bad)

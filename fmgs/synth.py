@@ -1,0 +1,282 @@
+"""Synthetic labelled scenes rendered by an independent renderer (Open3D ray casting, CPU, no display).
+
+A ground plane with named, procedurally textured primitives, seen from cameras on a ring: RGB,
+z-depth and per-pixel label maps, written as a transforms.json dataset (OpenGL camera-to-world, the
+instant-ngp/nerfstudio layout) plus ``scene.json`` with object names, ground-truth 3D boxes and
+per-view 2D boxes, and ``points3D.ply`` (surface samples with their colours) for initialisation.
+
+Shading is diffuse (albedo x (ambient + Lambert)), so the images are view-consistent.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+from fmgs.io.atomic import atomic_path
+
+# name, base colour (linear RGB in [0,1]); label ids: 0 background, 1 floor, 2.. objects in this order
+OBJECTS = (
+    ("red cube", (0.85, 0.15, 0.12)),
+    ("blue ball", (0.15, 0.35, 0.9)),
+    ("green cylinder", (0.15, 0.7, 0.25)),
+    ("yellow cone", (0.95, 0.85, 0.15)),
+    ("purple donut", (0.6, 0.2, 0.75)),
+    ("orange pyramid", (0.95, 0.5, 0.1)),
+    ("white ring", (0.92, 0.92, 0.9)),
+    ("cyan box", (0.1, 0.8, 0.85)),
+)
+FLOOR_COLOUR = (0.55, 0.5, 0.45)
+BACKGROUND = (0.8, 0.85, 0.95)
+LIGHT = np.array([0.4, 0.5, 0.77]) / np.linalg.norm([0.4, 0.5, 0.77])  # world +z is up
+
+
+@dataclass(frozen=True)
+class SynthConfig:
+    """What to generate."""
+
+    views: int = 32
+    """Number of cameras (on a ring, alternating between two elevations)."""
+    width: int = 128
+    """Image width in pixels."""
+    height: int = 96
+    """Image height in pixels."""
+    objects: int = 6
+    """Number of objects (at most len(OBJECTS))."""
+    seed: int = 0
+    """Seeds object placement and sizes."""
+    fov_deg: float = 55.0
+    """Horizontal field of view."""
+    ring_radius: float = 4.0
+    """Distance of the cameras from the scene centre (horizontal)."""
+    points: int = 20_000
+    """Surface samples written to points3D.ply for initialisation."""
+    supersample: int = 3
+    """RGB is the mean of supersample x supersample rays per pixel (anti-aliased, consistent across
+    views); labels and depth come from the ray through the pixel centre. Must be odd."""
+    checker: float = 0.15
+    """Edge of the 3D checkerboard cells of the procedural texture (scene units)."""
+
+
+def _look_at(eye: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """[4,4] world-to-camera (OpenCV: x right, y down, z forward), world +z up."""
+    z = target - eye
+    z = z / np.linalg.norm(z)
+    x = np.cross(z, np.array([0.0, 0.0, 1.0]))
+    x = x / np.linalg.norm(x)
+    y = np.cross(z, x)
+    R = np.stack([x, y, z])
+    V = np.eye(4)
+    V[:3, :3] = R
+    V[:3, 3] = -R @ eye
+    return V
+
+
+def _meshes(cfg: SynthConfig):
+    """(name, colour, open3d TriangleMesh) for the floor and each object, placed without overlap."""
+    import open3d as o3d
+
+    if not 1 <= cfg.objects <= len(OBJECTS):
+        raise ValueError(f"objects must be in 1..{len(OBJECTS)}, got {cfg.objects}")
+    rng = np.random.default_rng(cfg.seed)
+    g = o3d.geometry.TriangleMesh
+    makers = {
+        "red cube": lambda s: g.create_box(s, s, s),
+        "blue ball": lambda s: g.create_sphere(s / 2, resolution=24),
+        "green cylinder": lambda s: g.create_cylinder(s / 3, s, resolution=24),
+        "yellow cone": lambda s: g.create_cone(s / 2.5, s, resolution=24),
+        "purple donut": lambda s: g.create_torus(s / 2.6, s / 7, radial_resolution=24, tubular_resolution=12),
+        "orange pyramid": lambda s: g.create_cone(s / 2, s * 0.8, resolution=4),
+        "white ring": lambda s: g.create_torus(s / 2.2, s / 12, radial_resolution=24, tubular_resolution=8),
+        "cyan box": lambda s: g.create_box(s * 1.2, s * 0.5, s * 0.4),
+    }
+    floor = g.create_box(8.0, 8.0, 0.02)
+    floor.translate((-4.0, -4.0, -0.02))
+    out = [("floor", FLOOR_COLOUR, floor)]
+    placed: list[tuple[float, float, float]] = []
+    for name, colour in OBJECTS[: cfg.objects]:
+        size = float(rng.uniform(0.45, 0.7))
+        mesh = makers[name](size)
+        mesh.translate(-mesh.get_axis_aligned_bounding_box().get_center())
+        R = mesh.get_rotation_matrix_from_xyz((0.0, 0.0, float(rng.uniform(0, 2 * np.pi))))
+        mesh.rotate(R, center=(0, 0, 0))
+        r = mesh.get_axis_aligned_bounding_box().get_half_extent()[:2].max()
+        for _ in range(1000):  # rejection sampling: no two objects overlap
+            x, y = rng.uniform(-1.6, 1.6, 2)
+            if all(math.hypot(x - px, y - py) > r + pr + 0.1 for px, py, pr in placed):
+                break
+        else:
+            raise RuntimeError("could not place the objects without overlap")
+        placed.append((x, y, r))
+        zmin = mesh.get_axis_aligned_bounding_box().min_bound[2]
+        mesh.translate((x, y, -zmin))  # rest on the floor
+        mesh.compute_triangle_normals()
+        out.append((name, colour, mesh))
+    return out
+
+
+def _albedo(label: np.ndarray, points: np.ndarray, colours: np.ndarray, cell: float) -> np.ndarray:
+    """Procedural texture: each surface's colour modulated by a 3D checkerboard of ``cell``-sized cells."""
+    cells = np.floor(points / cell).astype(np.int64).sum(-1) % 2
+    shade = np.where(cells == 0, 1.0, 0.7)
+    return colours[label] * shade[..., None]
+
+
+def _shade(albedo: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    lam = np.abs(normals @ LIGHT)  # two-sided: thin shells look the same from both sides
+    return np.clip(albedo * (0.35 + 0.65 * lam)[..., None], 0.0, 1.0)
+
+
+def generate(out: str | Path, cfg: SynthConfig = SynthConfig()) -> Path:
+    """Render the scene into ``out`` (created); returns the path of its transforms.json."""
+    import open3d as o3d
+    from PIL import Image
+
+    out = Path(out)
+    for sub in ("images", "labels", "depth"):
+        (out / sub).mkdir(parents=True, exist_ok=True)
+    items = _meshes(cfg)
+    scene = o3d.t.geometry.RaycastingScene()
+    geom_label = {}
+    for label, (_, _, mesh) in enumerate(items, start=1):
+        gid = scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(mesh))
+        geom_label[gid] = label
+    names = ["background"] + [n for n, _, _ in items]
+    colours = np.array([BACKGROUND] + [c for _, c, _ in items])
+    lut = np.zeros(max(geom_label) + 2, dtype=np.int64)
+    for gid, label in geom_label.items():
+        lut[gid] = label
+
+    W, H, S = cfg.width, cfg.height, cfg.supersample
+    if S < 1 or S % 2 == 0:
+        raise ValueError(f"supersample must be odd and positive, got {S}")
+    fx = 0.5 * W / math.tan(math.radians(cfg.fov_deg) / 2)
+    K = np.array([[fx, 0, W / 2], [0, fx, H / 2], [0, 0, 1.0]])
+    # S x S sub-pixel samples per pixel; the middle one is the pixel centre (j + 0.5, i + 0.5).
+    js, is_ = np.meshgrid((np.arange(W * S) + 0.5) / S, (np.arange(H * S) + 0.5) / S)
+    d_cam = np.stack([(js - K[0, 2]) / fx, (is_ - K[1, 2]) / fx, np.ones_like(js)], -1)  # z = 1
+    mid = S // 2
+
+    frames, views = [], []
+    for v in range(cfg.views):
+        ang = 2 * np.pi * v / cfg.views
+        elev = 0.9 if v % 2 == 0 else 1.6  # two heights for parallax
+        eye = np.array([cfg.ring_radius * np.cos(ang), cfg.ring_radius * np.sin(ang), elev])
+        V = _look_at(eye, np.array([0.0, 0.0, 0.25]))
+        R = V[:3, :3]
+        dirs = d_cam @ R  # world directions (R^T d), keeping the camera z component = 1
+        rays = np.concatenate([np.broadcast_to(eye, dirs.shape), dirs], -1).astype(np.float32)
+        hit = scene.cast_rays(o3d.core.Tensor(rays))
+        t = hit["t_hit"].numpy().astype(np.float64)
+        miss = ~np.isfinite(t)
+        gid = hit["geometry_ids"].numpy().astype(np.int64)
+        label = np.where(miss, 0, lut[np.where(miss, 0, gid)])
+        depth = np.where(miss, 0.0, t)  # z-depth, because the camera-frame ray has z = 1
+        pts = eye + dirs * np.where(miss, 0.0, t)[..., None]
+        normals = hit["primitive_normals"].numpy().astype(np.float64)
+        rgb = _shade(_albedo(label, pts, colours, cfg.checker), normals)
+        rgb[miss] = BACKGROUND
+        rgb = rgb.reshape(H, S, W, S, 3).mean((1, 3))  # box filter down to the image
+        label = label[mid::S, mid::S]
+        depth = depth[mid::S, mid::S]
+        name = f"{v:04d}.png"
+        Image.fromarray((rgb * 255 + 0.5).astype(np.uint8)).save(out / "images" / name)
+        Image.fromarray(label.astype(np.uint8)).save(out / "labels" / name)
+        np.save(out / "depth" / f"{v:04d}.npy", depth.astype(np.float32), allow_pickle=False)
+        c2w_gl = np.linalg.inv(V) @ np.diag([1.0, -1.0, -1.0, 1.0])
+        frames.append(
+            {
+                "file_path": f"images/{name}",
+                "label_path": f"labels/{name}",
+                "depth_path": f"depth/{v:04d}.npy",
+                "transform_matrix": c2w_gl.tolist(),
+            }
+        )
+        boxes = {}
+        for lab in range(2, len(names)):
+            ys, xs = np.nonzero(label == lab)
+            if len(xs) >= 4:  # visible: pixel box, inclusive, in pixel indices
+                boxes[names[lab]] = [int(xs.min()), int(ys.min()), int(xs.max()), int(ys.max())]
+        views.append({"file_path": f"images/{name}", "boxes_2d": boxes})
+
+    pts, cols = _surface_points(items, colours, cfg)
+    _write_points(out / "points3D.ply", pts, cols)
+    meta = {
+        "w": W,
+        "h": H,
+        "fl_x": fx,
+        "fl_y": fx,
+        "cx": W / 2,
+        "cy": H / 2,
+        "camera_model": "PINHOLE",
+        "ply_file_path": "points3D.ply",
+        "background": list(BACKGROUND),
+        "frames": frames,
+    }
+    objects = []
+    for label, (name, colour, mesh) in enumerate(items, start=1):
+        bb = mesh.get_axis_aligned_bounding_box()
+        objects.append(
+            {
+                "label": label,
+                "name": name,
+                "colour": list(colour),
+                "aabb_min": bb.min_bound.tolist(),
+                "aabb_max": bb.max_bound.tolist(),
+            }
+        )
+    scene_meta = {
+        "generator": "fmgs.synth",
+        "config": asdict(cfg),
+        "label_names": names,
+        "objects": objects,
+        "views": views,
+    }
+    with atomic_path(out / "scene.json") as tmp:
+        tmp.write_text(json.dumps(scene_meta, indent=1))
+    with atomic_path(out / "transforms.json") as tmp:
+        tmp.write_text(json.dumps(meta, indent=1))
+    return out / "transforms.json"
+
+
+def _surface_points(items, colours, cfg: SynthConfig) -> tuple[np.ndarray, np.ndarray]:
+    """Area-uniform samples on every surface, coloured like the renderer colours them."""
+    rng = np.random.default_rng(cfg.seed)
+    pts, cols = [], []
+    areas = np.array([m.get_surface_area() for _, _, m in items])
+    counts = np.maximum(50, (cfg.points * areas / areas.sum()).astype(int))
+    for label, ((_, _, mesh), n) in enumerate(zip(items, counts, strict=True), start=1):
+        v = np.asarray(mesh.vertices)
+        tri = np.asarray(mesh.triangles)
+        a, b, c = v[tri[:, 0]], v[tri[:, 1]], v[tri[:, 2]]
+        cross = np.cross(b - a, c - a)
+        area = np.linalg.norm(cross, axis=1)
+        pick = rng.choice(len(tri), size=int(n), p=area / area.sum())
+        u, w = rng.uniform(size=(2, int(n)))
+        flip = u + w > 1  # fold the square onto the triangle: uniform barycentric coordinates
+        u, w = np.where(flip, 1 - u, u), np.where(flip, 1 - w, w)
+        p = a[pick] + u[:, None] * (b - a)[pick] + w[:, None] * (c - a)[pick]
+        nrm = cross[pick] / np.maximum(area[pick], 1e-300)[:, None]
+        lab = np.full(len(p), label)
+        pts.append(p)
+        cols.append(_shade(_albedo(lab, p, colours, cfg.checker), nrm))
+    return np.concatenate(pts), (np.concatenate(cols) * 255 + 0.5).astype(np.uint8)
+
+
+def _write_points(path: Path, pts: np.ndarray, cols: np.ndarray) -> None:
+    from plyfile import PlyData, PlyElement
+
+    rec = np.empty(
+        len(pts),
+        dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("red", "u1"), ("green", "u1"), ("blue", "u1")],
+    )
+    for i, k in enumerate("xyz"):
+        rec[k] = pts[:, i]
+    for i, k in enumerate(("red", "green", "blue")):
+        rec[k] = cols[:, i]
+    with atomic_path(path) as tmp:
+        PlyData([PlyElement.describe(rec, "vertex")]).write(str(tmp))

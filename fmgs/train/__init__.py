@@ -1,0 +1,1 @@
+"""Training: 3DGS geometry (gaussians.py, strategy.py) and held-out evaluation (evaluate.py)."""

@@ -1,0 +1,358 @@
+"""Vanilla 3D Gaussian Splatting training on a posed dataset, on any device and backend.
+
+L1 + D-SSIM photometric loss, SH degree raised over training, adaptive density control
+(fmgs.train.strategy), Adam with graphdeco's learning rates, checkpoints (safetensors + JSON) and
+resume. The same loop runs the gsplat backend on CUDA and the reference backend elsewhere.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from fmgs.data.dataset import PosedDataset
+from fmgs.gaussians import SH_C0, GaussianSet, num_sh_bases
+from fmgs.io.atomic import atomic_path
+from fmgs.io.ply import write_ply
+from fmgs.metrics import ssim
+from fmgs.render import RasterConfig, rasterize
+from fmgs.sh import sh_to_rgb
+from fmgs.train.strategy import DensifyConfig, DensifyState, accumulate, refine, reset_opacity
+
+PARAM_NAMES = ("means", "quats", "log_scales", "opacity_logits", "sh_dc", "sh_rest")
+
+
+@dataclass(frozen=True)
+class GSTrainConfig:
+    """3DGS training settings (defaults: graphdeco's 30K-step recipe)."""
+
+    steps: int = 30_000
+    """Optimisation steps (one training view each)."""
+    image_scale: float = 1.0
+    """Train on images resized by this factor."""
+    sh_degree: int = 3
+    """Final spherical-harmonics degree."""
+    sh_every: int = 1_000
+    """Raise the active SH degree by one every this many steps."""
+    ssim_weight: float = 0.2
+    """Loss = (1 - w) L1 + w (1 - SSIM)."""
+    lr_means: float = 1.6e-4
+    """Initial learning rate of the means, times the scene extent."""
+    lr_means_final: float = 1.6e-6
+    """Final learning rate of the means (exponential decay), times the scene extent."""
+    lr_sh_dc: float = 2.5e-3
+    """Learning rate of the DC colour coefficients (the higher orders get 1/20 of it)."""
+    lr_opacity: float = 0.05
+    """Learning rate of the opacity logits."""
+    lr_scales: float = 5e-3
+    """Learning rate of the log scales."""
+    lr_quats: float = 1e-3
+    """Learning rate of the quaternions."""
+    densify: DensifyConfig = field(default_factory=DensifyConfig)
+    """Adaptive density control schedule."""
+    init_opacity: float = 0.1
+    """Opacity of the initial Gaussians."""
+    random_init: int = 50_000
+    """Random initial Gaussians in the scene bounds when the dataset has no sparse points."""
+    max_init_points: int = 200_000
+    """Subsample the sparse points to at most this many."""
+    backend: str = "auto"
+    """Rasteriser backend: auto picks cuda on a GPU, else the differentiable reference."""
+    background: tuple[float, float, float] | None = None
+    """Background colour; None uses the dataset's (scene.json) or black."""
+    holdout_every: int = 8
+    """Every n-th frame is held out (not trained on)."""
+    checkpoint_every: int = 0
+    """Write a resumable checkpoint every this many steps (0: only at the end)."""
+    seed: int = 0
+    """Seeds initialisation, view order and splitting."""
+    device: str = "cpu"
+    """Torch device for parameters and images."""
+
+    @classmethod
+    def reduced(cls, steps: int, **kw) -> GSTrainConfig:
+        """A shorter run whose SH and densification schedule are compressed by steps / 30,000."""
+        f = steps / 30_000
+        return cls(steps=steps, sh_every=max(1, round(1_000 * f)), densify=DensifyConfig().scaled(f), **kw)
+
+
+@dataclass
+class TrainResult:
+    gaussians: GaussianSet
+    steps: int
+    seconds: float
+    final_loss: float
+    history: list[dict]
+
+
+def scene_extent(ds: PosedDataset, train: list[int]) -> float:
+    """Radius of the training cameras around their centre, times 1.1 (graphdeco's normalisation)."""
+    c = torch.stack([ds.frames[i].camera.center for i in train])
+    return float(1.1 * (c - c.mean(0)).norm(dim=1).max().clamp_min(1e-6))
+
+
+def init_params(ds: PosedDataset, cfg: GSTrainConfig, g: torch.Generator) -> dict[str, torch.Tensor]:
+    """Initial parameters: sparse points (subsampled) or random points in the bounds."""
+    from scipy.spatial import cKDTree
+
+    if ds.points is not None and len(ds.points) >= 4:
+        pts, cols = ds.points, ds.colors.astype(np.float64) / 255.0
+        if len(pts) > cfg.max_init_points:
+            pick = np.random.default_rng(cfg.seed).choice(len(pts), cfg.max_init_points, replace=False)
+            pts, cols = pts[pick], cols[pick]
+    else:
+        lo, hi = ds.bounds()
+        rng = np.random.default_rng(cfg.seed)
+        pts = rng.uniform(lo, hi, size=(cfg.random_init, 3))
+        cols = rng.uniform(0, 1, size=(cfg.random_init, 3))
+    d2, _ = cKDTree(pts).query(pts, k=4)
+    scale = np.sqrt((d2[:, 1:] ** 2).mean(1)).clip(1e-7)
+    n = len(pts)
+    f = lambda a: torch.as_tensor(np.asarray(a), dtype=torch.float32)  # noqa: E731
+    k = num_sh_bases(cfg.sh_degree)
+    return {
+        "means": f(pts),
+        "quats": torch.tensor([[1.0, 0.0, 0.0, 0.0]]).repeat(n, 1),
+        "log_scales": f(np.log(scale))[:, None].repeat(1, 3),
+        "opacity_logits": torch.full((n,), math.log(cfg.init_opacity / (1 - cfg.init_opacity))),
+        "sh_dc": ((f(cols) - 0.5) / SH_C0)[:, None, :],
+        "sh_rest": torch.zeros(n, k - 1, 3),
+    }
+
+
+def _make_optimizer(params: dict[str, torch.nn.Parameter], cfg: GSTrainConfig, extent: float):
+    lrs = {
+        "means": cfg.lr_means * extent,
+        "quats": cfg.lr_quats,
+        "log_scales": cfg.lr_scales,
+        "opacity_logits": cfg.lr_opacity,
+        "sh_dc": cfg.lr_sh_dc,
+        "sh_rest": cfg.lr_sh_dc / 20,
+    }
+    return torch.optim.Adam(
+        [{"params": [params[k]], "lr": lrs[k], "name": k} for k in PARAM_NAMES], eps=1e-15
+    )
+
+
+def _swap_params(opt: torch.optim.Optimizer, new: dict[str, torch.Tensor], keep: torch.Tensor) -> dict:
+    """Replace each group's tensor, carrying Adam moments for kept rows and zeros for new rows."""
+    out = {}
+    for group in opt.param_groups:
+        old = group["params"][0]
+        p = torch.nn.Parameter(new[group["name"]].detach().clone())
+        st = opt.state.pop(old, None)
+        if st is not None:
+            n_new = p.shape[0] - int(keep.sum())
+            for key in ("exp_avg", "exp_avg_sq"):
+                t = st[key]
+                st[key] = torch.cat([t[keep], t.new_zeros((n_new, *t.shape[1:]))])
+            opt.state[p] = st
+        group["params"][0] = p
+        out[group["name"]] = p
+    return out
+
+
+def train_gaussians(
+    ds: PosedDataset,
+    out_dir: str | Path,
+    cfg: GSTrainConfig = GSTrainConfig(),
+    progress: bool = True,
+    resume: bool = True,
+) -> TrainResult:
+    """Train 3DGS on the dataset's training frames; writes ``out_dir/point_cloud.ply`` and a checkpoint."""
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    dev = torch.device(cfg.device)
+    g = torch.Generator().manual_seed(cfg.seed)
+    train, _ = ds.split(cfg.holdout_every)
+    extent = scene_extent(ds, train)
+    images = [ds.image(i, cfg.image_scale) for i in train]
+    images = [(im.to(dev), cam) for im, cam in images]
+    bg = torch.tensor(
+        cfg.background if cfg.background is not None else dataset_background(ds),
+        dtype=torch.float32,
+        device=dev,
+    )
+    backend = cfg.backend
+    if backend == "auto":
+        backend = "cuda" if dev.type == "cuda" else "reference"
+
+    ckpt = out_dir / "checkpoint.safetensors"
+    start = 0
+    if resume and ckpt.is_file():
+        raw, opt_state, state, start = load_checkpoint(ckpt)
+    else:
+        raw = init_params(ds, cfg, g)
+        state, opt_state = DensifyState.empty(raw["means"].shape[0]), None
+    params = {k: torch.nn.Parameter(v.to(dev)) for k, v in raw.items()}
+    opt = _make_optimizer(params, cfg, extent)
+    if opt_state is not None:
+        for group in opt.param_groups:
+            opt.state[group["params"][0]] = {
+                k: v.to(dev) if torch.is_tensor(v) else v for k, v in opt_state[group["name"]].items()
+            }
+    state = DensifyState(
+        state.grad_sum.to(dev), state.count.to(dev), state.max_radius.to(dev), state.resets, state.history
+    )
+    raster = RasterConfig()
+    d = cfg.densify
+    order = torch.randperm(len(images), generator=g).tolist()
+    t0 = time.perf_counter()
+    loss_val = float("nan")
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=cfg.steps, initial=start, desc="train-gs", unit="step", dynamic_ncols=True)
+    for step in range(start, cfg.steps):
+        if not order:
+            order = torch.randperm(len(images), generator=g).tolist()
+        img, cam = images[order.pop()]
+        decay = step / max(cfg.steps - 1, 1)
+        opt.param_groups[0]["lr"] = extent * cfg.lr_means * (cfg.lr_means_final / cfg.lr_means) ** decay
+        degree = min(cfg.sh_degree, step // cfg.sh_every)
+        sh = torch.cat([params["sh_dc"], params["sh_rest"]], 1)
+        rgb = sh_to_rgb(sh, params["means"], cam.center.to(dev), degree)
+        out = rasterize(
+            params["means"],
+            params["quats"],
+            params["log_scales"].exp(),
+            torch.sigmoid(params["opacity_logits"]),
+            rgb,
+            cam,
+            background=bg,
+            config=raster,
+            backend=backend,
+        )
+        out.means2d.retain_grad()
+        l1 = (out.image - img).abs().mean()
+        loss = (1 - cfg.ssim_weight) * l1 + cfg.ssim_weight * (1 - ssim(out.image, img))
+        loss.backward()
+        with torch.no_grad():
+            if step < d.refine_stop and out.means2d.grad is not None:
+                accumulate(state, out.means2d.grad, out.radii, out.visible, cam.width, cam.height)
+            opt.step()
+            opt.zero_grad(set_to_none=True)
+            if d.refine_start <= step < d.refine_stop and step % d.refine_every == 0 and step > 0:
+                new, keep = refine({k: p.data for k, p in params.items()}, state, d, step, extent, g)
+                params = _swap_params(opt, new, keep)
+            if step > 0 and step % d.reset_every == 0 and step < d.refine_stop:
+                params["opacity_logits"].data = reset_opacity(params["opacity_logits"].data, d)
+                opt.state[params["opacity_logits"]] = {}  # moments of a reset parameter restart
+                state.resets += 1
+        loss_val = float(loss.detach())
+        if bar is not None:
+            bar.set_postfix(loss=f"{loss_val:.4f}", n=params["means"].shape[0], refresh=False)
+            bar.update(1)
+        if cfg.checkpoint_every and (step + 1) % cfg.checkpoint_every == 0 and step + 1 < cfg.steps:
+            save_checkpoint(ckpt, params, opt, state, step + 1, cfg)
+    if bar is not None:
+        bar.close()
+    save_checkpoint(ckpt, params, opt, state, cfg.steps, cfg)
+    gs = to_gaussian_set(params)
+    write_ply(gs, out_dir / "point_cloud.ply")
+    secs = time.perf_counter() - t0
+    with atomic_path(out_dir / "train.json") as tmp:
+        tmp.write_text(
+            json.dumps(
+                {
+                    "steps": cfg.steps,
+                    "seconds": secs,
+                    "final_loss": loss_val,
+                    "gaussians": gs.num,
+                    "extent": extent,
+                    "config": _jsonable(cfg),
+                    "densify_history": state.history,
+                },
+                indent=1,
+            )
+        )
+    return TrainResult(gs, cfg.steps, secs, loss_val, state.history)
+
+
+def to_gaussian_set(params: dict[str, torch.Tensor]) -> GaussianSet:
+    p = {k: v.detach().float().cpu() for k, v in params.items()}
+    return GaussianSet(
+        p["means"], p["quats"], p["log_scales"], p["opacity_logits"], torch.cat([p["sh_dc"], p["sh_rest"]], 1)
+    )
+
+
+def dataset_background(ds: PosedDataset) -> tuple[float, float, float]:
+    """The background colour a transforms.json declares (synthetic scenes do), else black."""
+    meta = ds.root / "transforms.json"
+    if meta.is_file():
+        bg = json.loads(meta.read_text()).get("background")
+        if bg and len(bg) == 3:
+            return tuple(float(x) for x in bg)
+    return (0.0, 0.0, 0.0)
+
+
+def _jsonable(cfg: GSTrainConfig) -> dict:
+    d = asdict(cfg)
+    d["densify"] = asdict(cfg.densify)
+    return d
+
+
+def save_checkpoint(path: Path, params, opt, state: DensifyState, step: int, cfg: GSTrainConfig) -> None:
+    """Parameters, Adam moments and densification statistics as safetensors; counters as JSON metadata."""
+    from safetensors.torch import save_file
+
+    t = {f"param/{k}": v.detach().cpu().contiguous() for k, v in params.items()}
+    steps = {}
+    for group in opt.param_groups:
+        st = opt.state.get(group["params"][0], {})
+        for key in ("exp_avg", "exp_avg_sq"):
+            if key in st:
+                t[f"adam/{group['name']}/{key}"] = st[key].detach().cpu().contiguous()
+        if "step" in st:
+            steps[group["name"]] = float(st["step"])
+    for k in ("grad_sum", "count", "max_radius"):
+        t[f"densify/{k}"] = getattr(state, k).detach().cpu().contiguous()
+    meta = {
+        "format": "fmgs.gs_checkpoint",
+        "version": "1",
+        "step": str(step),
+        "adam_steps": json.dumps(steps),
+        "resets": str(state.resets),
+        "history": json.dumps(state.history),
+        "config": json.dumps(_jsonable(cfg)),
+    }
+    with atomic_path(path) as tmp:
+        save_file(t, str(tmp), metadata=meta)
+
+
+def load_checkpoint(path: Path):
+    """(params, adam state by group name, DensifyState, step) from save_checkpoint's file."""
+    from safetensors import safe_open
+
+    with safe_open(str(path), framework="pt") as f:
+        meta = f.metadata()
+        if meta.get("format") != "fmgs.gs_checkpoint":
+            raise ValueError(f"{path}: not an fmgs 3DGS checkpoint")
+        t = {k: f.get_tensor(k) for k in f.keys()}
+    params = {k: t[f"param/{k}"] for k in PARAM_NAMES}
+    steps = json.loads(meta["adam_steps"])
+    opt_state = {}
+    for k in PARAM_NAMES:
+        if f"adam/{k}/exp_avg" in t:
+            opt_state[k] = {
+                "step": torch.tensor(steps.get(k, 0.0)),
+                "exp_avg": t[f"adam/{k}/exp_avg"],
+                "exp_avg_sq": t[f"adam/{k}/exp_avg_sq"],
+            }
+        else:
+            opt_state[k] = {}
+    state = DensifyState(
+        t["densify/grad_sum"],
+        t["densify/count"],
+        t["densify/max_radius"],
+        int(meta["resets"]),
+        json.loads(meta["history"]),
+    )
+    return params, opt_state, state, int(meta["step"])

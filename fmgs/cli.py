@@ -80,6 +80,24 @@ def cmd_synth(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_sfm(args: argparse.Namespace) -> int:
+    """Photos to poses: pycolmap SfM, then undistortion into a dataset folder."""
+    import logging
+
+    from fmgs.sfm import SfMConfig, run_sfm
+
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    cfg = SfMConfig(
+        matcher=args.matcher, camera_model=args.camera_model, single_camera=not args.per_image_camera
+    )
+    r = run_sfm(args.images, args.out, cfg)
+    print(
+        f"registered {r.registered}/{r.total} photos, {r.points} points, mean reprojection error "
+        f"{r.mean_reprojection_error:.3f} px, {r.seconds:.0f} s; dataset: {r.dataset_dir}"
+    )
+    return 0
+
+
 def cmd_train_gs(args: argparse.Namespace) -> int:
     """Train 3D Gaussian Splatting on a posed dataset and write point_cloud.ply."""
     from fmgs.data.dataset import load_dataset
@@ -146,6 +164,13 @@ def build_parser() -> argparse.ArgumentParser:
     sy.add_argument("--objects", type=int, default=6)
     sy.add_argument("--seed", type=int, default=0)
     sy.set_defaults(func=cmd_synth)
+    sf = sub.add_parser("sfm", help="photos to poses with pycolmap; writes OUT/undistorted (a dataset)")
+    sf.add_argument("images", help="folder of photos")
+    sf.add_argument("--out", required=True)
+    sf.add_argument("--matcher", default="auto", choices=["auto", "exhaustive", "sequential"])
+    sf.add_argument("--camera-model", default="SIMPLE_RADIAL")
+    sf.add_argument("--per-image-camera", action="store_true", help="one camera per photo (mixed devices)")
+    sf.set_defaults(func=cmd_sfm)
     t = sub.add_parser("train-gs", help="train 3D Gaussian Splatting on a posed dataset")
     t.add_argument("data", help="dataset folder (transforms.json or COLMAP sparse/0 + images/)")
     t.add_argument("--out", required=True)

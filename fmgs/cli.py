@@ -6,6 +6,7 @@ import argparse
 import json
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 
@@ -103,7 +104,7 @@ def cmd_train_gs(args: argparse.Namespace) -> int:
     from fmgs.data.dataset import load_dataset
     from fmgs.train.gaussians import GSTrainConfig, train_gaussians
 
-    ds = load_dataset(args.data)
+    ds = load_dataset(args.data, undistort_dir=args.undistort_dir)
     kw = dict(
         image_scale=args.scale,
         backend=args.backend,
@@ -116,6 +117,8 @@ def cmd_train_gs(args: argparse.Namespace) -> int:
         if args.steps == 30_000
         else GSTrainConfig.reduced(args.steps, **kw)
     )
+    if args.grad_threshold is not None:
+        cfg = replace(cfg, densify=replace(cfg.densify, grad_threshold=args.grad_threshold))
     res = train_gaussians(ds, args.out, cfg, resume=not args.restart)
     print(
         f"trained {res.steps} steps in {res.seconds:.0f} s: {res.gaussians.num} Gaussians, "
@@ -180,6 +183,8 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--device", default="cuda" if _cuda() else "cpu")
     t.add_argument("--seed", type=int, default=0)
     t.add_argument("--checkpoint-every", type=int, default=0)
+    t.add_argument("--grad-threshold", type=float, help="densification threshold (default 2e-4, graphdeco)")
+    t.add_argument("--undistort-dir", help="where to undistort a distorted COLMAP model first")
     t.add_argument("--restart", action="store_true", help="ignore an existing checkpoint in --out")
     t.set_defaults(func=cmd_train_gs)
     e = sub.add_parser("eval-gs", help="PSNR/SSIM on the held-out views (every 8th image)")

@@ -60,3 +60,34 @@ def test_info_and_render(tmp_path, capsys):
 def test_error_is_reported_not_raised(tmp_path, capsys):
     assert main(["info", str(tmp_path / "nope.ply")]) == 2
     assert "no such file" in capsys.readouterr().err
+
+
+def test_train_and_eval_commands_apply_their_flags(tmp_path, capsys):
+    from fmgs.synth import SynthConfig, generate
+
+    generate(tmp_path / "data", SynthConfig(views=9, width=32, height=24, objects=6, seed=0, points=800))
+    out = tmp_path / "run"
+    assert (
+        main(
+            [
+                "train-gs",
+                str(tmp_path / "data"),
+                "--out",
+                str(out),
+                "--steps",
+                "12",
+                "--grad-threshold",
+                "0.5",
+                "--seed",
+                "3",
+            ]
+        )
+        == 0
+    )
+    cfg = json.loads((out / "train.json").read_text())["config"]
+    assert cfg["densify"]["grad_threshold"] == 0.5 and cfg["steps"] == 12 and cfg["seed"] == 3
+    assert (
+        main(["eval-gs", str(tmp_path / "data"), str(out / "point_cloud.ply"), "--out", str(tmp_path / "ev")])
+        == 0
+    )
+    assert "mean" in capsys.readouterr().out and (tmp_path / "ev" / "eval.json").is_file()

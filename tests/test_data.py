@@ -42,8 +42,8 @@ def test_colmap_binary_round_trip(snow, tmp_path):
 
 
 def test_colmap_and_transforms_datasets_agree(snow):
-    a = load_dataset(snow)  # transforms.json wins when both exist
-    c = read_colmap(snow / "sparse/0", snow / "images")
+    a = read_transforms(snow / "transforms.json")
+    c = load_dataset(snow)  # the COLMAP model wins when both exist: it has the sparse points
     assert len(a) == len(c) == 97
     for fa, fc in zip(a.frames, c.frames, strict=True):
         assert fa.image_path.name == fc.image_path.name
@@ -103,3 +103,25 @@ def test_bad_inputs_are_named(tmp_path, snow):
     (bad / "cameras.txt").write_text("1 PINHOLE 10 10 5 5\n")
     with pytest.raises(ValidationError, match="takes 4 parameters"):
         read_model(bad)
+
+
+def test_distorted_model_is_undistorted(snow, tmp_path):
+    """An OPENCV camera with real distortion: refused without a folder, undistorted to PINHOLE with one."""
+    from fmgs.data.colmap import ColmapCamera
+
+    m = read_model(snow / "sparse/0")
+    keep = dict(list(m.images.items())[:3])
+    cam = next(iter(m.cameras.values()))
+    fx, fy, cx, cy = cam.params
+    m.cameras = {
+        cam.id: ColmapCamera(cam.id, "OPENCV", cam.width, cam.height, [fx, fy, cx, cy, 0.05, 0.0, 0.0, 0.0])
+    }
+    m.images = keep
+    write_binary(m, tmp_path / "model")
+    with pytest.raises(ValidationError, match="undistort"):
+        read_colmap(tmp_path / "model", snow / "images")
+    ds = read_colmap(tmp_path / "model", snow / "images", undistort_dir=tmp_path / "und")
+    assert len(ds) == 3 and (tmp_path / "und" / "images").is_dir()
+    assert all(c.model == "PINHOLE" for c in read_model(tmp_path / "und" / "sparse").cameras.values())
+    img, _ = ds.image(0)
+    assert img.shape[-1] == 3 and float(img.std()) > 0.01

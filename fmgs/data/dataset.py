@@ -87,23 +87,38 @@ class PosedDataset:
         return pts.min(0), pts.max(0)
 
 
-def load_dataset(path: str | Path) -> PosedDataset:
-    """Read a dataset: ``transforms.json``, or a COLMAP model in ``sparse/0``, ``sparse`` or the folder."""
+def load_dataset(path: str | Path, undistort_dir: str | Path | None = None) -> PosedDataset:
+    """Read a dataset: a COLMAP model (``sparse/0``, ``sparse`` or the folder, images in ``images/``)
+    or ``transforms.json``. When a folder has both, the COLMAP model wins: it carries sparse points.
+
+    A COLMAP model with distorted cameras is undistorted (pycolmap) into ``undistort_dir`` first;
+    an existing undistorted copy there is reused.
+    """
     path = Path(path)
     if path.is_file() and path.name.endswith(".json"):
         return read_transforms(path)
+    for sub in ("sparse/0", "sparse", "."):
+        if (
+            any((path / sub / f"cameras{e}").is_file() for e in (".bin", ".txt"))
+            and (path / "images").is_dir()
+        ):
+            return read_colmap(path / sub, path / "images", undistort_dir)
     if (path / "transforms.json").is_file():
         return read_transforms(path / "transforms.json")
-    for sub in ("sparse/0", "sparse", "."):
-        if any((path / sub / f"cameras{e}").is_file() for e in (".bin", ".txt")):
-            return read_colmap(path / sub, path / "images")
     raise ValidationError(str(path), "no transforms.json and no COLMAP model (sparse/0, sparse or here)")
 
 
-def read_colmap(model_dir: str | Path, image_dir: str | Path) -> PosedDataset:
-    """A dataset from a COLMAP model; every camera must be pinhole (undistort first otherwise)."""
+def read_colmap(
+    model_dir: str | Path, image_dir: str | Path, undistort_dir: str | Path | None = None
+) -> PosedDataset:
+    """A dataset from a COLMAP model; distorted cameras are undistorted into ``undistort_dir`` or refused."""
     model = read_model(model_dir)
     image_dir = Path(image_dir)
+    if undistort_dir is not None and not all(c.is_pinhole for c in model.cameras.values()):
+        und = Path(undistort_dir)
+        if not (und / "sparse" / "cameras.bin").is_file():
+            undistort_colmap(model_dir, image_dir, und)
+        return read_colmap(und / "sparse", und / "images")
     frames = []
     for img in model.images.values():
         cam = model.cameras.get(img.camera_id)
@@ -132,6 +147,18 @@ def read_colmap(model_dir: str | Path, image_dir: str | Path) -> PosedDataset:
         raise ValidationError(str(image_dir), "no image of the COLMAP model was found")
     frames.sort(key=lambda f: f.name)
     return PosedDataset(Path(model_dir), frames, model.points, model.colors)
+
+
+def undistort_colmap(model_dir: str | Path, image_dir: str | Path, out: str | Path) -> Path:
+    """Undistort a COLMAP model and its images to PINHOLE with pycolmap; writes out/{images, sparse}."""
+    import pycolmap
+
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    pycolmap.undistort_images(out, Path(model_dir), Path(image_dir))
+    if not (out / "sparse" / "cameras.bin").is_file():
+        raise ValidationError(str(out), "undistortion wrote no model")
+    return out
 
 
 def read_transforms(path: str | Path) -> PosedDataset:

@@ -64,6 +64,9 @@ class GSTrainConfig:
     """Subsample the sparse points to at most this many."""
     backend: str = "auto"
     """Rasteriser backend: auto picks cuda on a GPU, else the differentiable reference."""
+    reference_tile: int = 4
+    """Tile edge for the reference backend: small tiles waste less dense work per Gaussian (measured on
+    snowmiku at 124x93: 0.80 s per step with 16, 0.44 with 8, 0.31 with 4)."""
     background: tuple[float, float, float] | None = None
     """Background colour; None uses the dataset's (scene.json) or black."""
     holdout_every: int = 8
@@ -200,7 +203,7 @@ def train_gaussians(
     state = DensifyState(
         state.grad_sum.to(dev), state.count.to(dev), state.max_radius.to(dev), state.resets, state.history
     )
-    raster = RasterConfig()
+    raster = RasterConfig(tile_size=cfg.reference_tile) if backend == "reference" else RasterConfig()
     d = cfg.densify
     order = torch.randperm(len(images), generator=g).tolist()
     t0 = time.perf_counter()

@@ -86,3 +86,15 @@ def test_cuda_backend_without_cuda_says_why():
     sc = random_scene(seed=0, n=4, d=3, width=8, height=8, focal=10.0)
     with pytest.raises(BackendUnavailableError, match="CUDA device"):
         rasterize(*sc.args(), backend="cuda")
+
+
+def test_half_precision_features():
+    sc = random_scene(seed=2, n=20, d=4, width=12, height=10, focal=15.0)
+    m, q, s, o, f, cam = sc.args()
+    ref = rasterize(m, q, s, o, f.double(), cam, backend="cpu").image
+    for dt in (torch.float16, torch.bfloat16):
+        out = rasterize(m, q, s, o, f.to(dt), cam, backend="cpu")
+        assert out.image.dtype == dt
+        assert torch.allclose(
+            out.image.double(), ref, atol=0.02 * float(ref.abs().max())
+        )  # bf16 keeps 8 bits: 0.4% steps

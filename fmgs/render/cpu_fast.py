@@ -37,7 +37,7 @@ def _np(t: torch.Tensor) -> np.ndarray:
 
 
 def _f64(t: torch.Tensor) -> np.ndarray:
-    return np.ascontiguousarray(t.detach().cpu().numpy(), dtype=np.float64)
+    return np.ascontiguousarray(t.detach().cpu().to(torch.float64).numpy())
 
 
 def _geom(t: torch.Tensor) -> np.ndarray:
@@ -98,8 +98,8 @@ def rasterize_cpu(
     # Costliest tiles first, one at a time, so the two threads finish together.
     lens = np.diff(offsets)
     tile_order = np.argsort(-lens, kind="stable")[: int((lens > 0).sum())]
-    feats = _np(features)
-    out_dtype = feats.dtype if feats.dtype in (np.float32, np.float64) else np.float32
+    feats = _geom(features)  # float16/bfloat16 features are widened (numba has no half arithmetic)
+    out_dtype = feats.dtype
     image = np.zeros((H, W, D), dtype=out_dtype)
     alpha = np.zeros((H, W))
     depth = np.zeros((H, W))

@@ -77,10 +77,15 @@ def report(args) -> None:
         data = (d / "data.txt").read_text().strip() if (d / "data.txt").is_file() else "?"
         cfg = t["config"]
         size = f"scale {cfg['image_scale']}"
+        if Path(data).exists():
+            from fmgs.data.dataset import load_dataset
+
+            cam = load_dataset(data).frames[0].camera.scaled(cfg["image_scale"])
+            size = f"{cam.width}x{cam.height}"
         lines.append(
             f"| {Path(data).name} | {size} | {t['steps']} | {cfg['densify']['grad_threshold']:g} "
             f"| {t['gaussians']:,} | {t['seconds'] / 60:.1f} min | **{e['psnr']:.2f} dB** | {e['ssim']:.3f} "
-            f"| {cfg['backend']} |"
+            f"| {t.get('backend', cfg['backend'])} |"
         )
     out = ROOT / "benchmarks" / "GS.md"
     out.write_text("\n".join(lines) + "\n")

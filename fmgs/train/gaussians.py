@@ -268,6 +268,7 @@ def train_gaussians(
                     "steps": cfg.steps,
                     "seconds": secs,
                     "final_loss": loss_val,
+                    "backend": backend,
                     "gaussians": gs.num,
                     "extent": extent,
                     "config": _jsonable(cfg),

@@ -44,7 +44,7 @@ def rasterize_gsplat(
     """Same contract as fmgs.render.rasterize; CUDA tensors; differentiable through gsplat."""
     rasterization = load_gsplat()
     if not features.is_cuda:
-        raise BackendUnavailableError("the cuda backend needs CUDA tensors; move the inputs with .cuda()")
+        raise BackendUnavailableError("the cuda backend needs CUDA tensors; move the inputs to a CUDA device")
     dev, dt = features.device, features.dtype
     f32 = torch.float32
     D = features.shape[1]

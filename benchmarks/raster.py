@@ -49,9 +49,6 @@ class Config:
 
 def make_scene(cfg: Config):
     """(means, quats, scales, opacities, camera) for a configuration."""
-    import numpy as np
-    import torch
-
     from benchmarks.scenes import garden, synthetic
     from fmgs.cameras import Camera
 
@@ -67,7 +64,6 @@ def make_scene(cfg: Config):
         return s.means, s.quats, s.scales, s.opacities, cam
     n = int(cfg.scene.split("-")[1])
     s = synthetic(n, width=cfg.width, height=cfg.height)
-    del np, torch
     return s.means, s.quats, s.scales, s.opacities, s.cameras[1]
 
 

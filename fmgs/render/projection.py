@@ -7,8 +7,6 @@ the same choices, so float32 outputs agree with the float64 reference to roundin
 
 from __future__ import annotations
 
-import math
-
 import torch
 
 from fmgs.cameras import Camera, quat_wxyz_to_rotmat
@@ -116,11 +114,3 @@ def gaussian_alpha(power: torch.Tensor, opac: torch.Tensor, config: RasterConfig
     """alpha = min(alpha_max, o exp(-power/2)), zeroed below alpha_min (the blending rule's first step)."""
     alpha = torch.clamp(opac * torch.exp(-0.5 * power), max=config.alpha_max)
     return torch.where(alpha >= config.alpha_min, alpha, torch.zeros_like(alpha))
-
-
-def tan_half_fov(camera: Camera) -> tuple[float, float]:
-    """(tan(fov_x / 2), tan(fov_y / 2)) of a centred pinhole camera."""
-    return 0.5 * camera.width / camera.fx, 0.5 * camera.height / camera.fy
-
-
-assert math.isfinite(_M_LIMIT**2 * 4)

@@ -14,11 +14,11 @@ import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
+from fmgs.data.dataset import IMAGE_SUFFIXES
 from fmgs.errors import FmgsError, ValidationError
 from fmgs.io.atomic import atomic_path
 
 log = logging.getLogger(__name__)
-IMAGE_SUFFIXES = {".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff"}
 
 
 @dataclass(frozen=True)

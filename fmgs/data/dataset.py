@@ -17,7 +17,8 @@ from fmgs.errors import ValidationError
 
 log = logging.getLogger(__name__)
 
-IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".JPG", ".JPEG", ".PNG")
+# Photo file extensions we read (compared case-insensitively).
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
 
 
 @dataclass(frozen=True)
@@ -227,9 +228,10 @@ def _resolve_image(root: Path, file_path: str) -> Path | None:
     if p.is_file():
         return p
     for suf in IMAGE_SUFFIXES:  # NeRF-synthetic style paths omit the extension
-        q = p.with_name(p.name + suf)
-        if q.is_file():
-            return q
+        for cased in (suf, suf.upper()):
+            q = p.with_name(p.name + cased)
+            if q.is_file():
+                return q
     return None
 
 

@@ -7,7 +7,7 @@ Gradients are measured in NDC units (pixels x W/2, H/2), so thresholds do not de
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import torch
 
@@ -47,19 +47,16 @@ class DensifyConfig:
         Refinements stay at least 10 steps apart (gradient statistics need several views) and opacity
         resets at least 100 (the scene needs time to recover from one).
         """
-        s = lambda v, floor=1: max(floor, round(v * factor))  # noqa: E731
-        return DensifyConfig(
-            s(self.refine_start),
-            s(self.refine_stop),
-            s(self.refine_every, 10),
-            s(self.reset_every, 100),
-            self.grad_threshold,
-            self.dense_percent,
-            self.prune_opacity,
-            self.prune_screen_px,
-            self.prune_world,
-            self.reset_opacity,
-            self.max_gaussians,
+
+        def s(v: int, floor: int = 1) -> int:
+            return max(floor, round(v * factor))
+
+        return replace(
+            self,
+            refine_start=s(self.refine_start),
+            refine_stop=s(self.refine_stop),
+            refine_every=s(self.refine_every, 10),
+            reset_every=s(self.reset_every, 100),
         )
 
 

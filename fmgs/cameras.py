@@ -115,8 +115,12 @@ class Camera:
 
     def scaled(self, factor: float) -> Camera:
         """The same camera with the image resized by ``factor`` (intrinsics scaled to match)."""
-        w = max(1, round(self.width * factor))
-        h = max(1, round(self.height * factor))
+        return self.resized(max(1, round(self.width * factor)), max(1, round(self.height * factor)))
+
+    def resized(self, w: int, h: int) -> Camera:
+        """The same camera with the image resized to w x h pixels (intrinsics scaled per axis)."""
+        if w < 1 or h < 1:
+            raise ValidationError("size", f"image size must be positive, got {w}x{h}")
         sx, sy = w / self.width, h / self.height
         K = self.K.clone()
         K[0] *= sx

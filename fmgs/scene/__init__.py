@@ -1,0 +1,1 @@
+"""Scene packages: export and validated loading of what serving needs."""

@@ -1,0 +1,233 @@
+"""Scene packages (``models/<scene>/``): only what serving needs, validated on load.
+
+Layout:
+  manifest.json            format, version, name, encoder {id, dim}, canonical phrases, counts, field config
+  gaussians.safetensors    the frozen 3DGS geometry and SH of every Gaussian (fmgs.io.tensors format)
+  embeddings.safetensors   selected [M] int64 (indices into the Gaussians), embeddings [M,D] float16
+                           (decoded once, unit norm before rounding), canonical [M,C] float32 (the
+                           stored embeddings' dot products with the canonical phrases)
+  field.safetensors        hash-grid keys and table, language head (and DINO head only if asked), so the
+                           field can be queried at arbitrary 3D points; absent for the per-Gaussian ablation
+No optimiser state, no training images, no targets.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+
+from fmgs.checks import check_finite
+from fmgs.errors import ValidationError
+from fmgs.field.bounds import SceneBounds
+from fmgs.field.hashgrid import HashGrid
+from fmgs.field.model import FeatureField, FieldConfig
+from fmgs.gaussians import GaussianSet
+from fmgs.io.atomic import atomic_dir
+from fmgs.io.tensors import load_gaussians, save_gaussians
+from fmgs.query.relevancy import CANONICAL_PHRASES
+
+FORMAT = "fmgs.scene"
+VERSION = 1
+_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,127}$")
+
+
+@dataclass
+class ScenePackage:
+    """A loaded scene."""
+
+    name: str
+    """Scene name (the folder name)."""
+    manifest: dict
+    """The manifest as read."""
+    gaussians: GaussianSet
+    """All Gaussians (geometry for rendering)."""
+    selected: torch.Tensor
+    """[M] int64 indices of the Gaussians that carry embeddings."""
+    embeddings: torch.Tensor
+    """[M,D] float32 embeddings (stored float16)."""
+    canonical: torch.Tensor
+    """[M,C] float32 dot products with the canonical phrases."""
+    field: FeatureField | None
+    """The field for queries at arbitrary points (None if the package has none)."""
+
+    @property
+    def encoder_id(self) -> str:
+        return self.manifest["encoder"]["id"]
+
+    @property
+    def dim(self) -> int:
+        return int(self.manifest["encoder"]["dim"])
+
+    @property
+    def canonical_phrases(self) -> list[str]:
+        return list(self.manifest["canonical"])
+
+
+def check_scene_name(name: str) -> str:
+    """Scene names are folder names: letters, digits, '.', '_', '-', not starting with '.'."""
+    if not isinstance(name, str) or not _NAME.match(name):
+        raise ValidationError("scene name", f"{name!r} is not a valid name (letters, digits, . _ -; max 128)")
+    return name
+
+
+@torch.no_grad()
+def export_scene(
+    out: str | Path,
+    gaussians: GaussianSet,
+    selected: torch.Tensor,
+    embeddings: torch.Tensor,
+    encoder_id: str,
+    canonical_embeddings: torch.Tensor,
+    field: FeatureField | None = None,
+    include_dino: bool = False,
+    canonical_phrases: tuple[str, ...] = CANONICAL_PHRASES,
+    extra: dict | None = None,
+) -> Path:
+    """Write a package to folder ``out`` (replaced atomically) and return it.
+
+    selected [M] indices into ``gaussians``; embeddings [M,D] decoded per selected Gaussian (float32,
+    unit norm); canonical_embeddings [C,D] the encoder's embeddings of ``canonical_phrases``.
+    """
+    out = Path(out)
+    check_scene_name(out.name)
+    M, D = embeddings.shape
+    if selected.shape != (M,):
+        raise ValidationError("selected", f"expected [{M}] indices, got {list(selected.shape)}")
+    if canonical_embeddings.shape != (len(canonical_phrases), D):
+        raise ValidationError("canonical_embeddings", f"expected [{len(canonical_phrases)},{D}]")
+    check_finite("embeddings", embeddings)
+    # Canonical dots from the stored (float16-rounded) embeddings, so the precomputed channels equal
+    # what a query computes from the stored embeddings.
+    emb = embeddings.detach().float().cpu().half().float()
+    canon = emb @ canonical_embeddings.detach().float().cpu().T
+    from safetensors.torch import save_file
+
+    manifest = {
+        "format": FORMAT,
+        "version": VERSION,
+        "name": out.name,
+        "encoder": {"id": encoder_id, "dim": D},
+        "canonical": list(canonical_phrases),
+        "sh_degree": gaussians.sh_degree,
+        "counts": {"gaussians": gaussians.num, "selected": M},
+        "embedding_dtype": "float16",
+        "field": None,
+        "extra": extra or {},
+    }
+    with atomic_dir(out) as tmp:
+        save_gaussians(gaussians, tmp / "gaussians.safetensors")
+        save_file(
+            {
+                "selected": selected.detach().cpu().to(torch.int64).contiguous(),
+                "embeddings": emb.half().contiguous(),
+                "canonical": canon.contiguous(),
+            },
+            str(tmp / "embeddings.safetensors"),
+        )
+        if field is not None:
+            state = {
+                k: v.detach().cpu().contiguous()
+                for k, v in field.state_dict().items()
+                if include_dino or not k.startswith("dino_head.")
+            }
+            save_file(state, str(tmp / "field.safetensors"))
+            manifest["field"] = {
+                "config": field.cfg.to_dict(),
+                "bounds": field.bounds.to_dict(),
+                "dino_head": include_dino and field.dino_head is not None,
+            }
+        (tmp / "manifest.json").write_text(json.dumps(manifest, indent=1))
+    return out
+
+
+def load_scene(path: str | Path, device: str | torch.device = "cpu") -> ScenePackage:
+    """Read and validate a package; ValidationError names the file and what is wrong."""
+    from safetensors import SafetensorError
+    from safetensors.torch import load_file
+
+    path = Path(path)
+    mpath = path / "manifest.json"
+    if not mpath.is_file():
+        raise ValidationError(str(path), "not a scene package (no manifest.json)")
+    try:
+        manifest = json.loads(mpath.read_text())
+    except (OSError, json.JSONDecodeError) as e:
+        raise ValidationError(str(mpath), f"unreadable manifest ({e})") from e
+    if not isinstance(manifest, dict) or manifest.get("format") != FORMAT:
+        raise ValidationError(str(mpath), f"not an {FORMAT} manifest")
+    if manifest.get("version") != VERSION:
+        raise ValidationError(
+            str(mpath), f"unsupported version {manifest.get('version')!r} (this reads {VERSION})"
+        )
+    for key in ("name", "encoder", "canonical", "counts"):
+        if key not in manifest:
+            raise ValidationError(str(mpath), f"missing key {key!r}")
+    enc = manifest["encoder"]
+    if not isinstance(enc, dict) or not isinstance(enc.get("id"), str) or not isinstance(enc.get("dim"), int):
+        raise ValidationError(str(mpath), "encoder must be {id: str, dim: int}")
+    D, C = enc["dim"], len(manifest["canonical"])
+
+    gaussians = load_gaussians(path / "gaussians.safetensors", device)
+    gaussians.validate()
+    try:
+        t = load_file(str(path / "embeddings.safetensors"), device=str(device))
+    except (SafetensorError, OSError, FileNotFoundError) as e:
+        raise ValidationError(str(path / "embeddings.safetensors"), f"cannot read ({e})") from e
+    for key in ("selected", "embeddings", "canonical"):
+        if key not in t:
+            raise ValidationError(str(path / "embeddings.safetensors"), f"missing tensor {key!r}")
+    sel, emb, canon = t["selected"], t["embeddings"].float(), t["canonical"].float()
+    M = manifest["counts"].get("selected")
+    where = str(path / "embeddings.safetensors")
+    if sel.dtype != torch.int64 or sel.shape != (M,):
+        raise ValidationError(where, f"selected must be int64 [{M}], got {sel.dtype} {list(sel.shape)}")
+    if emb.shape != (M, D):
+        raise ValidationError(where, f"embeddings must be [{M},{D}] (manifest), got {list(emb.shape)}")
+    if canon.shape != (M, C):
+        raise ValidationError(where, f"canonical must be [{M},{C}], got {list(canon.shape)}")
+    if M and (int(sel.min()) < 0 or int(sel.max()) >= gaussians.num):
+        raise ValidationError(where, f"selected indices must lie in [0, {gaussians.num})")
+    check_finite(f"{where}: embeddings", emb)
+    check_finite(f"{where}: canonical", canon)
+
+    field = None
+    if manifest.get("field"):
+        field = _load_field(path / "field.safetensors", manifest["field"], device)
+        if field.cfg.clip_dim != D:
+            raise ValidationError(
+                str(mpath), f"field clip_dim {field.cfg.clip_dim} differs from encoder dim {D}"
+            )
+    return ScenePackage(manifest["name"], manifest, gaussians, sel, emb, canon, field)
+
+
+def _load_field(fpath: Path, meta: dict, device) -> FeatureField:
+    from safetensors import SafetensorError
+    from safetensors.torch import load_file
+
+    try:
+        cfg = FieldConfig.from_dict(meta["config"])
+        bounds = SceneBounds.from_dict(meta["bounds"])
+    except (KeyError, TypeError, ValueError) as e:
+        raise ValidationError(str(fpath), f"bad field description in the manifest ({e})") from e
+    if not meta.get("dino_head"):
+        cfg = FieldConfig(**{**cfg.__dict__, "dino_dim": 0})
+    try:
+        state = load_file(str(fpath), device=str(device))
+    except (SafetensorError, OSError) as e:
+        raise ValidationError(str(fpath), f"cannot read ({e})") from e
+    if "grid.keys" not in state:
+        raise ValidationError(str(fpath), "missing tensor 'grid.keys'")
+    try:
+        grid = HashGrid(cfg.grid, state["grid.keys"].cpu())
+        model = FeatureField(cfg, bounds, grid)
+        model.load_state_dict(state)
+    except (ValueError, RuntimeError) as e:
+        raise ValidationError(str(fpath), f"field tensors do not match the manifest ({e})") from e
+    for k, v in state.items():
+        if v.is_floating_point():
+            check_finite(f"{fpath}: {k}", v)
+    return model.to(device).eval()

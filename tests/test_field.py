@@ -201,3 +201,19 @@ def test_relevancy_is_stable_for_huge_logits_and_matches_the_literal_form():
     assert r[5] == 0.5
     r32 = relevancy(q.float() * 1e6, c.float() * 1e6)
     assert torch.isfinite(r32).all()
+
+
+def test_interpolation_matrix_equals_the_gather_encoding_and_its_gradient():
+    cfg = HashGridConfig(levels=5, min_res=3, max_res=40, log2_table=9, features=3)
+    pts = torch.rand(120, 3, dtype=torch.float64)
+    grid = HashGrid.compact(cfg, pts, dtype=torch.float64)
+    with torch.no_grad():
+        grid.table.normal_()
+    look = grid.lookup(pts)
+    a = grid.interpolation_matrix(look)
+    fast, ref = grid.encode_matrix(a), grid.encode_reference(look)
+    assert_close(fast, ref, torch.float64)
+    g = torch.randn_like(fast)
+    (ga,) = torch.autograd.grad((fast * g).sum(), grid.table)
+    (gb,) = torch.autograd.grad((ref * g).sum(), grid.table)
+    assert_close(ga, gb, torch.float64)

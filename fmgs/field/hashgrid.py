@@ -11,8 +11,10 @@ encoding at those points is identical to the full table's, and any other point r
 zero. Rows are addressed by their global index (level offset + dense or hashed index) through a sorted
 key list, so a full grid is the special case of keys 0..total-1.
 
-Fast path: ``torch.nn.functional.embedding_bag`` (gather + weighted sum without materialising the
-[N, L, 8, F] corner features). Reference twin: ``encode_reference`` (explicit gather and sum).
+Fast paths: ``encode`` uses ``torch.nn.functional.embedding_bag`` (gather + weighted sum without
+materialising the [N, L, 8, F] corner features); for fixed points ``interpolation_matrix`` and
+``encode_matrix`` turn the interpolation into a CSR product. Reference twin: ``encode_reference``
+(explicit gather and sum).
 """
 
 from __future__ import annotations
@@ -23,6 +25,8 @@ from typing import NamedTuple
 
 import torch
 from torch import nn
+
+from fmgs.sparse import SparseMatrix
 
 _PRIMES = (1, 2654435761, 805459861)
 # The 8 cell corners as (dx, dy, dz) bits.
@@ -173,6 +177,21 @@ class HashGrid(nn.Module):
         N = look.rows.shape[0]
         feats = self.table[look.rows]  # [N,L,8,F]
         return (look.weights.to(self.table.dtype)[..., None] * feats).sum(2).reshape(N, -1)
+
+    def interpolation_matrix(self, look: Corners) -> SparseMatrix:
+        """[N*L, M] sparse matrix A with encode(look) == (A @ table).reshape(N, L*F).
+
+        For fixed points (the Gaussian means while the field trains): the lookup is done once and each
+        step is a CSR product whose backward is the precomputed transpose product (no sorting).
+        """
+        N, L, _ = look.rows.shape
+        r = torch.arange(N * L, device=look.rows.device).repeat_interleave(8)
+        w = look.weights.detach().to(self.table.dtype).reshape(-1)
+        return SparseMatrix.from_coo(r, look.rows.reshape(-1), w, (N * L, len(self.keys)))
+
+    def encode_matrix(self, a: SparseMatrix) -> torch.Tensor:
+        """[N, L*F] encoding of the points behind ``interpolation_matrix``."""
+        return a.matmul(self.table).reshape(-1, self.cfg.out_dim)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         """[N, L*F] encoding of points x [N,3] in the unit cube."""

@@ -96,7 +96,10 @@ class FeatureField(nn.Module):
 
     def decode(self, look: Corners, dino: bool = True) -> FieldOutput:
         """Features at looked-up points."""
-        h = self.grid.encode(look)
+        return self.heads(self.grid.encode(look), dino)
+
+    def heads(self, h: torch.Tensor, dino: bool = True) -> FieldOutput:
+        """Features from encodings h [N, L*F]."""
         clip = safe_normalize(self.clip_head(h))
         d = self.dino_head(h) if (dino and self.dino_head is not None) else None
         return FieldOutput(clip, d)

@@ -9,7 +9,6 @@ are kept as columns, so the features need only be evaluated for those.
 
 from __future__ import annotations
 
-import warnings
 from typing import NamedTuple
 
 import torch
@@ -19,13 +18,14 @@ from fmgs.render.binning import bin_tiles
 from fmgs.render.projection import project
 from fmgs.render.reference import _blend_chunk, _tile_batches
 from fmgs.render.types import RasterConfig
+from fmgs.sparse import SparseMatrix
 
 
 class ViewWeights(NamedTuple):
     """Blending weights of one view: ``image = (W @ features[gaussians]).reshape(height, width, D)``."""
 
-    matrix: torch.Tensor
-    """[H*W, M] sparse CSR float32 (or float64) weights; row = pixel (row-major), column = local index."""
+    matrix: SparseMatrix
+    """[H*W, M] float32 (or float64) weights; row = pixel (row-major), column = local index."""
     gaussians: torch.Tensor
     """[M] int64 global indices of the Gaussians with a non-zero weight somewhere in the view."""
     height: int
@@ -35,21 +35,10 @@ class ViewWeights(NamedTuple):
 
     def render(self, features: torch.Tensor) -> torch.Tensor:
         """[H,W,D] blend of features [M,D] (already gathered to ``gaussians``), differentiable in them."""
-        return SparseBlend.apply(self.matrix, features).reshape(self.height, self.width, -1)
+        return self.matrix.matmul(features).reshape(self.height, self.width, -1)
 
-
-class SparseBlend(torch.autograd.Function):
-    """out = W @ f with the transpose product as the backward (W carries no gradient)."""
-
-    @staticmethod
-    def forward(ctx, matrix: torch.Tensor, features: torch.Tensor) -> torch.Tensor:
-        ctx.save_for_backward(matrix)
-        return matrix.to(features.dtype) @ features
-
-    @staticmethod
-    def backward(ctx, grad: torch.Tensor):
-        (matrix,) = ctx.saved_tensors
-        return None, matrix.to(grad.dtype).t() @ grad
+    def to(self, device: torch.device | str) -> ViewWeights:
+        return ViewWeights(self.matrix.to(device), self.gaussians.to(device), self.height, self.width)
 
 
 @torch.no_grad()
@@ -115,9 +104,4 @@ def view_weights(
         r = c = torch.zeros(0, dtype=torch.int64, device=dev)
         v = torch.zeros(0, dtype=torch.float64, device=dev)
     gauss, local = torch.unique(c, return_inverse=True)
-    shape = (H * W, len(gauss))
-    coo = torch.sparse_coo_tensor(torch.stack([r, local]), v.to(dtype), shape, check_invariants=True)
-    with warnings.catch_warnings():
-        warnings.filterwarnings("ignore", message="Sparse CSR tensor support is in beta")
-        csr = coo.coalesce().to_sparse_csr()
-    return ViewWeights(csr, gauss, H, W)
+    return ViewWeights(SparseMatrix.from_coo(r, local, v.to(dtype), (H * W, len(gauss))), gauss, H, W)

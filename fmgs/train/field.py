@@ -22,7 +22,6 @@ import torch.nn.functional as F
 
 from fmgs.data.dataset import PosedDataset
 from fmgs.errors import ValidationError
-from fmgs.field.hashgrid import Corners
 from fmgs.field.model import FeatureField, FieldConfig, FieldOutput, PerGaussianFeatures
 from fmgs.field.select import SelectConfig, Selection, select_gaussians
 from fmgs.gaussians import GaussianSet
@@ -30,6 +29,7 @@ from fmgs.io.atomic import atomic_path
 from fmgs.io.checkpoint import load_training_state, save_training_state
 from fmgs.render.types import RasterConfig
 from fmgs.render.weights import ViewWeights, view_weights
+from fmgs.sparse import SparseMatrix
 from fmgs.vecmath import safe_normalize
 
 CHECKPOINT_FORMAT = "fmgs.field_checkpoint"
@@ -57,6 +57,9 @@ class FieldTrainConfig:
     """Learning rate at the last step (exponential decay)."""
     weight_decay: float = 1e-9
     """RAdam weight decay."""
+    adam_eps: float = 1e-15
+    """RAdam epsilon. The per-element losses are means over h*w*D values, so gradients are tiny; the
+    usual 1e-8 would swamp them (Instant-NGP uses 1e-15 for the same reason)."""
     seed: int = 0
     """Seeds initialisation and view order."""
     device: str = "cpu"
@@ -143,40 +146,43 @@ def prepare_views(
         vw = view_weights(
             gaussians.means, gaussians.quats, gaussians.scales, gaussians.opacities, cam, raster
         )
-        vw = ViewWeights(vw.matrix.to(device), vw.gaussians.to(device), vw.height, vw.width)
+        vw = vw.to(device)
         mask = None if maps.mask is None else maps.mask.reshape(-1).to(device)
         dino = None if maps.dino is None else maps.dino.reshape(h * w, -1).half().to(device)
         views.append(ViewTarget(vw, maps.clip.reshape(h * w, -1).half().to(device), dino, mask))
     return views
 
 
-def _decode(model: torch.nn.Module, look: Corners | None, idx: torch.Tensor, dino: bool) -> FieldOutput:
+def _decode(
+    model: torch.nn.Module, interp: SparseMatrix | None, idx: torch.Tensor, dino: bool
+) -> FieldOutput:
+    """Features of the selected Gaussians idx [M]: encode all (one sparse product), decode only idx."""
     if isinstance(model, PerGaussianFeatures):
         return model.decode_index(idx, dino)
-    return model.decode(Corners(look.rows[idx], look.weights[idx]), dino)
+    return model.heads(model.grid.encode_matrix(interp)[idx], dino)
 
 
 def view_loss(
-    model: torch.nn.Module, look: Corners | None, v: ViewTarget, cfg: FieldTrainConfig, dotsim: bool
+    model: torch.nn.Module, interp: SparseMatrix | None, v: ViewTarget, cfg: FieldTrainConfig, dotsim: bool
 ) -> tuple[torch.Tensor, dict[str, float]]:
     """The loss of one view and its parts."""
     use_dino = v.dino is not None
-    out = _decode(model, look, v.weights.gaussians, use_dino)
+    out = _decode(model, interp, v.weights.gaussians, use_dino)
     clip = v.weights.render(out.clip)  # [h,w,Dc]
     h, w = clip.shape[:2]
     sel = v.mask if v.mask is not None else slice(None)
     pred, tgt = clip.reshape(h * w, -1)[sel], v.clip[sel].float()
     l_clip = F.huber_loss(pred, tgt, delta=cfg.huber_delta)
-    parts = {"clip": float(l_clip)}
+    parts = {"clip": float(l_clip.detach())}
     if use_dino:
         dino = v.weights.render(out.dino)
         l_dino = F.mse_loss(dino.reshape(h * w, -1)[sel], v.dino[sel].float())
         loss = cfg.lam * l_clip + (1 - cfg.lam) * l_dino
-        parts["dino"] = float(l_dino)
+        parts["dino"] = float(l_dino.detach())
         if dotsim and cfg.dotsim_weight > 0:
             l_dot = dotsim_loss(clip, dino, cfg.dotsim_kernel)
             loss = loss + cfg.dotsim_weight * l_dot
-            parts["dotsim"] = float(l_dot)
+            parts["dotsim"] = float(l_dot.detach())
     else:
         loss = l_clip  # without DINO targets only the language term is left (its weight is moot)
     return loss, parts
@@ -216,14 +222,16 @@ def train_field(
 
     if cfg.per_gaussian:
         model: torch.nn.Module = PerGaussianFeatures(g.num, clip_dim, dino_dim, cfg.seed)
-        look = None
+        interp = None
     else:
         model = FeatureField.for_points(fcfg, g.means.cpu(), seed=cfg.seed)
     model = model.to(dev)
     if not cfg.per_gaussian:
         with torch.no_grad():
-            look = model.lookup(g.means)
-    opt = torch.optim.RAdam(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+            interp = model.grid.interpolation_matrix(model.lookup(g.means))
+    opt = torch.optim.RAdam(
+        model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay, eps=cfg.adam_eps, foreach=True
+    )
     gen = torch.Generator().manual_seed(cfg.seed)
 
     ckpt = out_dir / "field_checkpoint.safetensors"
@@ -249,7 +257,7 @@ def train_field(
         v = views[int(torch.randint(len(views), (1,), generator=gen))]
         for group in opt.param_groups:
             group["lr"] = cfg.lr * (cfg.lr_final / cfg.lr) ** (step / max(cfg.steps - 1, 1))
-        loss, parts = view_loss(model, look, v, cfg, dotsim=step >= cfg.dotsim_start)
+        loss, parts = view_loss(model, interp, v, cfg, dotsim=step >= cfg.dotsim_start)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()

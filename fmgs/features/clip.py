@@ -1,0 +1,132 @@
+"""CLIP image embeddings (``CLIPModel.get_image_features``) with the model's preprocessing done in torch."""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+from typing import Any, NamedTuple, Protocol
+
+import torch
+import torch.nn.functional as F
+
+from fmgs.errors import ValidationError
+from fmgs.features.models import DEFAULT_CLIP_ID, require_transformers, resolve_model_dir
+from fmgs.features.text import ClipTextEncoder, load_clip_tokenizer, pooled_output
+from fmgs.vecmath import safe_normalize
+
+CLIP_MEAN = (0.48145466, 0.4578275, 0.40821073)
+"""Per-channel RGB mean of CLIP's image normalisation (OpenAI and OpenCLIP alike)."""
+CLIP_STD = (0.26862954, 0.26130258, 0.27577711)
+"""Per-channel RGB standard deviation of CLIP's image normalisation."""
+
+
+class ImageEncoder(Protocol):
+    """Embeds square RGB crops: what the hybrid CLIP pyramid needs from a model."""
+
+    id: str
+    """Identifier of the embedding space (the model id)."""
+    dim: int
+    """Embedding size D."""
+
+    def __call__(self, images: torch.Tensor) -> torch.Tensor:
+        """[B,3,S,S] float RGB in [0,1] -> [B,D] float32 unit-norm rows."""
+        ...
+
+
+class ClipImageEncoder:
+    """The image tower and projection of a ``transformers.CLIPModel``, L2-normalised.
+
+    Inputs are resized straight to the model's square input size (no centre crop: the pyramid's crops are
+    already square) with bicubic antialiased interpolation, then normalised with the model's mean/std.
+    """
+
+    def __init__(
+        self,
+        model: Any,
+        model_id: str,
+        device: str | torch.device = "cpu",
+        mean: tuple[float, float, float] = CLIP_MEAN,
+        std: tuple[float, float, float] = CLIP_STD,
+        dtype: torch.dtype = torch.float32,
+    ) -> None:
+        """Wrap an existing ``CLIPModel`` (moved to ``device``/``dtype`` and set to eval, in place).
+
+        ``dtype`` (e.g. float16 on a GPU) is the model's compute type; outputs are float32.
+        """
+        self.device = torch.device(device)
+        self.dtype = dtype
+        self.model = model.to(self.device, dtype).eval()
+        self.id = model_id
+        self.dim = int(model.config.projection_dim)
+        self.image_size = int(model.config.vision_config.image_size)
+        self.mean = torch.tensor(mean, dtype=torch.float32, device=self.device).view(1, 3, 1, 1)
+        self.std = torch.tensor(std, dtype=torch.float32, device=self.device).view(1, 3, 1, 1)
+
+    @classmethod
+    def load(
+        cls,
+        model_id: str = DEFAULT_CLIP_ID,
+        model_dir: str | os.PathLike | None = None,
+        device: str | torch.device = "cpu",
+        dtype: torch.dtype = torch.float32,
+    ) -> ClipImageEncoder:
+        """Load from ``model_dir``, the folder ``model_id``, or the hub cache (offline).
+
+        Mean/std come from the folder's ``preprocessor_config.json`` when it has them, else CLIP's.
+        """
+        d = resolve_model_dir(model_id, model_dir)
+        model = require_transformers().CLIPModel.from_pretrained(str(d), local_files_only=True)
+        mean, std = _preprocessor_mean_std(d)
+        return cls(model, model_id, device, mean, std, dtype)
+
+    @torch.inference_mode()
+    def encode_images(self, images: torch.Tensor) -> torch.Tensor:
+        """[B,3,h,w] float RGB in [0,1] -> [B,D] float32 unit-norm rows on the encoder's device."""
+        if images.ndim != 4 or images.shape[1] != 3:
+            raise ValidationError("images", f"expected [B,3,h,w], got {tuple(images.shape)}")
+        x = images.to(self.device, torch.float32)
+        S = self.image_size
+        if x.shape[-2:] != (S, S):
+            x = F.interpolate(x, size=(S, S), mode="bicubic", align_corners=False, antialias=True)
+            x = x.clamp(0.0, 1.0)
+        x = (x - self.mean) / self.std
+        feats = pooled_output(self.model.get_image_features(pixel_values=x.to(self.dtype)))
+        return safe_normalize(feats.float())
+
+    __call__ = encode_images
+
+
+class ClipEncoders(NamedTuple):
+    """Image and text sides of one CLIP model (sharing its weights)."""
+
+    image: ClipImageEncoder
+    text: ClipTextEncoder
+
+
+def load_clip(
+    model_id: str = DEFAULT_CLIP_ID,
+    model_dir: str | os.PathLike | None = None,
+    device: str | torch.device = "cpu",
+) -> ClipEncoders:
+    """Both encoders of one CLIP model, loaded once (offline)."""
+    d = resolve_model_dir(model_id, model_dir)
+    model = require_transformers().CLIPModel.from_pretrained(str(d), local_files_only=True)
+    mean, std = _preprocessor_mean_std(d)
+    image = ClipImageEncoder(model, model_id, device, mean, std)
+    return ClipEncoders(image, ClipTextEncoder(model, load_clip_tokenizer(d), model_id, device))
+
+
+def _preprocessor_mean_std(d: Path) -> tuple[tuple[float, ...], tuple[float, ...]]:
+    p = d / "preprocessor_config.json"
+    if not p.is_file():
+        return CLIP_MEAN, CLIP_STD
+    try:
+        cfg = json.loads(p.read_text())
+        mean = tuple(float(v) for v in cfg.get("image_mean", CLIP_MEAN))
+        std = tuple(float(v) for v in cfg.get("image_std", CLIP_STD))
+    except (OSError, ValueError, TypeError) as e:
+        raise ValidationError(str(p), f"cannot read image_mean/image_std ({e})") from e
+    if len(mean) != 3 or len(std) != 3 or min(std) <= 0:
+        raise ValidationError(str(p), f"bad image_mean {mean} / image_std {std}")
+    return mean, std

@@ -1,0 +1,151 @@
+"""Drivers that fill a feature cache from a posed dataset (resumable: done images are skipped).
+
+Map sizes follow ``Frame.camera.scaled(feature_scale)``, so a trainer rendering with the same scaled
+camera gets pixel-aligned targets.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from fmgs.cameras import Camera
+from fmgs.data.dataset import Frame, PosedDataset
+from fmgs.errors import ValidationError
+from fmgs.features.cache import FeatureCache, FeatureCacheWriter, TargetInfo
+from fmgs.features.clip import ImageEncoder
+from fmgs.features.dino import DinoEncoder
+from fmgs.features.labels import label_embedding_map
+from fmgs.features.pyramid import PyramidConfig, hybrid_map
+from fmgs.features.text import TextEncoder
+
+
+@dataclass(frozen=True)
+class ExtractConfig:
+    """How target maps are extracted."""
+
+    feature_scale: float = 0.25
+    """Stored maps are this fraction of the full image size per axis (rounded like Camera.scaled)."""
+    image_scale: float = 1.0
+    """Fraction of the full resolution the CLIP crops and the DINO input are taken from."""
+    device: str = "cpu"
+    """Where images and the pyramid arithmetic live (encoders keep their own device)."""
+    progress: bool = True
+    """Show a progress bar over images."""
+
+    def __post_init__(self) -> None:
+        if not 0.0 < self.feature_scale <= 1.0 or not 0.0 < self.image_scale <= 1.0:
+            raise ValidationError("feature_scale/image_scale", "must lie in (0, 1]")
+
+
+def feature_size(camera: Camera, feature_scale: float) -> tuple[int, int]:
+    """(h, w) of the stored maps for a full-resolution ``camera``."""
+    c = camera.scaled(feature_scale)
+    return c.height, c.width
+
+
+def _todo(ds: PosedDataset, writer: FeatureCacheWriter, indices: Sequence[int] | None) -> list[int]:
+    idx = list(range(len(ds))) if indices is None else list(indices)
+    return [i for i in idx if not writer.has(ds.frames[i].name)]
+
+
+def extract_targets(
+    ds: PosedDataset,
+    cache_dir: str | os.PathLike,
+    clip_encoder: ImageEncoder,
+    dino_encoder: DinoEncoder | None = None,
+    pyramid: PyramidConfig | None = None,
+    cfg: ExtractConfig = ExtractConfig(),
+    indices: Sequence[int] | None = None,
+) -> FeatureCache:
+    """Hybrid CLIP maps (and DINO maps when ``dino_encoder`` is given) for the frames ``indices`` (all by
+    default) into ``cache_dir``; both maps of an image go into one file. Returns the opened cache.
+    ``pyramid`` defaults to ``PyramidConfig()``.
+    """
+    pyramid = PyramidConfig() if pyramid is None else pyramid
+    targets = {"clip": TargetInfo(clip_encoder.id, clip_encoder.dim, True)}
+    if dino_encoder is not None:
+        targets["dino"] = TargetInfo(dino_encoder.id, dino_encoder.dim, False)
+    from tqdm.auto import tqdm
+
+    with FeatureCacheWriter(cache_dir, targets) as writer:
+        for i in tqdm(_todo(ds, writer, indices), desc="features", unit="image", disable=not cfg.progress):
+            frame = ds.frames[i]
+            image, _ = ds.image(i, cfg.image_scale)
+            image = image.to(cfg.device)
+            hw = feature_size(frame.camera, cfg.feature_scale)
+            clip = hybrid_map(clip_encoder, image, pyramid, hw)
+            dino = dino_encoder.dense(image, hw) if dino_encoder is not None else None
+            writer.add(frame.name, clip=clip, dino=dino)
+    return FeatureCache.open(cache_dir)
+
+
+def read_label_names(path: str | os.PathLike) -> list[str]:
+    """``label_names`` from a ``scene.json`` (``fmgs.synth``), given the file or its folder."""
+    p = Path(path)
+    if p.is_dir():
+        p = p / "scene.json"
+    try:
+        names = json.loads(p.read_text()).get("label_names")
+    except (OSError, json.JSONDecodeError, AttributeError) as e:
+        raise ValidationError(str(p), f"cannot read label_names ({e})") from e
+    if not isinstance(names, list) or not names or not all(isinstance(n, str) for n in names):
+        raise ValidationError(str(p), f"label_names must be a non-empty list of strings, got {names!r}")
+    return names
+
+
+def read_label_map(path: str | os.PathLike, width: int, height: int) -> torch.Tensor:
+    """[H,W] int64 labels from a single-channel image (PNG), checked against the frame's size."""
+    from PIL import Image
+
+    try:
+        with Image.open(path) as im:
+            if im.mode not in ("L", "P", "I", "I;16"):
+                raise ValidationError(str(path), f"label image has mode {im.mode}, expected single channel")
+            a = np.asarray(im).astype(np.int64)
+    except OSError as e:
+        raise ValidationError(str(path), f"cannot read label image ({e})") from e
+    if a.shape != (height, width):
+        raise ValidationError(str(path), f"label map is {a.shape[1]}x{a.shape[0]}, frame is {width}x{height}")
+    return torch.from_numpy(a)
+
+
+def extract_labels(
+    ds: PosedDataset,
+    cache_dir: str | os.PathLike,
+    labels: str | os.PathLike | Callable[[Frame], Path],
+    names: list[str],
+    text_encoder: TextEncoder,
+    ignore: frozenset[int] | set[int] = frozenset({0}),
+    cfg: ExtractConfig = ExtractConfig(),
+    indices: Sequence[int] | None = None,
+) -> FeatureCache:
+    """Label-name text embeddings as the language target, with a supervision mask, into ``cache_dir``.
+
+    ``labels`` is a folder holding one label image per frame under the frame image's file name
+    (``fmgs.synth``: ``labels/<name>.png``), or a function from a frame to its label image path.
+    Label ``l`` means ``names[l]``; labels in ``ignore`` (default: 0, the synthetic background) are not
+    supervised. Each name is embedded once.
+    """
+    emb = text_encoder.encode_text(list(names)).to(cfg.device, torch.float32)
+    if emb.shape != (len(names), text_encoder.dim):
+        raise ValidationError("text_encoder", f"returned {tuple(emb.shape)} for {len(names)} names")
+    label_path = labels if callable(labels) else (lambda f, d=Path(labels): d / Path(f.name).name)
+    targets = {"clip": TargetInfo(text_encoder.id, text_encoder.dim, True)}
+    from tqdm.auto import tqdm
+
+    with FeatureCacheWriter(cache_dir, targets) as writer:
+        for i in tqdm(
+            _todo(ds, writer, indices), desc="label targets", unit="image", disable=not cfg.progress
+        ):
+            frame = ds.frames[i]
+            lab = read_label_map(label_path(frame), frame.camera.width, frame.camera.height).to(cfg.device)
+            t = label_embedding_map(lab, emb, feature_size(frame.camera, cfg.feature_scale), ignore)
+            writer.add(frame.name, clip=t.clip, mask=t.mask)
+    return FeatureCache.open(cache_dir)

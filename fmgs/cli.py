@@ -144,6 +144,106 @@ def cmd_eval_gs(args: argparse.Namespace) -> int:
     return 0
 
 
+def _target_spec(args: argparse.Namespace):
+    from fmgs.build import TargetSpec
+
+    return TargetSpec(
+        kind=args.targets,
+        clip_model=args.clip_model,
+        dino_model=None if args.dino_model in (None, "none") else args.dino_model,
+        single_scale=args.single_scale,
+        labels=args.labels,
+        names=args.names,
+        text_encoder=args.text_encoder,
+        feature_scale=args.feature_scale,
+    )
+
+
+def _field_config(args: argparse.Namespace):
+    from fmgs.train.field import FieldTrainConfig
+
+    base = FieldTrainConfig(device=args.device, seed=args.seed, per_gaussian=args.per_gaussian)
+    cfg = base if args.field_steps == base.steps else base.reduced(args.field_steps)
+    if args.no_dotsim:
+        cfg = replace(cfg, dotsim_weight=0.0)
+    return cfg
+
+
+def cmd_features(args: argparse.Namespace) -> int:
+    """Extract feature targets (hybrid CLIP + DINO, or label masks) of a posed dataset into a cache."""
+    from fmgs.build import extract_features
+    from fmgs.data.dataset import load_dataset
+
+    ds = load_dataset(args.data)
+    cache = extract_features(ds, Path(args.out), _target_spec(args), args.device)
+    t = {k: f"{v.encoder} ({v.dim}-D)" for k, v in cache.targets.items()}
+    print(f"feature cache {args.out}: {len(cache.image_names)} images, targets {t}")
+    return 0
+
+
+def cmd_train_field(args: argparse.Namespace) -> int:
+    """Distil a feature cache into the field over a frozen 3DGS scene; optionally write a package."""
+    from fmgs.build import package_from_field
+    from fmgs.data.dataset import load_dataset
+    from fmgs.features.cache import FeatureCache
+    from fmgs.features.text import load_text_encoder
+    from fmgs.train.field import train_field
+
+    ds = load_dataset(args.data)
+    g = _load_scene(Path(args.gaussians))
+    cache = FeatureCache.open(args.features)
+    res = train_field(g, ds, cache, args.out, _field_config(args), resume=not args.restart)
+    print(
+        f"trained {len(res.losses)} steps in {res.seconds:.0f} s on {len(res.selection.index)} of "
+        f"{res.selection.total} Gaussians ({100 * res.selection.fraction:.0f}%), "
+        f"final loss {res.losses[-1]:.3g}"
+    )
+    if args.package:
+        enc = load_text_encoder(cache.targets["clip"].encoder)
+        out = package_from_field(args.package, g, res, enc, include_dino=args.include_dino)
+        print(f"wrote scene package {out}")
+    return 0
+
+
+def cmd_build(args: argparse.Namespace) -> int:
+    """Photos (or a posed dataset, or a .ply with its posed images) to a scene package in models/."""
+    from fmgs.build import BuildConfig, build_scene
+
+    cfg = BuildConfig(
+        name=args.name,
+        models=args.models,
+        work=args.work,
+        ply=args.ply,
+        gs_steps=args.gs_steps,
+        gs_scale=args.gs_scale,
+        targets=_target_spec(args),
+        field=_field_config(args),
+        include_dino=args.include_dino,
+        device=args.device,
+    )
+    out = build_scene(args.source, cfg)
+    print(f"wrote scene package {out}")
+    return 0
+
+
+def _add_target_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--targets", default="clip", choices=["clip", "labels"], help="what to distil")
+    p.add_argument("--clip-model", default="laion/CLIP-ViT-B-16-laion2B-s34B-b88K", help="id or folder")
+    p.add_argument("--dino-model", default="facebook/dino-vits8", help="id, folder, or 'none'")
+    p.add_argument("--single-scale", action="store_true", help="ablation: one CLIP crop scale")
+    p.add_argument("--labels", help="label image folder (--targets labels; default DATA/labels)")
+    p.add_argument("--names", help="scene.json with label_names (default DATA/scene.json)")
+    p.add_argument("--text-encoder", default="sentence-transformers/all-MiniLM-L6-v2")
+    p.add_argument("--feature-scale", type=float, default=0.25, help="map size / image size")
+
+
+def _add_field_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--field-steps", type=int, default=4200, help="fewer steps compress the schedule")
+    p.add_argument("--per-gaussian", action="store_true", help="ablation: per-Gaussian features")
+    p.add_argument("--no-dotsim", action="store_true", help="ablation: no dot-product-similarity loss")
+    p.add_argument("--include-dino", action="store_true", help="keep the DINO head in the package")
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="fmgs", description="FMGS: foundation-model embedded 3D Gaussian Splatting"
@@ -193,6 +293,36 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--out", help="folder for eval.json, eval.md and side-by-side renders")
     e.add_argument("--scale", type=float, default=1.0)
     e.set_defaults(func=cmd_eval_gs)
+    fe = sub.add_parser("features", help="extract feature targets of a posed dataset into a cache")
+    fe.add_argument("data", help="posed dataset folder")
+    fe.add_argument("--out", required=True, help="feature cache folder")
+    _add_target_args(fe)
+    fe.add_argument("--device", default="cuda" if _cuda() else "cpu")
+    fe.set_defaults(func=cmd_features)
+    tf = sub.add_parser("train-field", help="distil a feature cache into the feature field")
+    tf.add_argument("data", help="posed dataset folder")
+    tf.add_argument("--gaussians", required=True, help="frozen 3DGS scene (.ply or .safetensors)")
+    tf.add_argument("--features", required=True, help="feature cache folder")
+    tf.add_argument("--out", required=True, help="folder for the checkpoint and field_train.json")
+    tf.add_argument("--package", help="also write a scene package to this folder (e.g. models/NAME)")
+    _add_field_args(tf)
+    tf.add_argument("--device", default="cuda" if _cuda() else "cpu")
+    tf.add_argument("--seed", type=int, default=0)
+    tf.add_argument("--restart", action="store_true", help="ignore an existing checkpoint in --out")
+    tf.set_defaults(func=cmd_train_field)
+    b = sub.add_parser("build", help="photos or a posed dataset -> scene package in models/")
+    b.add_argument("source", help="photo folder, or posed dataset folder")
+    b.add_argument("--name", required=True, help="scene name")
+    b.add_argument("--models", default="models", help="model repository")
+    b.add_argument("--work", help="work folder (default MODELS/.work/NAME)")
+    b.add_argument("--ply", help="existing 3DGS .ply: skip geometry training")
+    b.add_argument("--gs-steps", type=int, default=30_000)
+    b.add_argument("--gs-scale", type=float, default=1.0)
+    _add_target_args(b)
+    _add_field_args(b)
+    b.add_argument("--device", default="cuda" if _cuda() else "cpu")
+    b.add_argument("--seed", type=int, default=0)
+    b.set_defaults(func=cmd_build)
     return p
 
 

@@ -1,0 +1,206 @@
+"""Every stage from photos (or a posed dataset, or a 3DGS .ply with its posed images) to a scene package.
+
+Stages, each skipped when its output is already complete in the work folder:
+  1 poses     photos -> pycolmap SfM -> WORK/sfm/undistorted   (skipped for a posed dataset)
+  2 geometry  3DGS training -> WORK/gs/point_cloud.ply         (skipped when a .ply is given)
+  3 features  targets -> WORK/features (CLIP + DINO, or label masks) (resumes per image)
+  4 field     distillation -> WORK/field                        (resumes from its checkpoint)
+  5 package   models/<name>
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass, replace
+from dataclasses import field as dc_field
+from pathlib import Path
+
+import torch
+
+from fmgs.errors import ValidationError
+from fmgs.gaussians import GaussianSet
+from fmgs.train.field import FieldTrainConfig, FieldTrainResult
+
+
+@dataclass(frozen=True)
+class TargetSpec:
+    """Which targets to distil."""
+
+    kind: str = "clip"
+    """"clip" (hybrid CLIP + DINO from pretrained models) or "labels" (label masks + a text encoder)."""
+    clip_model: str = "laion/CLIP-ViT-B-16-laion2B-s34B-b88K"
+    """CLIP model id or local folder (hub cache only, never downloaded)."""
+    dino_model: str | None = "facebook/dino-vits8"
+    """DINO model id or local folder; None for no DINO target."""
+    single_scale: bool = False
+    """Ablation: one crop scale instead of the 7-scale pyramid."""
+    labels: str | None = None
+    """Label image folder (kind "labels"); default DATA/labels."""
+    names: str | None = None
+    """scene.json (or a folder holding it) with label_names (kind "labels"); default DATA/scene.json."""
+    text_encoder: str = "sentence-transformers/all-MiniLM-L6-v2"
+    """Text encoder id for label names (kind "labels")."""
+    feature_scale: float = 0.25
+    """Feature maps at this fraction of the image resolution."""
+
+
+@dataclass(frozen=True)
+class BuildConfig:
+    """What ``build_scene`` runs."""
+
+    name: str
+    """Scene name (folder under the model repository)."""
+    models: str = "models"
+    """The model repository."""
+    work: str | None = None
+    """Work folder for intermediate outputs (default: WORK = <models>/.work/<name>)."""
+    ply: str | None = None
+    """An existing 3DGS .ply (skip geometry training)."""
+    gs_steps: int = 30_000
+    """3DGS steps (fewer compresses the schedule)."""
+    gs_scale: float = 1.0
+    """3DGS training image scale."""
+    targets: TargetSpec = dc_field(default_factory=TargetSpec)
+    """Feature targets."""
+    field: FieldTrainConfig = dc_field(default_factory=FieldTrainConfig)
+    """Distillation settings."""
+    include_dino: bool = False
+    """Keep the DINO head in the package."""
+    device: str = "cpu"
+    """Torch device for every stage."""
+
+
+def package_from_field(
+    out: str | Path,
+    gaussians: GaussianSet,
+    result: FieldTrainResult,
+    encoder,
+    include_dino: bool = False,
+    extra: dict | None = None,
+) -> Path:
+    """Decode each selected Gaussian's embedding once and write the scene package to ``out``."""
+    from fmgs.field.model import FeatureField
+    from fmgs.query.relevancy import CANONICAL_PHRASES
+    from fmgs.scene.package import export_scene
+
+    g = gaussians.subset(result.selection.index)
+    model = result.model.cpu()
+    with torch.no_grad():
+        if isinstance(model, FeatureField):
+            emb = model(g.means.float(), dino=False).clip
+            field = model
+        else:
+            emb = model.decode_index(torch.arange(g.num), dino=False).clip
+            field = None
+        canon = encoder.encode_text(list(CANONICAL_PHRASES)).float().cpu()
+    return export_scene(
+        out,
+        gaussians,
+        result.selection.index,
+        emb,
+        encoder.id,
+        canon,
+        field=field,
+        include_dino=include_dino,
+        extra=extra,
+    )
+
+
+def _stage(i: int, name: str, msg: str) -> None:
+    print(f"[{i}/5] {name}: {msg}", flush=True)
+
+
+def _is_dataset(path: Path) -> bool:
+    return (path / "transforms.json").is_file() or any(
+        (path / s).is_dir() for s in ("sparse/0", "sparse", "colmap/sparse/0")
+    )
+
+
+def extract_features(ds, cache_dir: Path, spec: TargetSpec, device: str, progress: bool = True):
+    """Fill ``cache_dir`` with the targets ``spec`` names (resuming); returns the FeatureCache."""
+    from fmgs.features.extract import ExtractConfig, extract_labels, extract_targets, read_label_names
+    from fmgs.features.text import load_text_encoder
+
+    ecfg = ExtractConfig(feature_scale=spec.feature_scale, device=device, progress=progress)
+    if spec.kind == "labels":
+        names = read_label_names(spec.names or ds.root / "scene.json")
+        enc = load_text_encoder(spec.text_encoder, device=device)
+        return extract_labels(ds, cache_dir, spec.labels or ds.root / "labels", names, enc, cfg=ecfg)
+    if spec.kind != "clip":
+        raise ValidationError("targets", f"unknown target kind {spec.kind!r}; choose 'clip' or 'labels'")
+    from fmgs.features.clip import ClipImageEncoder
+    from fmgs.features.dino import DinoEncoder
+    from fmgs.features.pyramid import PyramidConfig
+
+    clip = ClipImageEncoder.load(spec.clip_model, device=device)
+    dino = DinoEncoder.load(spec.dino_model, device=device) if spec.dino_model else None
+    pyr = PyramidConfig(scales=(0.25,)) if spec.single_scale else PyramidConfig()
+    return extract_targets(ds, cache_dir, clip, dino, pyr, ecfg)
+
+
+def build_scene(source: str | Path, cfg: BuildConfig, progress: bool = True) -> Path:
+    """Run the stages for ``source`` (a photo folder or a posed dataset) and return the package path."""
+    from fmgs.data.dataset import load_dataset
+    from fmgs.features.cache import FeatureCache
+    from fmgs.features.text import load_text_encoder
+    from fmgs.io.ply import read_ply
+    from fmgs.scene.package import check_scene_name
+    from fmgs.train.field import train_field
+
+    check_scene_name(cfg.name)
+    source = Path(source)
+    if not source.is_dir():
+        raise ValidationError("source", f"{source} is not a folder (photos or a posed dataset)")
+    work = Path(cfg.work) if cfg.work else Path(cfg.models) / ".work" / cfg.name
+    work.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+
+    if _is_dataset(source):
+        _stage(1, "poses", f"posed dataset {source}")
+        data = source
+    else:
+        data = work / "sfm" / "undistorted"
+        if _is_dataset(data):
+            _stage(1, "poses", f"complete ({data})")
+        else:
+            from fmgs.sfm import run_sfm
+
+            _stage(1, "poses", f"pycolmap SfM on {source}")
+            r = run_sfm(source, work / "sfm")
+            data = Path(r.dataset_dir)
+    ds = load_dataset(data)
+
+    if cfg.ply:
+        _stage(2, "geometry", f"given {cfg.ply}")
+        ply = Path(cfg.ply)
+    else:
+        ply = work / "gs" / "point_cloud.ply"
+        done = work / "gs" / "train.json"
+        if ply.is_file() and done.is_file() and json.loads(done.read_text()).get("steps") == cfg.gs_steps:
+            _stage(2, "geometry", f"complete ({ply})")
+        else:
+            from fmgs.train.gaussians import GSTrainConfig, train_gaussians
+
+            _stage(2, "geometry", f"3DGS, {cfg.gs_steps} steps")
+            kw = dict(image_scale=cfg.gs_scale, device=cfg.device)
+            gcfg = (
+                GSTrainConfig(**kw) if cfg.gs_steps == 30_000 else GSTrainConfig.reduced(cfg.gs_steps, **kw)
+            )
+            train_gaussians(ds, work / "gs", gcfg, progress=progress)
+    gaussians = read_ply(ply)
+
+    cache_dir = work / "features"
+    _stage(3, "features", f"{cfg.targets.kind} targets -> {cache_dir}")
+    cache = extract_features(ds, cache_dir, cfg.targets, cfg.device, progress)
+    cache = FeatureCache.open(cache_dir)
+
+    fcfg = replace(cfg.field, device=cfg.device)
+    _stage(4, "field", f"{fcfg.steps} steps on {cfg.device}")
+    res = train_field(gaussians, ds, cache, work / "field", fcfg, progress=progress)
+
+    out = Path(cfg.models) / cfg.name
+    _stage(5, "package", str(out))
+    encoder = load_text_encoder(cache.targets["clip"].encoder, device="cpu")
+    extra = {"source": str(source), "build_seconds": round(time.perf_counter() - t0, 1)}
+    return package_from_field(out, gaussians, res, encoder, cfg.include_dino, extra)

@@ -196,7 +196,11 @@ def build_scene(source: str | Path, cfg: BuildConfig, progress: bool = True) -> 
     cache = FeatureCache.open(cache_dir)
 
     fcfg = replace(cfg.field, device=cfg.device)
-    _stage(4, "field", f"{fcfg.steps} steps on {cfg.device}")
+    done = work / "field" / "field_train.json"
+    complete = done.is_file() and json.loads(done.read_text()).get("steps") == fcfg.steps
+    _stage(
+        4, "field", "complete (loading the checkpoint)" if complete else f"{fcfg.steps} steps on {cfg.device}"
+    )
     res = train_field(gaussians, ds, cache, work / "field", fcfg, progress=progress)
 
     out = Path(cfg.models) / cfg.name

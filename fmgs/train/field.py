@@ -218,7 +218,6 @@ def train_field(
     if len(selection.index) == 0:
         raise ValidationError("gaussians", "no Gaussian passes the opacity and radius selection")
     g = gaussians.subset(selection.index).to(dev)
-    views = prepare_views(g, ds, cache, train, dev)
 
     if cfg.per_gaussian:
         model: torch.nn.Module = PerGaussianFeatures(g.num, clip_dim, dino_dim, cfg.seed)
@@ -247,6 +246,9 @@ def train_field(
         start, losses = int(meta["step"]), list(meta["losses"])
         gen.set_state(torch.tensor(meta["rng"], dtype=torch.uint8))
 
+    if start >= cfg.steps:  # a finished run: nothing to prepare or write
+        return FieldTrainResult(model.cpu(), selection, 0.0, losses)
+    views = prepare_views(g, ds, cache, train, dev)
     bar = None
     if progress:
         from tqdm import tqdm

@@ -77,6 +77,22 @@ class HashGridConfig:
         return asdict(self)
 
 
+def scene_max_res(points: torch.Tensor, cfg: HashGridConfig) -> int:
+    """Finest resolution the points can use: one cell per median nearest-neighbour spacing of points
+    [N,3] (unit cube), clamped to [min_res, max_res]. Finer levels only separate Gaussians that are
+    already apart, so the scene-adaptive option stops there."""
+    from scipy.spatial import cKDTree
+
+    p = points.detach().cpu().double().numpy()
+    if len(p) < 2:
+        return cfg.min_res
+    d, _ = cKDTree(p).query(p, k=2)
+    spacing = float(torch.tensor(d[:, 1]).median())
+    if spacing <= 0:
+        return cfg.max_res
+    return int(min(cfg.max_res, max(cfg.min_res, math.ceil(1.0 / spacing))))
+
+
 class Corners(NamedTuple):
     """Where points read the table: global row indices and trilinear weights."""
 

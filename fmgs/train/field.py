@@ -22,6 +22,8 @@ import torch.nn.functional as F
 
 from fmgs.data.dataset import PosedDataset
 from fmgs.errors import ValidationError
+from fmgs.field.bounds import SceneBounds
+from fmgs.field.hashgrid import scene_max_res
 from fmgs.field.model import FeatureField, FieldConfig, FieldOutput, PerGaussianFeatures
 from fmgs.field.select import SelectConfig, Selection, select_gaussians
 from fmgs.gaussians import GaussianSet
@@ -72,6 +74,8 @@ class FieldTrainConfig:
     """Which Gaussians carry features."""
     per_gaussian: bool = False
     """Ablation: free per-Gaussian vectors instead of the hash-grid field."""
+    adaptive_resolution: bool = False
+    """Scene-adaptive: lower the finest level to the Gaussians' median spacing (``scene_max_res``)."""
     checkpoint_every: int = 500
     """Steps between checkpoints (0: only at the end)."""
 
@@ -223,6 +227,10 @@ def train_field(
         model: torch.nn.Module = PerGaussianFeatures(g.num, clip_dim, dino_dim, cfg.seed)
         interp = None
     else:
+        if cfg.adaptive_resolution:
+            bounds = SceneBounds.around(g.means.cpu())
+            top = scene_max_res(bounds.normalise(g.means.cpu().double()), fcfg.grid)
+            fcfg = replace(fcfg, grid=replace(fcfg.grid, max_res=top))
         model = FeatureField.for_points(fcfg, g.means.cpu(), seed=cfg.seed)
     model = model.to(dev)
     if not cfg.per_gaussian:

@@ -217,3 +217,14 @@ def test_interpolation_matrix_equals_the_gather_encoding_and_its_gradient():
     (ga,) = torch.autograd.grad((fast * g).sum(), grid.table)
     (gb,) = torch.autograd.grad((ref * g).sum(), grid.table)
     assert_close(ga, gb, torch.float64)
+
+
+def test_scene_max_res_follows_the_point_spacing():
+    from fmgs.field.hashgrid import scene_max_res
+
+    g = torch.stack(torch.meshgrid(*[torch.arange(11.0)] * 3, indexing="ij"), -1).reshape(-1, 3) / 40
+    cfg = HashGridConfig()
+    assert scene_max_res(g, cfg) == 40  # spacing 1/40
+    assert scene_max_res(g / 100, cfg) == cfg.max_res  # finer than the cap
+    assert scene_max_res(g * 10, cfg) == cfg.min_res  # coarser than the coarsest level
+    assert scene_max_res(torch.zeros(5, 3), cfg) == cfg.max_res  # coincident points

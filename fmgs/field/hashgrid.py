@@ -90,7 +90,7 @@ def scene_max_res(points: torch.Tensor, cfg: HashGridConfig) -> int:
     spacing = float(torch.tensor(d[:, 1]).median())
     if spacing <= 0:
         return cfg.max_res
-    return int(min(cfg.max_res, max(cfg.min_res, math.ceil(1.0 / spacing - 1e-6))))
+    return int(min(cfg.max_res, max(cfg.min_res, math.ceil((1 - 1e-5) / spacing))))
 
 
 class Corners(NamedTuple):

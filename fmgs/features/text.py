@@ -47,6 +47,19 @@ def _check_texts(texts: list[str]) -> list[str]:
     return list(texts)
 
 
+def _token_batches(encoder: Any, texts: list[str]):
+    """Yield the encoder's tokenizer output for ``texts`` in batches, on the encoder's device."""
+    texts = _check_texts(texts)
+    for s in range(0, len(texts), encoder.batch_size):
+        yield encoder.tokenizer(
+            texts[s : s + encoder.batch_size],
+            padding=True,
+            truncation=True,
+            max_length=encoder.max_length,
+            return_tensors="pt",
+        ).to(encoder.device)
+
+
 def pooled_output(out: Any) -> torch.Tensor:
     """The projected embedding from a ``get_*_features`` result: a tensor, or an output's pooler_output."""
     if isinstance(out, torch.Tensor):
@@ -94,16 +107,8 @@ class MiniLMTextEncoder:
     @torch.inference_mode()
     def encode_text(self, texts: list[str]) -> torch.Tensor:
         """[n, 384] float32 unit-norm rows on the encoder's device."""
-        texts = _check_texts(texts)
         out = [torch.zeros(0, self.dim, device=self.device)]
-        for s in range(0, len(texts), self.batch_size):
-            enc = self.tokenizer(
-                texts[s : s + self.batch_size],
-                padding=True,
-                truncation=True,
-                max_length=self.max_length,
-                return_tensors="pt",
-            ).to(self.device)
+        for enc in _token_batches(self, texts):
             hidden = self.model(**enc).last_hidden_state.float()  # [b, t, 384]
             m = enc["attention_mask"].unsqueeze(-1).to(hidden.dtype)  # [b, t, 1]
             mean = (hidden * m).sum(1) / m.sum(1).clamp_min(1e-9)
@@ -178,19 +183,10 @@ class ClipTextEncoder:
     @torch.inference_mode()
     def encode_text(self, texts: list[str]) -> torch.Tensor:
         """[n, D] float32 unit-norm rows on the encoder's device."""
-        texts = _check_texts(texts)
         out = [torch.zeros(0, self.dim, device=self.device)]
-        for s in range(0, len(texts), self.batch_size):
-            enc = self.tokenizer(
-                texts[s : s + self.batch_size],
-                padding=True,
-                truncation=True,
-                max_length=self.max_length,
-                return_tensors="pt",
-            )
+        for enc in _token_batches(self, texts):
             feats = self.model.get_text_features(
-                input_ids=enc["input_ids"].to(self.device),
-                attention_mask=enc["attention_mask"].to(self.device),
+                input_ids=enc["input_ids"], attention_mask=enc["attention_mask"]
             )
             out.append(safe_normalize(pooled_output(feats).float()))
         return torch.cat(out)

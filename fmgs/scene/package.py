@@ -7,7 +7,9 @@ Layout:
                            (decoded once, unit norm before rounding), canonical [M,C] float32 (the
                            stored embeddings' dot products with the canonical phrases)
   field.safetensors        hash-grid keys and table, language head (and DINO head only if asked), so the
-                           field can be queried at arbitrary 3D points; absent for the per-Gaussian ablation
+                           field can be queried at arbitrary 3D points; absent for the per-Gaussian ablation.
+                           Its floating-point tensors are float32, or float16 where the manifest's
+                           field.dtype says so (smaller packages; upcast to float32 on load)
 No optimiser state, no training images, no targets.
 """
 
@@ -32,6 +34,8 @@ from fmgs.query.relevancy import CANONICAL_PHRASES
 
 FORMAT = "fmgs.scene"
 VERSION = 1
+FIELD_DTYPES = {"float32": torch.float32, "float16": torch.float16}
+"""Storage dtypes of the field's floating-point tensors (a manifest without field.dtype means float32)."""
 _NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,127}$")
 
 
@@ -86,14 +90,19 @@ def export_scene(
     include_dino: bool = False,
     canonical_phrases: tuple[str, ...] = CANONICAL_PHRASES,
     extra: dict | None = None,
+    field_dtype: str = "float32",
 ) -> Path:
     """Write a package to folder ``out`` (replaced atomically) and return it.
 
     selected [M] indices into ``gaussians``; embeddings [M,D] decoded per selected Gaussian (float32,
     unit norm); canonical_embeddings [C,D] the encoder's embeddings of ``canonical_phrases``.
+    field_dtype: storage of the field's table and heads, "float32" (exact) or "float16" (half the size;
+    the stored embeddings are decoded before rounding, so only queries at arbitrary points see it).
     """
     out = Path(out)
     check_scene_name(out.name)
+    if field_dtype not in FIELD_DTYPES:
+        raise ValidationError("field_dtype", f"{field_dtype!r} is not one of {sorted(FIELD_DTYPES)}")
     M, D = embeddings.shape
     if selected.shape != (M,):
         raise ValidationError("selected", f"expected [{M}] indices, got {list(selected.shape)}")
@@ -129,26 +138,35 @@ def export_scene(
             str(tmp / "embeddings.safetensors"),
         )
         if field is not None:
+            fdt = FIELD_DTYPES[field_dtype]
             state = {
-                k: v.detach().cpu().contiguous()
+                k: (v.to(fdt) if v.is_floating_point() else v).detach().cpu().contiguous()
                 for k, v in field.state_dict().items()
                 if include_dino or not k.startswith("dino_head.")
             }
+            for k, v in state.items():
+                if v.is_floating_point():
+                    check_finite(f"field {k} as {field_dtype}", v)  # float16 overflows beyond 65504
             save_file(state, str(tmp / "field.safetensors"))
             manifest["field"] = {
                 "config": field.cfg.to_dict(),
                 "bounds": field.bounds.to_dict(),
                 "dino_head": include_dino and field.dino_head is not None,
+                "dtype": field_dtype,
             }
         (tmp / "manifest.json").write_text(json.dumps(manifest, indent=1))
     return out
 
 
-def load_scene(path: str | Path, device: str | torch.device = "cpu") -> ScenePackage:
-    """Read and validate a package; ValidationError names the file and what is wrong."""
-    from safetensors import SafetensorError
-    from safetensors.torch import load_file
+def load_scene(path: str | Path, device: str | torch.device = "cpu", mmap: bool = False) -> ScenePackage:
+    """Read and validate a package; ValidationError names the file and what is wrong.
 
+    ``mmap``: leave the embeddings in the file as a float16 memory map (CPU; pages load on touch), for
+    servers that keep only a compact query state in memory (fmgs.query.index).
+    """
+
+    if mmap and torch.device(device).type != "cpu":
+        raise ValidationError("device", "memory-mapped embeddings live on the CPU")
     path = Path(path)
     mpath = path / "manifest.json"
     if not mpath.is_file():
@@ -173,14 +191,11 @@ def load_scene(path: str | Path, device: str | torch.device = "cpu") -> ScenePac
 
     gaussians = load_gaussians(path / "gaussians.safetensors", device)
     gaussians.validate()
-    try:
-        t = load_file(str(path / "embeddings.safetensors"), device=str(device))
-    except (SafetensorError, OSError, FileNotFoundError) as e:
-        raise ValidationError(str(path / "embeddings.safetensors"), f"cannot read ({e})") from e
-    for key in ("selected", "embeddings", "canonical"):
-        if key not in t:
-            raise ValidationError(str(path / "embeddings.safetensors"), f"missing tensor {key!r}")
-    sel, emb, canon = t["selected"], t["embeddings"].float(), t["canonical"].float()
+    t = _read_tensors(
+        path / "embeddings.safetensors", ("selected", "canonical", *(() if mmap else ("embeddings",))), device
+    )
+    sel, canon = t["selected"], t["canonical"].float()
+    emb = _mmap_embeddings(path / "embeddings.safetensors") if mmap else t["embeddings"].float()
     M = manifest["counts"].get("selected")
     where = str(path / "embeddings.safetensors")
     if sel.dtype != torch.int64 or sel.shape != (M,):
@@ -191,7 +206,8 @@ def load_scene(path: str | Path, device: str | torch.device = "cpu") -> ScenePac
         raise ValidationError(where, f"canonical must be [{M},{C}], got {list(canon.shape)}")
     if M and (int(sel.min()) < 0 or int(sel.max()) >= gaussians.num):
         raise ValidationError(where, f"selected indices must lie in [0, {gaussians.num})")
-    check_finite(f"{where}: embeddings", emb)
+    for s0 in range(0, M, 65536):  # chunked: no float32 copy of a memory map
+        check_finite(f"{where}: embeddings", emb[s0 : s0 + 65536])
     check_finite(f"{where}: canonical", canon)
 
     field = None
@@ -202,6 +218,35 @@ def load_scene(path: str | Path, device: str | torch.device = "cpu") -> ScenePac
                 str(mpath), f"field clip_dim {field.cfg.clip_dim} differs from encoder dim {D}"
             )
     return ScenePackage(manifest["name"], manifest, gaussians, sel, emb, canon, field)
+
+
+def _read_tensors(fpath: Path, keys: tuple[str, ...], device) -> dict[str, torch.Tensor]:
+    """The named tensors of a safetensors file (only those are read)."""
+    from safetensors import SafetensorError, safe_open
+
+    try:
+        with safe_open(str(fpath), framework="pt", device=str(device)) as f:
+            have = set(f.keys())
+            for key in keys:
+                if key not in have:
+                    raise ValidationError(str(fpath), f"missing tensor {key!r}")
+            return {k: f.get_tensor(k) for k in keys}
+    except (SafetensorError, OSError) as e:
+        raise ValidationError(str(fpath), f"cannot read ({e})") from e
+
+
+def _mmap_embeddings(fpath: Path) -> torch.Tensor:
+    """[M,D] float16 tensor over a copy-on-write memory map of the stored embeddings."""
+    import numpy as np
+
+    from fmgs.io.mmap_tensors import mmap_tensor
+
+    a = mmap_tensor(fpath, "embeddings")
+    if a.dtype != np.float16:
+        raise ValidationError(str(fpath), f"embeddings must be float16, got {a.dtype}")
+    if isinstance(a, np.memmap):  # copy-on-write: writable for torch, never written back
+        a = np.memmap(a.filename, dtype=a.dtype, mode="c", offset=a.offset, shape=a.shape)
+    return torch.from_numpy(a)
 
 
 def _load_field(fpath: Path, meta: dict, device) -> FeatureField:
@@ -215,12 +260,21 @@ def _load_field(fpath: Path, meta: dict, device) -> FeatureField:
         raise ValidationError(str(fpath), f"bad field description in the manifest ({e})") from e
     if not meta.get("dino_head"):
         cfg = FieldConfig(**{**cfg.__dict__, "dino_dim": 0})
+    dtype = meta.get("dtype", "float32")
+    if dtype not in FIELD_DTYPES:
+        raise ValidationError(
+            str(fpath), f"field dtype {dtype!r} in the manifest is not one of {sorted(FIELD_DTYPES)}"
+        )
     try:
         state = load_file(str(fpath), device=str(device))
     except (SafetensorError, OSError) as e:
         raise ValidationError(str(fpath), f"cannot read ({e})") from e
     if "grid.keys" not in state:
         raise ValidationError(str(fpath), "missing tensor 'grid.keys'")
+    for k, v in state.items():
+        if v.is_floating_point() and v.dtype != FIELD_DTYPES[dtype]:
+            raise ValidationError(str(fpath), f"tensor {k!r} is {v.dtype}, the manifest says {dtype}")
+    state = {k: v.float() if v.is_floating_point() else v for k, v in state.items()}
     try:
         grid = HashGrid(cfg.grid, state["grid.keys"].cpu())
         model = FeatureField(cfg, bounds, grid)

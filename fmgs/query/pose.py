@@ -1,0 +1,96 @@
+"""Pose queries: a relevancy image for a camera by dot-then-render, optionally RGB, depth and alpha."""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import torch
+
+from fmgs.cameras import Camera
+from fmgs.errors import ValidationError
+from fmgs.query.relevancy import TEMPERATURE, relevancy
+from fmgs.render import rasterize
+from fmgs.render.rgb import render_rgb
+
+OUTPUTS = ("relevancy", "rgb", "depth", "alpha")
+
+
+class PoseRender(NamedTuple):
+    """What a pose query returns (None for outputs not asked for)."""
+
+    relevancy: torch.Tensor | None
+    """[H,W] float32 relevancy in (0,1)."""
+    rgb: torch.Tensor | None
+    """[H,W,3] float32 colour of all Gaussians, clamped to [0,1]."""
+    depth: torch.Tensor | None
+    """[H,W] float32 expected depth of all Gaussians (0 where empty)."""
+    alpha: torch.Tensor | None
+    """[H,W] float32 accumulated opacity of the embedded Gaussians."""
+    argmax: tuple[int, int, float] | None
+    """(x, y, value) of the most relevant pixel (first in row-major order on ties)."""
+
+
+@torch.no_grad()
+def render_pose(
+    engine,
+    camera: Camera,
+    query: torch.Tensor | None,
+    outputs: tuple[str, ...] = ("relevancy",),
+    canonical: torch.Tensor | None = None,
+) -> PoseRender:
+    """Render ``outputs`` for ``camera``; query [D] (needed for relevancy), canonical [C,D] optional.
+
+    Relevancy renders 1 + C scalar channels per embedded Gaussian (f.q and f.c_n) and applies the
+    relevancy to the blend, which equals scoring the rendered D-dim feature (blending is linear).
+    """
+    bad = [o for o in outputs if o not in OUTPUTS]
+    if bad or not outputs:
+        raise ValidationError("outputs", f"choose from {OUTPUTS}, got {list(outputs)}")
+    rel = alpha = rgb = depth = arg = None
+    if "relevancy" in outputs or "alpha" in outputs:
+        if "relevancy" in outputs:
+            if query is None:
+                raise ValidationError("text", "a query is needed for a relevancy image")
+            vecs = engine.unit(query[None])
+            if canonical is not None:
+                chans = engine.channels(torch.cat([vecs, engine.unit(canonical, "canonical embeddings")]))
+            else:
+                chans = torch.cat([engine.channels(vecs), engine.index.canonical], 1)
+        else:
+            chans = torch.ones(engine.num_embedded, 1)
+        out = rasterize(*engine.geometry, chans.to(engine.geometry[0]), camera, backend=engine.cfg.backend)
+        img = out.image.float().cpu()
+        alpha = out.alpha.float().cpu()
+        if "relevancy" in outputs:
+            rel = relevancy(img[..., 0], img[..., 1:], TEMPERATURE)
+            flat = int(torch.argmax(rel))
+            y, x = divmod(flat, rel.shape[1])
+            arg = (x, y, float(rel[y, x]))
+    if "rgb" in outputs or "depth" in outputs:
+        out = render_rgb(engine.gaussians, camera, backend=engine.cfg.backend)
+        rgb = out.image.float().clamp(0, 1).cpu()
+        depth = out.depth.float().cpu()
+    want = set(outputs)
+    return PoseRender(
+        rel if "relevancy" in want else None,
+        rgb if "rgb" in want else None,
+        depth if "depth" in want else None,
+        alpha if "alpha" in want else None,
+        arg,
+    )
+
+
+@torch.no_grad()
+def render_pose_reference(
+    engine, camera: Camera, query: torch.Tensor, embeddings: torch.Tensor
+) -> torch.Tensor:
+    """Exact twin of the relevancy image: render the full embeddings [M,D], then score every pixel.
+
+    Uses the scene's canonical dots' source: canonical embeddings are not stored, so the canonical
+    channels are rendered from the stored per-Gaussian canonical dots (linear, hence exact as well).
+    """
+    q = engine.unit(query[None])[0]
+    g = engine.geometry
+    F = rasterize(*g, embeddings.float(), camera, backend="reference").image.float()  # [H,W,D]
+    C = rasterize(*g, engine.index.canonical, camera, backend="reference").image.float()  # [H,W,C]
+    return relevancy(F @ q, C, TEMPERATURE)

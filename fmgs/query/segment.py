@@ -1,0 +1,42 @@
+"""Open-vocabulary segmentation (3D-OVS protocol): cosine to class names, softmax, argmax.
+
+Softmax does not change the argmax, so labels are the argmax of the dot products; per pixel the class
+dots are rendered (dot-then-render) and pixels the embedded Gaussians barely cover get -1.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import torch
+
+from fmgs.cameras import Camera
+from fmgs.render import rasterize
+
+
+class Segmentation(NamedTuple):
+    """Labels for a list of classes."""
+
+    gaussian_index: torch.Tensor | None
+    """[M] int64 scene indices of the embedded Gaussians."""
+    gaussian_labels: torch.Tensor | None
+    """[M] int32 class of each embedded Gaussian."""
+    pixel_labels: torch.Tensor | None
+    """[H,W] int32 class per pixel, -1 where alpha < min_alpha."""
+
+
+@torch.no_grad()
+def segment(
+    engine, classes: torch.Tensor, camera: Camera | None, per_gaussian: bool, min_alpha: float = 0.1
+) -> Segmentation:
+    """Labels for unit class embeddings [n,D] (n >= 1)."""
+    v = engine.unit(classes, "class embeddings")
+    dots = engine.channels(v)  # [M,n]
+    gi = gl = pix = None
+    if per_gaussian:
+        gi, gl = engine.selected.clone(), dots.argmax(1).to(torch.int32)
+    if camera is not None:
+        out = rasterize(*engine.geometry, dots.to(engine.geometry[0]), camera, backend=engine.cfg.backend)
+        pix = out.image.float().argmax(-1).to(torch.int32).cpu()
+        pix[out.alpha.cpu() < min_alpha] = -1
+    return Segmentation(gi, gl, pix)

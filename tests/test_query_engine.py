@@ -1,0 +1,237 @@
+"""The query engine: compact index against the exact ranking, instances, pose/point/segment queries."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from fmgs.cameras import Camera
+from fmgs.errors import ValidationError
+from fmgs.field.hashgrid import HashGridConfig
+from fmgs.field.model import FeatureField, FieldConfig
+from fmgs.gaussians import GaussianSet
+from fmgs.query.engine import EngineConfig, SceneEngine
+from fmgs.query.index import EmbeddingIndex, IndexConfig, rank_reference
+from fmgs.query.instances import InstanceConfig, dbscan
+from fmgs.query.points import NoFieldError, query_points
+from fmgs.query.pose import render_pose, render_pose_reference
+from fmgs.query.segment import segment
+from fmgs.scene.package import export_scene, load_scene
+from fmgs.vecmath import safe_normalize
+
+D = 16
+CENTRES = torch.tensor([[-1.0, 0.0, 4.0], [1.0, 0.0, 4.0], [0.0, 1.0, 5.0]], dtype=torch.float64)
+
+
+def _scene(tmp_path, n_per=60, with_field=False, name="s"):
+    """Three blobs of Gaussians, each with embeddings near its own class vector."""
+    g = torch.Generator().manual_seed(0)
+    classes = safe_normalize(torch.randn(3, D, generator=g))
+    means, emb = [], []
+    for i, c in enumerate(CENTRES):
+        means.append(c.float() + 0.08 * torch.randn(n_per, 3, generator=g))
+        emb.append(safe_normalize(classes[i] + 0.15 * torch.randn(n_per, D, generator=g)))
+    means = torch.cat(means)
+    n = len(means)
+    gs = GaussianSet(
+        means,
+        torch.randn(n, 4, generator=g),
+        torch.full((n, 3), -3.0),
+        torch.full((n,), 2.0),
+        0.3 * torch.randn(n, 4, 3, generator=g),
+    )
+    emb = torch.cat(emb)
+    canon = safe_normalize(torch.randn(4, D, generator=g))
+    field = None
+    if with_field:
+        cfg = FieldConfig(HashGridConfig(levels=4, min_res=4, max_res=32, log2_table=12), D, 32, 2, 0)
+        field = FeatureField.for_points(cfg, means)
+    sel = torch.arange(n)
+    p = export_scene(tmp_path / name, gs, sel, emb, "test/enc", canon, field=field)
+    return p, classes, canon
+
+
+def _camera(w=48, h=40):
+    K = torch.tensor([[40.0, 0, w / 2], [0, 40.0, h / 2], [0, 0, 1]], dtype=torch.float64)
+    return Camera(K, torch.eye(4, dtype=torch.float64), w, h)
+
+
+def test_mmap_load_equals_memory_load(tmp_path):
+    p, *_ = _scene(tmp_path)
+    a, b = load_scene(p), load_scene(p, mmap=True)
+    assert b.embeddings.dtype == torch.float16
+    assert torch.equal(a.embeddings, b.embeddings.float())
+
+
+@pytest.mark.parametrize("rerank", [0, 4])
+def test_compact_index_against_exact_ranking(rerank):
+    g = torch.Generator().manual_seed(1)
+    M, r = 5000, 8
+    basis = safe_normalize(torch.randn(r, 64, generator=g))
+    emb = safe_normalize(torch.randn(M, r, generator=g) @ basis + 0.02 * torch.randn(M, 64, generator=g))
+    canon = emb @ safe_normalize(torch.randn(4, 64, generator=g)).T
+    cfg = IndexConfig(rank=12, exact_below=0, rerank=rerank)
+    idx = EmbeddingIndex.build(emb, canon, cfg)
+    assert not idx.exact and idx.coeffs.shape == (M, 12)
+    hits, worst = 0, 0.0
+    for _ in range(20):
+        q = safe_normalize(torch.randn(64, generator=g) @ torch.eye(64))
+        q = safe_normalize(q[None] @ basis.T @ basis + 0.05 * q[None])[0]
+        fast, ref = idx.rank(q, 50), rank_reference(emb, canon, q, 50)
+        hits += int(torch.equal(fast.rows, ref.rows))
+        common = np.intersect1d(fast.rows.numpy(), ref.rows.numpy())
+        worst = max(worst, 1 - len(common) / 50)
+        if rerank:  # re-ranked scores are exact
+            pos = {int(v): i for i, v in enumerate(ref.rows)}
+            for i, row in enumerate(fast.rows.tolist()):
+                if row in pos:
+                    assert abs(float(fast.similarity[i]) - float(ref.similarity[pos[row]])) < 1e-5
+    if rerank:
+        assert hits == 20
+    else:
+        assert worst < 0.2  # compact scores alone: most of the top 50 agree
+
+
+def test_exact_index_equals_reference_and_threshold(tmp_path):
+    p, classes, _ = _scene(tmp_path)
+    eng = SceneEngine.open(p)
+    assert eng.index.exact
+    pkg = load_scene(p)
+    for c in classes:
+        a = eng.text_query(c, 40)
+        ref = rank_reference(pkg.embeddings, pkg.canonical, c, 40)
+        assert torch.equal(a.index, pkg.selected[ref.rows])
+        assert torch.allclose(a.relevancy, ref.relevancy)
+        t = float(a.relevancy[10])
+        b = eng.text_query(c, 40, threshold=t)
+        assert len(b.index) >= 11 and bool((b.relevancy >= t).all())
+
+
+def test_query_ranks_the_right_blob_and_instances(tmp_path):
+    p, classes, _ = _scene(tmp_path)
+    eng = SceneEngine.open(p)
+    for i, c in enumerate(classes):
+        a = eng.text_query(c, 60, instances=InstanceConfig(min_points=5))
+        blob = (a.index // 60 == i).float().mean()
+        assert blob > 0.9
+        assert len(a.instances) >= 1
+        top = a.instances[0]
+        assert np.linalg.norm(top.centroid - CENTRES[i].numpy()) < 0.1
+        pts = eng.gaussians.means[a.index[top.members]].double().numpy()
+        for box in (top.aabb, top.obb):
+            R = box.rotation
+            assert np.allclose(R.T @ R, np.eye(3), atol=1e-9) and np.linalg.det(R) > 0
+            local = (pts - box.center) @ R
+            assert (np.abs(local) <= box.extent / 2 + 1e-9).all()
+        assert (a.instance_ids[top.members] == 0).all()
+
+
+def test_custom_canonical_phrases(tmp_path):
+    p, classes, canon = _scene(tmp_path)
+    eng = SceneEngine.open(p)
+    same = eng.text_query(classes[0], 30, canonical=canon)
+    ref = eng.text_query(classes[0], 30)
+    assert torch.equal(same.index, ref.index)
+    assert torch.allclose(same.relevancy, ref.relevancy, atol=1e-5)
+    with pytest.raises(ValidationError, match="canonical"):
+        eng.text_query(classes[0], 5, canonical=torch.zeros(2, D))
+
+
+def _dbscan_brute(p, eps, min_pts):
+    n = len(p)
+    d = np.linalg.norm(p[:, None] - p[None], axis=-1)
+    nb = d <= eps
+    core = nb.sum(1) >= min_pts
+    lab = np.full(n, -1)
+    c = 0
+    for i in range(n):  # flood fill over core points in index order
+        if core[i] and lab[i] == -1:
+            stack, lab[i] = [i], c
+            while stack:
+                j = stack.pop()
+                for k in np.flatnonzero(nb[j] & core):
+                    if lab[k] == -1:
+                        lab[k] = c
+                        stack.append(k)
+            c += 1
+    for i in np.flatnonzero(~core):
+        cand = np.flatnonzero(nb[i] & core)
+        if len(cand):
+            lab[i] = lab[cand[np.argmin(d[i, cand])]]
+    return lab
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_dbscan_matches_brute_force(seed):
+    rng = np.random.default_rng(seed)
+    p = np.concatenate(
+        [rng.normal(c, 0.1, (40, 3)) for c in rng.uniform(-2, 2, (4, 3))] + [rng.uniform(-3, 3, (30, 3))]
+    )
+    assert np.array_equal(dbscan(p, 0.25, 5), _dbscan_brute(p, 0.25, 5))
+
+
+def test_pose_relevancy_equals_full_feature_render(tmp_path):
+    p, classes, _ = _scene(tmp_path)
+    eng = SceneEngine.open(p)
+    pkg = load_scene(p)
+    cam = _camera()
+    out = render_pose(eng, cam, classes[1], ("relevancy", "rgb", "depth", "alpha"))
+    ref = render_pose_reference(eng, cam, classes[1], pkg.embeddings)
+    assert out.relevancy.shape == (40, 48) and out.rgb.shape == (40, 48, 3)
+    assert torch.isfinite(out.relevancy).all() and torch.isfinite(out.depth).all()
+    assert (out.relevancy - ref).abs().max() < 1e-4
+    x, y, v = out.argmax
+    assert v == float(out.relevancy.max()) and out.relevancy[y, x] == v
+    assert out.alpha.max() > 0.5 and (out.depth[out.alpha > 0.5] > 3).all()
+    only = render_pose(eng, cam, None, ("rgb",))
+    assert only.relevancy is None and only.alpha is None and torch.equal(only.rgb, out.rgb)
+    with pytest.raises(ValidationError, match="text"):
+        render_pose(eng, cam, None, ("relevancy",))
+    with pytest.raises(ValidationError, match="outputs"):
+        render_pose(eng, cam, classes[0], ("normals",))
+
+
+def test_segmentation_labels(tmp_path):
+    p, classes, _ = _scene(tmp_path)
+    eng = SceneEngine.open(p)
+    s = segment(eng, classes, _camera(), per_gaussian=True)
+    truth = (s.gaussian_index // 60).to(torch.int32)
+    assert (s.gaussian_labels == truth).float().mean() > 0.95
+    assert s.pixel_labels.shape == (40, 48) and set(s.pixel_labels.unique().tolist()) <= {-1, 0, 1, 2}
+    assert (s.pixel_labels >= 0).any() and (s.pixel_labels == -1).any()
+
+
+def test_point_query_through_the_field(tmp_path):
+    p, classes, canon = _scene(tmp_path, with_field=True)
+    eng = SceneEngine.open(p)
+    pts = eng.gaussians.means[:10]
+    a = query_points(eng, pts, classes, canon)
+    f = eng.field(pts).clip
+    assert a.relevancy.shape == (3, 10)
+    assert torch.allclose(a.similarity, classes @ f.T, atol=1e-5)
+    far = query_points(eng, torch.tensor([[1e9, -1e9, 0.0]]), classes, canon)
+    assert torch.isfinite(far.relevancy).all()
+    with pytest.raises(ValidationError, match="points"):
+        query_points(eng, torch.tensor([[0.0, float("nan"), 0.0]]), classes, canon)
+    q, *_ = _scene(tmp_path, name="nofield")
+    with pytest.raises(NoFieldError, match="no feature field"):
+        query_points(SceneEngine.open(q), pts, classes, canon)
+
+
+def test_query_state_bytes_per_gaussian():
+    g = torch.Generator().manual_seed(0)
+    M = 20000
+    emb = safe_normalize(torch.randn(M, 512, generator=g)).half()
+    canon = torch.randn(M, 4, generator=g)
+    idx = EmbeddingIndex.build(emb, canon, IndexConfig(rank=32, exact_below=0))
+    per = (idx.nbytes() - idx.basis.numel() * 4) / M + 8  # + the int64 scene index
+    assert per <= 160, per
+
+
+def test_engine_config_rejects_nonsense():
+    with pytest.raises(ValueError):
+        IndexConfig(rank=-1)
+    with pytest.raises(ValidationError):
+        InstanceConfig(eps=float("nan"))
+    assert EngineConfig().backend == "auto"

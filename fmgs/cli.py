@@ -323,7 +323,59 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--device", default="cuda" if _cuda() else "cpu")
     b.add_argument("--seed", type=int, default=0)
     b.set_defaults(func=cmd_build)
+
+    sv = sub.add_parser("serve", help="serve the scene packages in MODELS over gRPC")
+    sv.add_argument("--models", default="models", help="scene repository (one folder per scene)")
+    sv.add_argument("--host", default="127.0.0.1", help="interface to bind (0.0.0.0 for all)")
+    sv.add_argument("--port", type=int, default=50051)
+    sv.add_argument("--workers", type=int, default=0, help="requests computing at once (0: CPU count)")
+    sv.add_argument("--max-streams", type=int, default=32)
+    sv.add_argument("--memory-budget-mb", type=float, default=0, help="unload LRU scenes beyond it (0: none)")
+    sv.add_argument("--preload", action="store_true", help="load every scene and its text encoder now")
+    sv.add_argument("--index-rank", type=int, default=32, help="compact query state rank (0: exact)")
+    sv.add_argument("--device", default="cpu")
+    sv.add_argument("--tls-cert", help="server certificate (PEM)")
+    sv.add_argument("--tls-key", help="server key (PEM)")
+    sv.add_argument("--client-ca", help="require client certificates from this CA (mutual TLS)")
+    sv.add_argument("--token-file", help="bearer tokens for queries, one per line")
+    sv.add_argument("--admin-token-file", help="bearer tokens for load/unload/reload")
+    sv.add_argument("--log-level", default="INFO")
+    sv.set_defaults(func=cmd_serve)
     return p
+
+
+def cmd_serve(a) -> int:
+    import logging
+    from pathlib import Path
+
+    from fmgs_server.config import ServerConfig
+    from fmgs_server.server import serve
+
+    logging.basicConfig(level=a.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    opt = lambda v: Path(v) if v else None  # noqa: E731
+    cfg = ServerConfig(
+        models=Path(a.models),
+        host=a.host,
+        port=a.port,
+        workers=a.workers,
+        max_streams=a.max_streams,
+        memory_budget_bytes=int(a.memory_budget_mb * (1 << 20)),
+        preload=a.preload,
+        index_rank=a.index_rank,
+        device=a.device,
+        tls_cert=opt(a.tls_cert),
+        tls_key=opt(a.tls_key),
+        client_ca=opt(a.client_ca),
+        token_file=opt(a.token_file),
+        admin_token_file=opt(a.admin_token_file),
+    )
+    try:
+        cfg.validate()
+    except ValueError as e:
+        print(f"fmgs serve: error: {e}", file=sys.stderr)
+        return 2
+    serve(cfg)
+    return 0
 
 
 def _cuda() -> bool:

@@ -6,55 +6,24 @@ import numpy as np
 import pytest
 import torch
 
-from fmgs.cameras import Camera
 from fmgs.errors import ValidationError
-from fmgs.field.hashgrid import HashGridConfig
-from fmgs.field.model import FeatureField, FieldConfig
-from fmgs.gaussians import GaussianSet
 from fmgs.query.engine import EngineConfig, SceneEngine
 from fmgs.query.index import EmbeddingIndex, IndexConfig, rank_reference
 from fmgs.query.instances import InstanceConfig, dbscan
 from fmgs.query.points import NoFieldError, query_points
 from fmgs.query.pose import render_pose, render_pose_reference
 from fmgs.query.segment import segment
-from fmgs.scene.package import export_scene, load_scene
+from fmgs.scene.package import load_scene
 from fmgs.vecmath import safe_normalize
-
-D = 16
-CENTRES = torch.tensor([[-1.0, 0.0, 4.0], [1.0, 0.0, 4.0], [0.0, 1.0, 5.0]], dtype=torch.float64)
+from tests.query_scenes import CENTRES, D, blob_scene, camera
 
 
-def _scene(tmp_path, n_per=60, with_field=False, name="s"):
-    """Three blobs of Gaussians, each with embeddings near its own class vector."""
-    g = torch.Generator().manual_seed(0)
-    classes = safe_normalize(torch.randn(3, D, generator=g))
-    means, emb = [], []
-    for i, c in enumerate(CENTRES):
-        means.append(c.float() + 0.08 * torch.randn(n_per, 3, generator=g))
-        emb.append(safe_normalize(classes[i] + 0.15 * torch.randn(n_per, D, generator=g)))
-    means = torch.cat(means)
-    n = len(means)
-    gs = GaussianSet(
-        means,
-        torch.randn(n, 4, generator=g),
-        torch.full((n, 3), -3.0),
-        torch.full((n,), 2.0),
-        0.3 * torch.randn(n, 4, 3, generator=g),
-    )
-    emb = torch.cat(emb)
-    canon = safe_normalize(torch.randn(4, D, generator=g))
-    field = None
-    if with_field:
-        cfg = FieldConfig(HashGridConfig(levels=4, min_res=4, max_res=32, log2_table=12), D, 32, 2, 0)
-        field = FeatureField.for_points(cfg, means)
-    sel = torch.arange(n)
-    p = export_scene(tmp_path / name, gs, sel, emb, "test/enc", canon, field=field)
-    return p, classes, canon
+def _scene(tmp_path, with_field=False, name="s"):
+    return blob_scene(tmp_path / name, with_field)
 
 
-def _camera(w=48, h=40):
-    K = torch.tensor([[40.0, 0, w / 2], [0, 40.0, h / 2], [0, 0, 1]], dtype=torch.float64)
-    return Camera(K, torch.eye(4, dtype=torch.float64), w, h)
+def _camera():
+    return camera()
 
 
 def test_mmap_load_equals_memory_load(tmp_path):

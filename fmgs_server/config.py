@@ -1,0 +1,98 @@
+"""Server configuration: every limit with a safe default (README "Limits" lists them with status codes)."""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+MiB = 1 << 20
+
+
+@dataclass(frozen=True)
+class ServerConfig:
+    """How ``fmgs serve`` runs."""
+
+    models: Path = Path("models")
+    """The scene repository: one folder per scene package."""
+    host: str = "127.0.0.1"
+    """Interface to bind (loopback unless told otherwise)."""
+    port: int = 50051
+    """Port to bind; 0 picks a free one (tests)."""
+    workers: int = 0
+    """Requests computing at once (renders, ranking); 0 = the machine's CPU count."""
+    max_concurrent_rpcs: int = 64
+    """Open RPCs (streams included) beyond which new calls get RESOURCE_EXHAUSTED."""
+    max_streams: int = 32
+    """Concurrent StreamRender calls; more get RESOURCE_EXHAUSTED."""
+    queue_timeout_s: float = 10.0
+    """A request waiting longer than this for a compute slot gets RESOURCE_EXHAUSTED."""
+    max_receive_bytes: int = 16 * MiB
+    """Largest request message."""
+    chunk_bytes: int = 1 * MiB
+    """Payload per streamed chunk (responses are split by rows to stay under it)."""
+    max_send_bytes: int = 64 * MiB
+    """Largest response message (a PNG answer must fit in one)."""
+    max_image_side: int = 4096
+    """Largest width or height of a rendered image."""
+    max_image_pixels: int = 4096 * 2160
+    """Largest width * height."""
+    max_top_k: int = 1_000_000
+    """Largest top_k of a text query."""
+    default_top_k: int = 100
+    """top_k when a request leaves it 0."""
+    max_texts: int = 64
+    """Texts (or class names) per request."""
+    max_text_chars: int = 1000
+    """Characters per text."""
+    max_points: int = 1_000_000
+    """Points per point query."""
+    memory_budget_bytes: int = 0
+    """Resident bytes for loaded scenes; least recently used scenes are unloaded beyond it (0: no limit)."""
+    reload_check_s: float = 2.0
+    """How often a scene's files are checked for changes (on access)."""
+    preload: bool = False
+    """Load every scene (and its text encoder) at start instead of on first use."""
+    index_rank: int = 32
+    """Rank of the compact per-Gaussian query state (0: exact float32 embeddings)."""
+    exact_below: int = 200_000
+    """Scenes with fewer embedded Gaussians keep exact float32 embeddings."""
+    device: str = "cpu"
+    """Device for scenes and text encoders."""
+    text_cache: int = 4096
+    """Text embeddings cached per encoder."""
+    tls_cert: Path | None = None
+    """Server certificate (PEM); with tls_key enables TLS."""
+    tls_key: Path | None = None
+    """Server private key (PEM)."""
+    client_ca: Path | None = None
+    """CA bundle (PEM) that client certificates must chain to: mutual TLS."""
+    token_file: Path | None = None
+    """Bearer tokens allowed to query, one per line (absent: no token needed)."""
+    admin_token_file: Path | None = None
+    """Bearer tokens allowed to load, unload and reload scenes, one per line."""
+    health_open: bool = True
+    """Health checks need no token (orchestrators)."""
+    grace_s: float = 10.0
+    """In-flight requests get this long to finish on SIGTERM."""
+
+    @property
+    def compute_slots(self) -> int:
+        return self.workers or os.cpu_count() or 1
+
+    def validate(self) -> None:
+        if not 0 <= self.port <= 65535:
+            raise ValueError(f"port must be in [0, 65535], got {self.port}")
+        positive = (
+            "max_concurrent_rpcs max_streams max_receive_bytes chunk_bytes max_send_bytes max_image_side "
+            "max_image_pixels max_top_k default_top_k max_texts max_text_chars max_points text_cache"
+        ).split()
+        for name in positive:
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be >= 1")
+        if self.default_top_k > self.max_top_k:
+            raise ValueError("default_top_k must not exceed max_top_k")
+        if (self.tls_cert is None) != (self.tls_key is None):
+            raise ValueError("tls_cert and tls_key go together")
+        if self.client_ca is not None and self.tls_cert is None:
+            raise ValueError("client_ca (mutual TLS) needs tls_cert and tls_key")

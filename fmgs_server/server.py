@@ -1,0 +1,153 @@
+"""Start, run and stop the gRPC server: service, health (per scene too), reflection, TLS, tokens."""
+
+from __future__ import annotations
+
+import logging
+import signal
+import threading
+from concurrent import futures
+from dataclasses import dataclass
+from pathlib import Path
+
+import grpc
+from grpc_health.v1 import health, health_pb2, health_pb2_grpc
+from grpc_reflection.v1alpha import reflection
+
+from fmgs.query.engine import EngineConfig, SceneEngine
+from fmgs.query.index import IndexConfig
+from fmgs_client._proto.fmgs.v1 import fmgs_pb2 as pb
+from fmgs_client._proto.fmgs.v1 import fmgs_pb2_grpc as pb_grpc
+from fmgs_server.auth import TokenAuth, read_tokens
+from fmgs_server.config import ServerConfig
+from fmgs_server.encoders import EncoderCache
+from fmgs_server.repository import FAILED, SceneRepository
+from fmgs_server.service import FmgsService
+
+log = logging.getLogger("fmgs_server")
+SERVICE = pb.DESCRIPTOR.services_by_name["Fmgs"].full_name  # "fmgs.v1.Fmgs"
+
+
+def scene_health_name(scene: str) -> str:
+    """The health-service name of one scene."""
+    return f"{SERVICE}/{scene}"
+
+
+@dataclass
+class RunningServer:
+    """A started server."""
+
+    server: grpc.Server
+    port: int
+    config: ServerConfig
+    service: FmgsService
+    health: health.HealthServicer
+
+    @property
+    def address(self) -> str:
+        host = self.config.host if self.config.host not in ("0.0.0.0", "::", "[::]") else "127.0.0.1"
+        return f"{host}:{self.port}"
+
+    def stop(self, grace: float | None = None) -> None:
+        """Refuse new calls, let in-flight ones finish within ``grace`` seconds, then stop."""
+        self.health.enter_graceful_shutdown()
+        self.server.stop(self.config.grace_s if grace is None else grace).wait()
+
+    def wait(self) -> None:
+        self.server.wait_for_termination()
+
+
+def _text_encoder(device: str):
+    def load(encoder_id: str):
+        from fmgs.features.text import load_text_encoder
+
+        return load_text_encoder(encoder_id, device=device)
+
+    return load
+
+
+def start_server(cfg: ServerConfig, encoder_factory=None) -> RunningServer:
+    """Build and start a server for ``cfg`` (port 0 picks a free port; see ``RunningServer.port``)."""
+    cfg.validate()
+    read, admin = read_tokens(cfg.token_file), read_tokens(cfg.admin_token_file)
+    health_servicer = health.HealthServicer(experimental_non_blocking=True)
+
+    def on_change(name: str, state: str) -> None:
+        status = (
+            health_pb2.HealthCheckResponse.NOT_SERVING
+            if state in (FAILED, "removed")
+            else health_pb2.HealthCheckResponse.SERVING
+        )
+        health_servicer.set(scene_health_name(name), status)
+
+    ecfg = EngineConfig(IndexConfig(rank=cfg.index_rank, exact_below=cfg.exact_below), device=cfg.device)
+    repo = SceneRepository(
+        cfg.models,
+        lambda p: SceneEngine.open(p, ecfg),
+        cfg.memory_budget_bytes,
+        cfg.reload_check_s,
+        on_change,
+    )
+    encoders = EncoderCache(encoder_factory or _text_encoder(cfg.device), cfg.text_cache)
+    service = FmgsService(cfg, repo, encoders)
+
+    interceptors = [TokenAuth(read, admin, cfg.health_open)] if (read or admin) else []
+    server = grpc.server(
+        futures.ThreadPoolExecutor(max_workers=cfg.max_concurrent_rpcs + 4, thread_name_prefix="fmgs-rpc"),
+        interceptors=interceptors,
+        options=[
+            ("grpc.max_receive_message_length", cfg.max_receive_bytes),
+            ("grpc.max_send_message_length", cfg.max_send_bytes),
+            ("grpc.so_reuseport", 0),
+        ],
+        maximum_concurrent_rpcs=cfg.max_concurrent_rpcs,
+    )
+    pb_grpc.add_FmgsServicer_to_server(service, server)
+    health_pb2_grpc.add_HealthServicer_to_server(health_servicer, server)
+    reflection.enable_server_reflection(
+        (SERVICE, health_pb2.DESCRIPTOR.services_by_name["Health"].full_name, reflection.SERVICE_NAME), server
+    )
+    address = f"{cfg.host}:{cfg.port}" if ":" not in cfg.host else f"[{cfg.host}]:{cfg.port}"
+    if cfg.tls_cert is not None:
+        key, cert = Path(cfg.tls_key).read_bytes(), Path(cfg.tls_cert).read_bytes()
+        ca = Path(cfg.client_ca).read_bytes() if cfg.client_ca else None
+        creds = grpc.ssl_server_credentials(
+            [(key, cert)], root_certificates=ca, require_client_auth=ca is not None
+        )
+        port = server.add_secure_port(address, creds)
+    else:
+        port = server.add_insecure_port(address)
+    if port == 0:
+        raise OSError(f"cannot bind {address}")
+    for slot in repo.scan():
+        on_change(slot.name, slot.state)
+    health_servicer.set("", health_pb2.HealthCheckResponse.SERVING)
+    health_servicer.set(SERVICE, health_pb2.HealthCheckResponse.SERVING)
+    server.start()
+    running = RunningServer(server, port, cfg, service, health_servicer)
+    if cfg.preload:
+        for slot in repo.scan():
+            try:
+                engine = repo.get(slot.name)
+                encoders.encoder(engine.encoder_id)
+            except Exception as e:  # reported per scene in the listing and health
+                log.warning("preload of %s failed: %s", slot.name, e)
+    log.info("serving %s on %s (%d scenes)", cfg.models, running.address, len(repo.scan()))
+    return running
+
+
+def serve(cfg: ServerConfig) -> None:
+    """Run until SIGTERM or SIGINT, then drain in-flight requests for ``grace_s`` seconds."""
+    running = start_server(cfg)
+    print(f"fmgs serving {cfg.models} on {running.address}", flush=True)
+    stop = threading.Event()
+
+    def handle(signum, frame):
+        log.info("signal %d: draining for up to %.1f s", signum, cfg.grace_s)
+        stop.set()
+
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        signal.signal(sig, handle)
+    while not stop.wait(0.5):  # short waits keep the main thread responsive to signals
+        pass
+    running.stop()
+    log.info("stopped")

@@ -1,0 +1,330 @@
+"""The gRPC server on port 0: answers, chunking, streams, the error table, reloads, access control."""
+
+from __future__ import annotations
+
+import shutil
+import threading
+import time
+
+import grpc
+import numpy as np
+import pytest
+import torch
+from grpc_health.v1 import health_pb2, health_pb2_grpc
+
+from fmgs.query.engine import SceneEngine
+from fmgs.query.pose import render_pose
+from fmgs_client._proto.fmgs.v1 import fmgs_pb2 as pb
+from fmgs_client._proto.fmgs.v1 import fmgs_pb2_grpc as pb_grpc
+from fmgs_client.tensors import from_tensor, join, to_tensor
+from fmgs_server.config import ServerConfig
+from fmgs_server.server import scene_health_name, start_server
+from tests.query_scenes import CLASS_NAMES, ENCODER_ID, FakeEncoder, blob_scene, camera
+
+C = grpc.StatusCode
+
+
+def _cam(w=48, h=40, **kw) -> pb.Camera:
+    c = dict(viewmat=np.eye(4).ravel().tolist(), fx=40.0, fy=40.0, cx=w / 2, cy=h / 2, width=w, height=h)
+    c.update(kw)
+    return pb.Camera(**c)
+
+
+@pytest.fixture()
+def models(tmp_path):
+    root = tmp_path / "models"
+    root.mkdir()
+    blob_scene(root / "blobs", with_field=True)
+    blob_scene(root / "plain", seed=1)
+    return root
+
+
+def _start(models, **kw):
+    kw.setdefault("reload_check_s", 0.0)
+    return start_server(ServerConfig(models=models, port=0, **kw), encoder_factory=lambda i: FakeEncoder())
+
+
+@pytest.fixture()
+def server(models):
+    srv = _start(models, chunk_bytes=512)
+    yield srv
+    srv.stop(0)
+
+
+@pytest.fixture()
+def stub(server):
+    with grpc.insecure_channel(server.address) as ch:
+        yield pb_grpc.FmgsStub(ch)
+
+
+def _code(fn, *a, **kw) -> grpc.StatusCode:
+    with pytest.raises(grpc.RpcError) as e:
+        r = fn(*a, **kw)
+        if not isinstance(r, pb.SceneInfo | pb.ListScenesResponse | pb.PointQueryResponse):
+            list(r)
+    return e.value.code(), e.value.details()
+
+
+def _healthy(stub, server):
+    with grpc.insecure_channel(server.address) as ch:
+        h = health_pb2_grpc.HealthStub(ch).Check(health_pb2.HealthCheckRequest(service=""))
+        assert h.status == health_pb2.HealthCheckResponse.SERVING
+    assert len(list(stub.TextQuery(pb.TextQueryRequest(scene="blobs", texts=["red cube"], top_k=3)))) >= 1
+
+
+def test_listing_and_lazy_load(stub):
+    r = stub.ListScenes(pb.ListScenesRequest())
+    assert [s.name for s in r.scenes] == ["blobs", "plain"]
+    assert all(s.state == pb.SCENE_STATE_UNLOADED for s in r.scenes)
+    assert r.scenes[0].encoder_id == ENCODER_ID and r.scenes[0].num_gaussians == 180
+    assert list(r.scenes[0].label_names) == list(CLASS_NAMES) and r.scenes[0].has_field
+    list(stub.TextQuery(pb.TextQueryRequest(scene="blobs", texts=["red cube"])))
+    info = stub.GetScene(pb.SceneRequest(scene="blobs"))
+    assert info.state == pb.SCENE_STATE_READY and info.resident_bytes > 0 and len(info.bounds) == 6
+
+
+def _text_answers(chunks):
+    out = {}
+    for c in chunks:
+        a = out.setdefault(c.text_index, {"text": None, "instances": [], "parts": {}})
+        if c.text:
+            a["text"], a["total"] = c.text, c.total
+            a["instances"] = list(c.instances)
+        for f, _ in c.ListFields():
+            if f.message_type is not None and f.message_type.name == "Tensor":
+                a["parts"].setdefault(f.name, []).append(from_tensor(getattr(c, f.name), f.name))
+    return out
+
+
+def test_text_query_chunked_equals_engine(stub, models):
+    req = pb.TextQueryRequest(
+        scene="blobs",
+        texts=list(CLASS_NAMES),
+        top_k=60,
+        fields=[pb.GAUSSIAN_FIELD_MEAN, pb.GAUSSIAN_FIELD_SIMILARITY, pb.GAUSSIAN_FIELD_INSTANCE],
+        instances=pb.InstanceOptions(enabled=True, min_points=5),
+    )
+    chunks = list(stub.TextQuery(req))
+    assert len(chunks) > 3  # 512-byte chunks
+    answers = _text_answers(chunks)
+    eng = SceneEngine.open(models / "blobs")
+    vecs = FakeEncoder().encode_text(list(CLASS_NAMES))
+    for i, name in enumerate(CLASS_NAMES):
+        a = answers[i]
+        assert a["text"] == name and a["total"] == 60
+        idx = join(a["parts"]["index"])
+        ref = eng.text_query(vecs[i], 60)
+        assert np.array_equal(idx, ref.index.numpy())
+        assert np.allclose(join(a["parts"]["relevancy"]), ref.relevancy.numpy())
+        assert np.allclose(join(a["parts"]["mean"]), eng.gaussians.means[ref.index].numpy())
+        assert a["instances"] and a["instances"][0].num_members >= 5
+        inst = join(a["parts"]["instance"])
+        assert (inst == 0).sum() == a["instances"][0].num_members
+
+
+def test_render_float_and_png(stub, models):
+    req = pb.RenderRequest(scene="blobs", camera=_cam(), text="green ball", outputs=[1, 2, 3, 4], sequence=7)
+    chunks = list(stub.Render(req))
+    assert len(chunks) > 1 and chunks[-1].last and all(c.sequence == 7 for c in chunks)
+    rel = join([from_tensor(c.relevancy) for c in chunks if c.HasField("relevancy")])
+    rgb = join([from_tensor(c.rgb) for c in chunks if c.HasField("rgb")])
+    eng = SceneEngine.open(models / "blobs")
+    ref = render_pose(eng, camera(), FakeEncoder().encode_text(["green ball"])[0], ("relevancy", "rgb"))
+    assert rel.shape == (40, 48) and rgb.shape == (40, 48, 3)
+    assert np.allclose(rel, ref.relevancy.numpy(), atol=1e-6)
+    assert (chunks[0].argmax.x, chunks[0].argmax.y) == ref.argmax[:2]
+    png = list(stub.Render(pb.RenderRequest(scene="blobs", camera=_cam(), text="green ball", encoding=2)))
+    assert len(png) == 1 and png[0].relevancy_png.startswith(b"\x89PNG")
+
+
+def test_stream_latest_pose_wins(stub):
+    def poses():
+        for i in range(30):
+            yield pb.RenderRequest(scene="blobs", camera=_cam(), text="red cube", sequence=i)
+
+    seqs = [c.sequence for c in stub.StreamRender(poses()) if c.last]
+    assert seqs and seqs == sorted(seqs) and seqs[-1] == 29 and len(seqs) <= 30
+
+
+def test_point_query_and_segment(stub):
+    pts = np.array([[-1.0, 0.0, 4.0], [1.0, 0.0, 4.0]], np.float32)
+    req = pb.PointQueryRequest(scene="blobs", texts=["red cube", "green ball"], points=to_tensor(pts))
+    r = stub.PointQuery(req)
+    rel = from_tensor(r.relevancy)
+    assert rel.shape == (2, 2) and np.isfinite(rel).all()
+    seg = pb.SegmentRequest(scene="blobs", class_names=list(CLASS_NAMES), camera=_cam(), per_gaussian=True)
+    chunks = list(stub.Segment(seg))
+    labels = join([from_tensor(c.gaussian_labels) for c in chunks if c.HasField("gaussian_labels")])
+    index = join([from_tensor(c.gaussian_index) for c in chunks if c.HasField("gaussian_index")])
+    pix = join([from_tensor(c.pixel_labels) for c in chunks if c.HasField("pixel_labels")])
+    assert (labels == index // 60).mean() > 0.9 and pix.shape == (40, 48) and chunks[-1].last
+
+
+def _tq(**kw):
+    kw.setdefault("scene", "blobs")
+    return lambda s: s.TextQuery(pb.TextQueryRequest(**kw))
+
+
+def _rd(text="a", **cam):
+    return lambda s: s.Render(pb.RenderRequest(scene="blobs", text=text, camera=_cam(**cam)))
+
+
+def _pq(points, scene="blobs"):
+    return lambda s: s.PointQuery(pb.PointQueryRequest(scene=scene, texts=["a"], points=to_tensor(points)))
+
+
+def _emb(enc, t):
+    return _tq(texts=["a"], encoder_id=enc, embeddings=t)
+
+
+F32 = np.float32
+IA, FP = C.INVALID_ARGUMENT, C.FAILED_PRECONDITION
+BAD = [
+    ("unknown scene", _tq(scene="nope", texts=["a"]), C.NOT_FOUND, "nope"),
+    ("path scene", lambda s: s.GetScene(pb.SceneRequest(scene="../models")), C.NOT_FOUND, "scene"),
+    ("empty text", _tq(texts=[" "]), IA, "texts[0]"),
+    ("no texts", _tq(), IA, "texts"),
+    ("long text", _tq(texts=["a" * 5000]), IA, "texts[0]"),
+    ("top_k", _tq(texts=["a"], top_k=10**8), IA, "top_k"),
+    ("threshold", _tq(texts=["a"], threshold=float("nan")), IA, "threshold"),
+    ("nan pose", _rd(viewmat=[float("nan")] * 16), IA, "camera.viewmat"),
+    ("non-rigid", _rd(viewmat=(2 * np.eye(4)).ravel().tolist()), IA, "camera.viewmat"),
+    ("short pose", _rd(viewmat=[1.0] * 15), IA, "camera.viewmat"),
+    ("fx", _rd(fx=0.0), IA, "camera.fx"),
+    ("inf cx", _rd(cx=float("inf")), IA, "camera.cx"),
+    ("zero size", _rd(width=0), IA, "camera.width"),
+    ("giant", _rd(w=100000, h=100000), IA, "image cap"),
+    ("no camera", lambda s: s.Render(pb.RenderRequest(scene="blobs", text="a")), IA, "camera"),
+    ("no text", _rd(text=""), IA, "text"),
+    (
+        "bad output",
+        lambda s: s.Render(pb.RenderRequest(scene="blobs", text="a", camera=_cam(), outputs=[99])),
+        IA,
+        "outputs",
+    ),
+    ("encoder", _emb("other/enc", to_tensor(np.ones((1, 16), F32))), FP, "encoder"),
+    ("emb shape", _emb(ENCODER_ID, to_tensor(np.ones((1, 5), F32))), IA, "embeddings"),
+    ("emb bytes", _emb(ENCODER_ID, pb.Tensor(dtype=1, shape=[1, 16], data=b"x")), IA, "embeddings"),
+    ("nan points", _pq(np.full((2, 3), np.nan, F32)), IA, "points"),
+    ("points shape", _pq(np.zeros((2, 2), F32)), IA, "points"),
+    ("no field", _pq(np.zeros((2, 3), F32), scene="plain"), FP, "field"),
+    (
+        "segment nothing",
+        lambda s: s.Segment(pb.SegmentRequest(scene="blobs", class_names=["a"])),
+        IA,
+        "per_gaussian",
+    ),
+]
+
+
+@pytest.mark.parametrize("case", BAD, ids=[b[0] for b in BAD])
+def test_error_table(stub, server, case):
+    _, call, code, word = case
+    got, details = _code(call, stub)
+    assert got == code, details
+    assert word in details
+    _healthy(stub, server)
+
+
+def test_overload_is_resource_exhausted(models):
+    srv = _start(models, max_streams=1)
+    try:
+        with grpc.insecure_channel(srv.address) as ch:
+            s = pb_grpc.FmgsStub(ch)
+            gate = threading.Event()
+
+            def slow():
+                yield pb.RenderRequest(scene="blobs", camera=_cam(), text="red cube")
+                gate.wait(10)
+
+            first = s.StreamRender(slow())
+            next(first)  # the first stream is open and holds the only slot
+            again = iter([pb.RenderRequest(scene="blobs", camera=_cam(), text="a")])
+            got, details = _code(lambda: s.StreamRender(again))
+            assert got == C.RESOURCE_EXHAUSTED and "streams" in details
+            gate.set()
+            list(first)
+            _healthy(s, srv)
+    finally:
+        srv.stop(0)
+
+
+def test_broken_scene_is_failed_and_others_serve(stub, server, models):
+    shutil.copytree(models / "plain", models / "broken")
+    (models / "broken" / "embeddings.safetensors").write_bytes(b"garbage")
+    got, details = _code(lambda: stub.TextQuery(pb.TextQueryRequest(scene="broken", texts=["a"])))
+    assert got == C.FAILED_PRECONDITION and "embeddings.safetensors" in details
+    states = {s.name: s for s in stub.ListScenes(pb.ListScenesRequest()).scenes}
+    assert states["broken"].state == pb.SCENE_STATE_FAILED and "embeddings" in states["broken"].reason
+    with grpc.insecure_channel(server.address) as ch:
+        req = health_pb2.HealthCheckRequest(service=scene_health_name("broken"))
+        h = health_pb2_grpc.HealthStub(ch).Check(req)
+        assert h.status == health_pb2.HealthCheckResponse.NOT_SERVING
+    _healthy(stub, server)
+
+
+def test_reload_when_files_change_and_delete(stub, models):
+    first = _text_answers(stub.TextQuery(pb.TextQueryRequest(scene="plain", texts=["red cube"], top_k=5)))
+    blob_scene(models / "plain", seed=7)  # replaced atomically
+    time.sleep(0.01)
+    second = _text_answers(stub.TextQuery(pb.TextQueryRequest(scene="plain", texts=["red cube"], top_k=5)))
+    eng = SceneEngine.open(models / "plain")
+    ref = eng.text_query(FakeEncoder().encode_text(["red cube"])[0], 5)
+    assert np.array_equal(join(second[0]["parts"]["index"]), ref.index.numpy())
+    assert not np.array_equal(join(first[0]["parts"]["relevancy"]), join(second[0]["parts"]["relevancy"]))
+    shutil.rmtree(models / "plain")
+    got, _ = _code(lambda: stub.TextQuery(pb.TextQueryRequest(scene="plain", texts=["a"])))
+    assert got == C.NOT_FOUND
+    assert [s.name for s in stub.ListScenes(pb.ListScenesRequest()).scenes] == ["blobs"]
+
+
+def test_tokens(models, tmp_path):
+    (tmp_path / "read").write_text("reader-token\n")
+    (tmp_path / "admin").write_text("# admins\nadmin-token\n")
+    srv = _start(models, token_file=tmp_path / "read", admin_token_file=tmp_path / "admin")
+    try:
+        with grpc.insecure_channel(srv.address) as ch:
+            s = pb_grpc.FmgsStub(ch)
+            q = pb.TextQueryRequest(scene="blobs", texts=["red cube"])
+            assert _code(lambda: s.TextQuery(q))[0] == C.UNAUTHENTICATED
+            bad = [("authorization", "Bearer nope")]
+            assert _code(lambda: s.TextQuery(q, metadata=bad))[0] == C.UNAUTHENTICATED
+            assert list(s.TextQuery(q, metadata=[("authorization", "Bearer reader-token")]))
+            load = pb.SceneRequest(scene="blobs")
+            got = _code(lambda: s.LoadScene(load, metadata=[("authorization", "Bearer reader-token")]))[0]
+            assert got == C.PERMISSION_DENIED
+            info = s.LoadScene(load, metadata=[("authorization", "Bearer admin-token")])
+            assert info.state == pb.SCENE_STATE_READY
+            h = health_pb2_grpc.HealthStub(ch).Check(health_pb2.HealthCheckRequest(service=""))
+            assert h.status == health_pb2.HealthCheckResponse.SERVING
+    finally:
+        srv.stop(0)
+
+
+def test_memory_budget_unloads_least_recently_used(models):
+    one = SceneEngine.open(models / "blobs").nbytes()
+    srv = _start(models, memory_budget_bytes=int(one * 1.5))
+    try:
+        with grpc.insecure_channel(srv.address) as ch:
+            s = pb_grpc.FmgsStub(ch)
+            list(s.TextQuery(pb.TextQueryRequest(scene="blobs", texts=["a"])))
+            list(s.TextQuery(pb.TextQueryRequest(scene="plain", texts=["a"])))
+            st = {x.name: x.state for x in s.ListScenes(pb.ListScenesRequest()).scenes}
+            assert st == {"blobs": pb.SCENE_STATE_UNLOADED, "plain": pb.SCENE_STATE_READY}
+    finally:
+        srv.stop(0)
+
+
+def test_deadline_is_honoured(stub):
+    with pytest.raises(grpc.RpcError) as e:
+        req = pb.RenderRequest(scene="blobs", camera=_cam(w=2000, h=2000), text="a")
+        list(stub.Render(req, timeout=1e-4))
+    assert e.value.code() == C.DEADLINE_EXCEEDED
+
+
+def test_cli_serve_parser_defaults_bind_loopback():
+    from fmgs.cli import build_parser
+
+    a = build_parser().parse_args(["serve"])
+    assert a.host == "127.0.0.1" and a.models == "models"
+    assert torch.get_num_threads() >= 1

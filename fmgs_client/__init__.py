@@ -1,3 +1,37 @@
-"""Thin client for the FMGS query server: grpcio, protobuf and numpy only (no torch)."""
+"""Thin client for the FMGS query server: grpcio, protobuf and numpy only (no torch).
+
+from fmgs_client import FmgsClient, CameraSpec
+
+with FmgsClient("127.0.0.1:50051") as c:
+    [answer] = c.query("kitchen", "blue mug", fields=["mean"], instances=True)
+    view = c.render("kitchen", CameraSpec.look_at(eye, target), "blue mug")
+"""
+
+from fmgs_client.client import FmgsClient, FmgsError
+from fmgs_client.types import (
+    Box,
+    CameraSpec,
+    Instance,
+    Pixel,
+    PointResult,
+    RenderResult,
+    SceneInfo,
+    SegmentResult,
+    TextAnswer,
+)
 
 __version__ = "0.1.0"
+
+__all__ = [
+    "Box",
+    "CameraSpec",
+    "FmgsClient",
+    "FmgsError",
+    "Instance",
+    "Pixel",
+    "PointResult",
+    "RenderResult",
+    "SceneInfo",
+    "SegmentResult",
+    "TextAnswer",
+]

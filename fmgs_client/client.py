@@ -1,0 +1,698 @@
+"""``FmgsClient``: the gRPC client of the FMGS query service (grpcio + protobuf + numpy only).
+
+Streamed answers are reassembled by plain functions (``assemble_text_answers``, ``assemble_render``,
+``assemble_render_stream``, ``assemble_segment``) that take an iterable of wire chunks, so they can be
+tested with hand-built messages and reused by other transports.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Callable, Collection, Iterable, Iterator, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, TypeVar
+
+import grpc
+import numpy as np
+
+from fmgs_client._proto.fmgs.v1 import fmgs_pb2 as pb
+from fmgs_client._proto.fmgs.v1 import fmgs_pb2_grpc as pb_grpc
+from fmgs_client.images import decode_png
+from fmgs_client.tensors import TensorError, from_tensor, join, to_tensor
+from fmgs_client.types import (
+    CameraSpec,
+    Instance,
+    Pixel,
+    PointResult,
+    RenderResult,
+    SceneInfo,
+    SegmentResult,
+    TextAnswer,
+)
+
+DEFAULT_ADDRESS = "127.0.0.1:50051"
+MiB = 1 << 20
+
+# Per-Gaussian fields of a text answer: name -> (wire enum, trailing shape, dtype).
+GAUSSIAN_FIELDS: dict[str, tuple[int, tuple[int, ...], type]] = {
+    "similarity": (pb.GAUSSIAN_FIELD_SIMILARITY, (), np.float32),
+    "mean": (pb.GAUSSIAN_FIELD_MEAN, (3,), np.float32),
+    "opacity": (pb.GAUSSIAN_FIELD_OPACITY, (), np.float32),
+    "scale": (pb.GAUSSIAN_FIELD_SCALE, (3,), np.float32),
+    "rotation": (pb.GAUSSIAN_FIELD_ROTATION, (4,), np.float32),
+    "color": (pb.GAUSSIAN_FIELD_COLOR, (3,), np.float32),
+    "instance": (pb.GAUSSIAN_FIELD_INSTANCE, (), np.int32),
+}
+_TEXT_ROWS: dict[str, tuple[tuple[int, ...], type]] = {
+    "index": ((), np.int64),
+    "relevancy": ((), np.float32),
+    **{k: (v[1], v[2]) for k, v in GAUSSIAN_FIELDS.items()},
+}
+RENDER_OUTPUTS = {
+    "relevancy": pb.RENDER_OUTPUT_RELEVANCY,
+    "rgb": pb.RENDER_OUTPUT_RGB,
+    "depth": pb.RENDER_OUTPUT_DEPTH,
+    "alpha": pb.RENDER_OUTPUT_ALPHA,
+}
+ENCODINGS = {"float32": pb.IMAGE_ENCODING_FLOAT32, "png": pb.IMAGE_ENCODING_PNG}
+# Trailing shape of each rendered image after [H,W].
+_IMAGE_TAIL = {"relevancy": (), "rgb": (3,), "depth": (), "alpha": ()}
+# PNG encoding (see the proto): 8-bit value*255, depth 16-bit millimetres.
+_PNG_SCALE = {"relevancy": 255.0, "rgb": 255.0, "alpha": 255.0, "depth": 1000.0}
+HEALTH_STATUS = {0: "UNKNOWN", 1: "SERVING", 2: "NOT_SERVING", 3: "SERVICE_UNKNOWN"}
+
+T = TypeVar("T")
+
+
+class FmgsError(RuntimeError):
+    """A failed call: ``code`` is the gRPC status name (e.g. ``"NOT_FOUND"``), ``details`` the message.
+
+    Malformed answers (bad tensors, chunks out of order) are reported with code ``"DATA_LOSS"``.
+    """
+
+    def __init__(self, code: str, details: str) -> None:
+        self.code = code
+        self.details = details
+        super().__init__(f"{code}: {details}")
+
+
+class ChunkError(ValueError):
+    """Streamed chunks that do not fit together (out of order, missing, inconsistent sizes)."""
+
+
+# ---------------------------------------------------------------- reassembly (plain functions)
+
+
+def _rows(t: pb.Tensor, name: str, tail: tuple[int, ...], dtype: type) -> np.ndarray:
+    a = from_tensor(t, name)
+    if a.ndim != 1 + len(tail) or a.shape[1:] != tail:
+        raise TensorError(name, f"expected shape [k{''.join(f',{d}' for d in tail)}], got {list(a.shape)}")
+    return a.astype(dtype, copy=False)
+
+
+@dataclass
+class _TextState:
+    first: pb.TextQueryChunk
+    rows: int = 0
+    parts: dict[str, list[np.ndarray]] = field(default_factory=dict)
+
+
+def assemble_text_answers(
+    chunks: Iterable[pb.TextQueryChunk], texts: Sequence[str], fields: Collection[str] = ()
+) -> list[TextAnswer]:
+    """Reassemble the chunks of a text query (texts may interleave) into one answer per text, in order.
+
+    ``fields`` are the per-Gaussian fields that were asked for: those always come back as arrays (empty
+    ones when no rows came); fields the server sent unasked come back too, the rest are None.
+    Raises TensorError (naming the field) or ChunkError when the chunks do not fit together.
+    """
+    state: dict[int, _TextState] = {}
+    for c in chunks:
+        i = int(c.text_index)
+        if i >= len(texts):
+            raise ChunkError(f"text_index {i} out of range for {len(texts)} texts")
+        st = state.get(i)
+        if st is None:
+            st = state[i] = _TextState(first=c)
+        present = [n for n in _TEXT_ROWS if c.HasField(n)]
+        arrays = {n: _rows(getattr(c, n), f"text[{i}].{n}", *_TEXT_ROWS[n]) for n in present}
+        k = len(arrays["index"]) if "index" in arrays else 0
+        for n, a in arrays.items():
+            if len(a) != k:
+                raise ChunkError(f"text[{i}].{n}: {len(a)} rows in a chunk of {k} indices")
+        if k and int(c.start) != st.rows:
+            raise ChunkError(f"text[{i}]: chunk starts at row {c.start}, expected {st.rows}")
+        st.rows += k
+        for n, a in arrays.items():
+            st.parts.setdefault(n, []).append(a)
+    answers = []
+    for i, text in enumerate(texts):
+        st = state.get(i)
+        if st is None:
+            raise ChunkError(f"no answer for text[{i}] {text!r}")
+        if st.rows != st.first.total:
+            raise ChunkError(f"text[{i}]: got {st.rows} rows, the first chunk announced {st.first.total}")
+
+        def get(n: str, st: _TextState = st) -> np.ndarray:
+            tail, dtype = _TEXT_ROWS[n]
+            return join(st.parts.get(n, []), (0, *tail), dtype)
+
+        index, relevancy = get("index"), get("relevancy")
+        extra = {n: get(n) if (n in fields or n in st.parts) else None for n in GAUSSIAN_FIELDS}
+        for n, arr in [("relevancy", relevancy), *extra.items()]:
+            if arr is not None and len(arr) != st.rows:
+                raise ChunkError(f"text[{i}].{n}: {len(arr)} rows for {st.rows} indices")
+        try:
+            instances = tuple(Instance.from_proto(m) for m in st.first.instances)
+        except ValueError as e:
+            raise ChunkError(f"text[{i}]: {e}") from None
+        answers.append(
+            TextAnswer(
+                text=st.first.text or text,
+                index=index,
+                relevancy=relevancy,
+                **extra,
+                instances=instances,
+                elapsed_ms=float(st.first.elapsed_ms),
+            )
+        )
+    return answers
+
+
+@dataclass
+class _RenderState:
+    first: pb.RenderChunk
+    rows: int = 0
+    parts: dict[str, list[np.ndarray]] = field(default_factory=dict)
+
+
+def _render_add(st: _RenderState, c: pb.RenderChunk) -> None:
+    w = int(st.first.width)
+    present = [n for n in _IMAGE_TAIL if c.HasField(n)]
+    arrays = {n: from_tensor(getattr(c, n), f"render[{c.sequence}].{n}") for n in present}
+    k = None
+    for n, a in arrays.items():
+        want = (a.shape[0] if a.ndim else -1, w, *_IMAGE_TAIL[n])
+        if a.shape != want:
+            raise TensorError(f"render[{c.sequence}].{n}", f"expected shape [h,{w},...], got {list(a.shape)}")
+        if k is not None and len(a) != k:
+            raise ChunkError(f"render[{c.sequence}].{n}: {len(a)} rows where other images have {k}")
+        k = len(a)
+    if k and int(c.row_start) != st.rows:
+        raise ChunkError(f"render[{c.sequence}]: chunk starts at row {c.row_start}, expected {st.rows}")
+    st.rows += k or 0
+    for n, a in arrays.items():
+        st.parts.setdefault(n, []).append(a)
+
+
+def _render_finish(st: _RenderState) -> RenderResult:
+    f = st.first
+    seq, h, w = int(f.sequence), int(f.height), int(f.width)
+    images: dict[str, np.ndarray | None] = dict.fromkeys(_IMAGE_TAIL)
+    for n, parts in st.parts.items():
+        a = join(parts)
+        if a.shape[0] != h:
+            raise ChunkError(f"render[{seq}].{n}: got {a.shape[0]} rows of {h}")
+        images[n] = a.astype(np.float32, copy=False)
+    png = {n: getattr(f, f"{n}_png") for n in _IMAGE_TAIL if getattr(f, f"{n}_png")}
+    for n, data in png.items():
+        if images[n] is None:
+            try:
+                img = decode_png(data)
+            except Exception as e:  # zlib/struct errors as well as ValueError: all mean a bad PNG
+                raise ChunkError(f"render[{seq}].{n}_png: {e}") from None
+            if img.shape != (h, w, *_IMAGE_TAIL[n]):
+                raise ChunkError(f"render[{seq}].{n}_png: image {img.shape} for a {w}x{h} render")
+            images[n] = (img / np.float32(_PNG_SCALE[n])).astype(np.float32)
+    argmax = Pixel(int(f.argmax.x), int(f.argmax.y), float(f.argmax.value)) if f.HasField("argmax") else None
+    return RenderResult(
+        sequence=seq,
+        width=w,
+        height=h,
+        relevancy=images["relevancy"],
+        rgb=images["rgb"],
+        depth=images["depth"],
+        alpha=images["alpha"],
+        argmax=argmax,
+        png=png,
+        elapsed_ms=float(f.elapsed_ms),
+    )
+
+
+def assemble_render_stream(
+    chunks: Iterable[pb.RenderChunk], require_last: bool = True
+) -> Iterator[RenderResult]:
+    """Yield one RenderResult per answer, when its ``last`` chunk arrives (answers keyed by sequence).
+
+    With ``require_last`` False, answers still open when the stream ends are finished as they are
+    (unary calls whose server leaves ``last`` unset).
+    """
+    open_: dict[int, _RenderState] = {}
+    for c in chunks:
+        seq = int(c.sequence)
+        st = open_.get(seq)
+        if st is None:
+            st = open_[seq] = _RenderState(first=c)
+        _render_add(st, c)
+        if c.last:
+            yield _render_finish(open_.pop(seq))
+    if open_ and require_last:
+        raise ChunkError(f"stream ended before the last chunk of sequence {sorted(open_)}")
+    for seq in sorted(open_):
+        yield _render_finish(open_[seq])
+
+
+def assemble_render(chunks: Iterable[pb.RenderChunk]) -> RenderResult:
+    """The single answer of a ``Render`` call."""
+    results = list(assemble_render_stream(chunks, require_last=False))
+    if len(results) != 1:
+        raise ChunkError(f"expected one rendered view, got {len(results)}")
+    return results[0]
+
+
+def assemble_segment(chunks: Iterable[pb.SegmentChunk]) -> SegmentResult:
+    """Reassemble the chunks of a ``Segment`` call (ends at ``last`` or at the end of the stream)."""
+    first: pb.SegmentChunk | None = None
+    pix: list[np.ndarray] = []
+    gidx: list[np.ndarray] = []
+    glab: list[np.ndarray] = []
+    for c in chunks:
+        if first is None:
+            first = c
+        w = int(first.width)
+        if c.HasField("pixel_labels"):
+            a = from_tensor(c.pixel_labels, "segment.pixel_labels")
+            if a.ndim != 2 or a.shape[1] != w:
+                raise TensorError("segment.pixel_labels", f"expected shape [h,{w}], got {list(a.shape)}")
+            pix.append(a.astype(np.int32, copy=False))
+        if c.HasField("gaussian_index") or c.HasField("gaussian_labels"):
+            gi = _rows(c.gaussian_index, "segment.gaussian_index", (), np.int64)
+            gl = _rows(c.gaussian_labels, "segment.gaussian_labels", (), np.int32)
+            if len(gi) != len(gl):
+                raise ChunkError(f"segment: {len(gi)} Gaussian indices but {len(gl)} labels in a chunk")
+            gidx.append(gi)
+            glab.append(gl)
+        if c.last:
+            break
+    if first is None:
+        raise ChunkError("segment: empty answer")
+    h, w = int(first.height), int(first.width)
+    labels = None
+    if pix or h or w:
+        labels = join(pix, (0, w), np.int32)
+        if labels.shape != (h, w):
+            raise ChunkError(f"segment.pixel_labels: got {list(labels.shape)}, expected [{h},{w}]")
+    return SegmentResult(
+        class_names=tuple(first.class_names),
+        pixel_labels=labels,
+        gaussian_index=join(gidx, (0,), np.int64) if gidx else None,
+        gaussian_labels=join(glab, (0,), np.int32) if glab else None,
+        elapsed_ms=float(first.elapsed_ms),
+    )
+
+
+def point_result(resp: pb.PointQueryResponse, n_texts: int, n_points: int) -> PointResult:
+    """Decode a ``PointQueryResponse`` and check both arrays are [T,P]."""
+    out = {}
+    for n in ("relevancy", "similarity"):
+        a = from_tensor(getattr(resp, n), f"points.{n}")
+        if a.shape != (n_texts, n_points):
+            raise TensorError(f"points.{n}", f"expected shape [{n_texts},{n_points}], got {list(a.shape)}")
+        out[n] = a.astype(np.float32, copy=False)
+    return PointResult(out["relevancy"], out["similarity"], float(resp.elapsed_ms))
+
+
+# ---------------------------------------------------------------- grpc.health.v1 by hand
+# grpcio-health-checking is a server dependency only; the two messages are tiny, so encode them here:
+# HealthCheckRequest{string service = 1}, HealthCheckResponse{ServingStatus status = 1}.
+
+
+def _varint(n: int) -> bytes:
+    out = bytearray()
+    while True:
+        b, n = n & 0x7F, n >> 7
+        out.append(b | (0x80 if n else 0))
+        if not n:
+            return bytes(out)
+
+
+def _read_varint(data: bytes, pos: int) -> tuple[int, int]:
+    n = shift = 0
+    while True:
+        if pos >= len(data) or shift > 63:
+            raise ValueError("truncated or overlong varint")
+        b = data[pos]
+        pos += 1
+        n |= (b & 0x7F) << shift
+        shift += 7
+        if not b & 0x80:
+            return n, pos
+
+
+def encode_health_request(service: str) -> bytes:
+    """Wire bytes of ``HealthCheckRequest{service}`` (empty for the whole server)."""
+    s = service.encode()
+    return b"\x0a" + _varint(len(s)) + s if s else b""
+
+
+def decode_health_response(data: bytes) -> str:
+    """Status name (``"SERVING"``, ...) from ``HealthCheckResponse`` wire bytes; unknown fields skipped."""
+    status, pos = 0, 0
+    while pos < len(data):
+        key, pos = _read_varint(data, pos)
+        num, wire = key >> 3, key & 7
+        if wire == 0:
+            val, pos = _read_varint(data, pos)
+            if num == 1:
+                status = val
+        elif wire == 1:
+            pos += 8
+        elif wire == 2:
+            ln, pos = _read_varint(data, pos)
+            pos += ln
+        elif wire == 5:
+            pos += 4
+        else:
+            raise ValueError(f"unsupported wire type {wire}")
+        if pos > len(data):
+            raise ValueError("truncated message")
+    return HEALTH_STATUS.get(status, f"UNKNOWN({status})")
+
+
+# ---------------------------------------------------------------- the client
+
+
+def _pem(x: str | bytes | Path | None) -> bytes | None:
+    """PEM bytes from bytes, PEM text, or a file path."""
+    if x is None or isinstance(x, bytes):
+        return x
+    if isinstance(x, str) and x.lstrip().startswith("-----BEGIN"):
+        return x.encode()
+    return Path(x).read_bytes()
+
+
+def _texts(texts: str | Sequence[str]) -> list[str]:
+    out = [texts] if isinstance(texts, str) else list(texts)
+    if not out or not all(isinstance(t, str) for t in out):
+        raise ValueError("texts: need one or more strings")
+    return out
+
+
+def _enum(table: Mapping[str, int], names: Iterable[str], what: str) -> list[int]:
+    out = []
+    for n in names:
+        if n not in table:
+            raise ValueError(f"{what}: unknown {n!r} (choose from {', '.join(table)})")
+        out.append(table[n])
+    return out
+
+
+class FmgsClient:
+    """Client of one FMGS server.
+
+    ``address`` is ``host:port``. Without ``root_cert`` the channel is plaintext; with it, TLS (mutual
+    TLS when ``client_cert`` and ``client_key`` are given too; each is PEM bytes, PEM text or a path).
+    ``token`` is sent as ``authorization: Bearer <token>`` on every call. ``timeout`` is the deadline
+    of each call in seconds (None: none; pose streams have none unless given). Failed calls raise
+    :class:`FmgsError`. Use as a context manager or call :meth:`close`.
+    """
+
+    def __init__(
+        self,
+        address: str = DEFAULT_ADDRESS,
+        token: str | None = None,
+        root_cert: str | bytes | Path | None = None,
+        client_cert: str | bytes | Path | None = None,
+        client_key: str | bytes | Path | None = None,
+        timeout: float | None = 30.0,
+        max_message_bytes: int = 64 * MiB,
+    ) -> None:
+        if (client_cert is None) != (client_key is None):
+            raise ValueError("client_cert and client_key go together")
+        if client_cert is not None and root_cert is None:
+            raise ValueError("a client certificate needs TLS: give root_cert too")
+        self.address = address
+        self.timeout = timeout
+        options = [
+            ("grpc.max_receive_message_length", max_message_bytes),
+            ("grpc.max_send_message_length", max_message_bytes),
+        ]
+        if root_cert is None:
+            self._channel = grpc.insecure_channel(address, options=options)
+        else:
+            creds = grpc.ssl_channel_credentials(
+                root_certificates=_pem(root_cert),
+                private_key=_pem(client_key),
+                certificate_chain=_pem(client_cert),
+            )
+            self._channel = grpc.secure_channel(address, creds, options=options)
+        self._metadata: tuple[tuple[str, str], ...] = (("authorization", f"Bearer {token}"),) if token else ()
+        self._stub = pb_grpc.FmgsStub(self._channel)
+        self._health = self._channel.unary_unary(
+            "/grpc.health.v1.Health/Check",
+            request_serializer=encode_health_request,
+            response_deserializer=decode_health_response,
+        )
+
+    # -- plumbing
+
+    def close(self) -> None:
+        """Close the channel (idempotent)."""
+        self._channel.close()
+
+    def __enter__(self) -> FmgsClient:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def _unary(self, method: Callable[..., T], request: Any) -> T:
+        try:
+            return method(request, metadata=self._metadata, timeout=self.timeout)
+        except grpc.RpcError as e:
+            raise _error(e) from None
+
+    def _stream(self, call: Any) -> Iterator[Any]:
+        """Iterate a response stream, turning gRPC failures into FmgsError."""
+        try:
+            yield from call
+        except grpc.RpcError as e:
+            raise _error(e) from None
+
+    def _decode(self, fn: Callable[[], T]) -> T:
+        try:
+            return fn()
+        except (TensorError, ChunkError, ValueError) as e:
+            raise FmgsError("DATA_LOSS", f"malformed answer: {e}") from e
+
+    # -- scenes
+
+    def list_scenes(self) -> list[SceneInfo]:
+        """Every scene in the server's repository, loaded or not."""
+        resp = self._unary(self._stub.ListScenes, pb.ListScenesRequest())
+        return self._decode(lambda: [SceneInfo.from_proto(s) for s in resp.scenes])
+
+    def scene(self, name: str) -> SceneInfo:
+        """One scene's metadata (NOT_FOUND for an unknown name)."""
+        resp = self._unary(self._stub.GetScene, pb.SceneRequest(scene=name))
+        return self._decode(lambda: SceneInfo.from_proto(resp))
+
+    def load(self, scene: str) -> SceneInfo:
+        """Load a scene into memory (admin)."""
+        resp = self._unary(self._stub.LoadScene, pb.SceneRequest(scene=scene))
+        return self._decode(lambda: SceneInfo.from_proto(resp))
+
+    def unload(self, scene: str) -> SceneInfo:
+        """Drop a scene from memory (admin)."""
+        resp = self._unary(self._stub.UnloadScene, pb.SceneRequest(scene=scene))
+        return self._decode(lambda: SceneInfo.from_proto(resp))
+
+    def reload(self, scene: str) -> SceneInfo:
+        """Reload a scene from its files (admin)."""
+        resp = self._unary(self._stub.ReloadScene, pb.SceneRequest(scene=scene))
+        return self._decode(lambda: SceneInfo.from_proto(resp))
+
+    def health(self, service: str = "") -> str:
+        """Standard gRPC health check: ``SERVING``, ``NOT_SERVING``, ``SERVICE_UNKNOWN`` or ``UNKNOWN``.
+
+        A server without the health service raises FmgsError("UNIMPLEMENTED", ...).
+        """
+        try:
+            return self._unary(self._health, service)
+        except FmgsError as e:
+            if e.code == "INTERNAL" and "deserializ" in e.details.lower():
+                raise FmgsError("DATA_LOSS", f"malformed health answer: {e.details}") from None
+            raise
+
+    # -- queries
+
+    def query(
+        self,
+        scene: str,
+        texts: str | Sequence[str],
+        top_k: int = 100,
+        threshold: float = 0.0,
+        fields: Iterable[str] = (),
+        instances: bool | Mapping[str, float | int] = False,
+        canonical_phrases: Sequence[str] | None = None,
+        embeddings: np.ndarray | None = None,
+        encoder_id: str = "",
+    ) -> list[TextAnswer]:
+        """Rank the scene's Gaussians by relevancy to each text; one :class:`TextAnswer` per text.
+
+        ``fields``: extra per-Gaussian arrays, any of ``similarity mean opacity scale rotation color
+        instance``. ``instances``: True, or a dict with ``eps``, ``min_points``, ``max_instances``, to
+        group the relevant Gaussians into objects (``instance`` is then added to ``fields``).
+        ``embeddings`` [T,D] float32 from ``encoder_id`` replace encoding the texts on the server.
+        """
+        texts = _texts(texts)
+        fields = list(dict.fromkeys(fields))
+        enums = _enum({k: v[0] for k, v in GAUSSIAN_FIELDS.items()}, fields, "fields")
+        inst = pb.InstanceOptions()
+        if instances:
+            opts = dict(instances) if isinstance(instances, Mapping) else {}
+            unknown = set(opts) - {"eps", "min_points", "max_instances"}
+            if unknown:
+                raise ValueError(f"instances: unknown options {sorted(unknown)}")
+            inst = pb.InstanceOptions(
+                enabled=True,
+                eps=float(opts.get("eps", 0.0)),
+                min_points=int(opts.get("min_points", 0)),
+                max_instances=int(opts.get("max_instances", 0)),
+            )
+            if "instance" not in fields:
+                fields.append("instance")
+                enums.append(pb.GAUSSIAN_FIELD_INSTANCE)
+        if top_k < 0 or threshold < 0:
+            raise ValueError("top_k and threshold must be >= 0")
+        req = pb.TextQueryRequest(
+            scene=scene,
+            texts=texts,
+            top_k=int(top_k),
+            threshold=float(threshold),
+            fields=enums,
+            instances=inst,
+            canonical_phrases=list(canonical_phrases or ()),
+            encoder_id=encoder_id,
+        )
+        if embeddings is not None:
+            emb = np.asarray(embeddings, np.float32)
+            if emb.ndim != 2 or len(emb) != len(texts):
+                raise ValueError(f"embeddings: expected [{len(texts)},D], got {emb.shape}")
+            req.embeddings.CopyFrom(to_tensor(emb))
+        call = self._stub.TextQuery(req, metadata=self._metadata, timeout=self.timeout)
+        return self._decode(lambda: assemble_text_answers(self._stream(call), texts, fields))
+
+    def _render_request(
+        self,
+        scene: str,
+        camera: CameraSpec,
+        text: str,
+        outputs: Iterable[str],
+        encoding: str,
+        canonical_phrases: Sequence[str] | None,
+        sequence: int = 0,
+    ) -> pb.RenderRequest:
+        if not isinstance(camera, CameraSpec):
+            raise TypeError(f"camera: expected a CameraSpec, got {type(camera).__name__}")
+        if encoding not in ENCODINGS:
+            raise ValueError(f"encoding: unknown {encoding!r} (choose from {', '.join(ENCODINGS)})")
+        return pb.RenderRequest(
+            scene=scene,
+            camera=camera.to_proto(),
+            text=text,
+            outputs=_enum(RENDER_OUTPUTS, outputs, "outputs"),
+            encoding=ENCODINGS[encoding],
+            canonical_phrases=list(canonical_phrases or ()),
+            sequence=sequence,
+        )
+
+    def render(
+        self,
+        scene: str,
+        camera: CameraSpec,
+        text: str = "",
+        outputs: Iterable[str] = ("relevancy",),
+        encoding: str = "float32",
+        canonical_phrases: Sequence[str] | None = None,
+    ) -> RenderResult:
+        """Render one view: ``outputs`` among ``relevancy rgb depth alpha`` (relevancy needs ``text``).
+
+        ``encoding="png"`` asks for PNG bytes (smaller on the wire); they are decoded into the same
+        arrays, quantised (8-bit, depth in millimetres), and kept in ``RenderResult.png``.
+        """
+        req = self._render_request(scene, camera, text, outputs, encoding, canonical_phrases)
+        call = self._stub.Render(req, metadata=self._metadata, timeout=self.timeout)
+        return self._decode(lambda: assemble_render(self._stream(call)))
+
+    def stream(
+        self,
+        scene: str,
+        cameras: Iterable[CameraSpec],
+        text: str = "",
+        outputs: Iterable[str] = ("relevancy",),
+        encoding: str = "float32",
+        canonical_phrases: Sequence[str] | None = None,
+        timeout: float | None = None,
+    ) -> Iterator[RenderResult]:
+        """Render a stream of poses (bidirectional ``StreamRender``), yielding views as they come.
+
+        Camera i is sent with sequence number i, echoed in ``RenderResult.sequence``. The server
+        renders the newest pose whenever it is free, so a slow consumer gets fewer views than poses.
+        ``cameras`` may be a generator producing poses live; it is consumed on a gRPC thread. Leaving
+        the loop early cancels the call. ``timeout`` bounds the whole stream (default: no deadline).
+        """
+        outputs = tuple(outputs)
+        failed: list[BaseException] = []
+        lock = threading.Lock()
+
+        def requests() -> Iterator[pb.RenderRequest]:
+            # An exception raised here would be swallowed by gRPC (it only cancels the call): keep it
+            # and end the request stream, then raise it on the consumer's side.
+            try:
+                for seq, cam in enumerate(cameras):
+                    yield self._render_request(scene, cam, text, outputs, encoding, canonical_phrases, seq)
+            except Exception as e:
+                with lock:
+                    failed.append(e)
+
+        call = self._stub.StreamRender(requests(), metadata=self._metadata, timeout=timeout)
+        try:
+            it = assemble_render_stream(self._stream(call))
+            while True:
+                try:
+                    res = self._decode(lambda: next(it, None))
+                except FmgsError:
+                    if failed:
+                        raise failed[0] from None
+                    raise
+                if failed:
+                    raise failed[0]
+                if res is None:
+                    return
+                yield res
+        finally:
+            call.cancel()
+
+    def points(
+        self,
+        scene: str,
+        texts: str | Sequence[str],
+        points: np.ndarray,
+        canonical_phrases: Sequence[str] | None = None,
+    ) -> PointResult:
+        """Relevancy and similarity [T,P] of world points [P,3] through the scene's feature field."""
+        texts = _texts(texts)
+        pts = np.asarray(points)
+        if pts.dtype != np.float32:
+            pts = pts.astype(np.float64)
+        if pts.ndim != 2 or pts.shape[1] != 3:
+            raise ValueError(f"points: expected [P,3], got {pts.shape}")
+        req = pb.PointQueryRequest(
+            scene=scene, texts=texts, points=to_tensor(pts), canonical_phrases=list(canonical_phrases or ())
+        )
+        resp = self._unary(self._stub.PointQuery, req)
+        return self._decode(lambda: point_result(resp, len(texts), len(pts)))
+
+    def segment(
+        self,
+        scene: str,
+        class_names: Sequence[str],
+        camera: CameraSpec | None = None,
+        per_gaussian: bool = True,
+    ) -> SegmentResult:
+        """Label the scene's Gaussians (and, given a camera, its pixels) with the best class name."""
+        names = _texts(class_names)
+        req = pb.SegmentRequest(scene=scene, class_names=names, per_gaussian=per_gaussian)
+        if camera is not None:
+            req.camera.CopyFrom(camera.to_proto())
+        call = self._stub.Segment(req, metadata=self._metadata, timeout=self.timeout)
+        return self._decode(lambda: assemble_segment(self._stream(call)))
+
+
+def _error(e: grpc.RpcError) -> FmgsError:
+    """FmgsError from a gRPC failure (the status code's name and its details)."""
+    code = e.code() if hasattr(e, "code") else None
+    details = e.details() if hasattr(e, "details") else str(e)
+    return FmgsError(code.name if code is not None else "UNKNOWN", details or "")

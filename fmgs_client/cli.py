@@ -1,0 +1,358 @@
+"""``fmgs-client``: the command line of the thin client (list, info, query, render, stream, segment, health).
+
+Failures print ``error: CODE: details`` to stderr and exit with status 1.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+import time
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+from fmgs_client.client import DEFAULT_ADDRESS, FmgsClient, FmgsError
+from fmgs_client.images import colorize, depth_to_uint16, label_colors, relevancy_png, to_uint8, write_png
+from fmgs_client.ply import write_ply
+from fmgs_client.types import CameraSpec, SceneInfo, TextAnswer
+
+
+def _size(s: str) -> tuple[int, int]:
+    try:
+        w, h = (int(v) for v in s.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"size must be WxH, e.g. 640x480, got {s!r}") from None
+    if w < 1 or h < 1:
+        raise argparse.ArgumentTypeError(f"size must be positive, got {s!r}")
+    return w, h
+
+
+def _table(rows: Sequence[Sequence[object]], header: Sequence[str]) -> str:
+    """Plain-text table: columns padded to their widest cell, numbers right-aligned."""
+    cells = [[str(h) for h in header]] + [[_fmt(v) for v in r] for r in rows]
+    widths = [max(len(r[i]) for r in cells) for i in range(len(header))]
+    numeric = [all(isinstance(r[i], int | float | np.number) for r in rows) for i in range(len(header))]
+    lines = []
+    for r in cells:
+        lines.append(
+            "  ".join(c.rjust(w) if num else c.ljust(w) for c, w, num in zip(r, widths, numeric, strict=True))
+        )
+    lines.insert(1, "  ".join("-" * w for w in widths))
+    return "\n".join(line.rstrip() for line in lines)
+
+
+def _fmt(v: object) -> str:
+    if isinstance(v, float | np.floating):
+        return f"{v:.4f}"
+    return str(v)
+
+
+def _vec(v: np.ndarray) -> str:
+    return " ".join(f"{x:.3f}" for x in v)
+
+
+# ---------------------------------------------------------------- cameras
+
+
+def default_camera(info: SceneInfo, up: Sequence[float], size: tuple[int, int], fov: float) -> CameraSpec:
+    """Look at the centre of the scene's bounds from outside them (up-tilted diagonal view)."""
+    if info.bounds is None:
+        raise ValueError(f"scene {info.name!r} reports no bounds: give --eye and --target")
+    return orbit(info, 1, up, size, fov)[0]
+
+
+def orbit(
+    info: SceneInfo, n: int, up: Sequence[float], size: tuple[int, int], fov: float, turns: float = 1.0
+) -> list[CameraSpec]:
+    """``n`` cameras on a circle around the bounds' centre, raised along ``up``, all looking at the centre.
+
+    The radius keeps the whole bounding sphere inside the horizontal field of view.
+    """
+    if info.bounds is None:
+        raise ValueError(f"scene {info.name!r} reports no bounds")
+    lo, hi = info.bounds
+    centre = (lo + hi) / 2
+    half_diag = max(float(np.linalg.norm(hi - lo)) / 2, 1e-6)
+    dist = 1.1 * half_diag / math.sin(math.radians(min(fov, 170.0)) / 2)
+    u = np.asarray(up, np.float64)
+    u = u / np.linalg.norm(u)
+    # Two axes perpendicular to up span the orbit's plane.
+    a = np.cross(u, np.eye(3)[np.argmin(np.abs(u))])
+    a /= np.linalg.norm(a)
+    b = np.cross(u, a)
+    elev = math.radians(30.0)
+    cams = []
+    for k in range(n):
+        ang = 2 * math.pi * turns * k / max(n, 1)
+        d = math.cos(elev) * (math.cos(ang) * a + math.sin(ang) * b) + math.sin(elev) * u
+        cams.append(CameraSpec.look_at(centre + dist * d, centre, u, size[0], size[1], fov))
+    return cams
+
+
+def _camera(args: argparse.Namespace, client: FmgsClient) -> CameraSpec:
+    if args.eye is None:
+        return default_camera(client.scene(args.scene), args.up, args.size, args.fov)
+    if args.target is None:
+        raise ValueError("--eye needs --target")
+    return CameraSpec.look_at(args.eye, args.target, args.up, args.size[0], args.size[1], args.fov)
+
+
+# ---------------------------------------------------------------- commands
+
+
+def cmd_list(client: FmgsClient, args: argparse.Namespace) -> int:
+    scenes = client.list_scenes()
+    if not scenes:
+        print("no scenes")
+        return 0
+    rows = [
+        (s.name, s.state, s.num_gaussians, s.num_embedded, s.encoder_id, s.version, s.reason) for s in scenes
+    ]
+    print(_table(rows, ("scene", "state", "gaussians", "embedded", "encoder", "version", "reason")))
+    return 0
+
+
+def cmd_info(client: FmgsClient, args: argparse.Namespace) -> int:
+    s = client.scene(args.scene)
+    items = [
+        ("name", s.name),
+        ("state", s.state + (f" ({s.reason})" if s.reason else "")),
+        ("version", s.version),
+        ("encoder", f"{s.encoder_id} ({s.embedding_dim}-D)"),
+        ("gaussians", f"{s.num_gaussians} ({s.num_embedded} embedded)"),
+        ("sh degree", s.sh_degree),
+        ("feature field", "yes" if s.has_field else "no"),
+        ("canonical phrases", ", ".join(s.canonical_phrases)),
+        ("label names", ", ".join(s.label_names) or "-"),
+        ("resident", f"{s.resident_bytes / 2**20:.1f} MiB"),
+        ("bounds", "-" if s.bounds is None else f"min {_vec(s.bounds[0])}  max {_vec(s.bounds[1])}"),
+    ]
+    width = max(len(k) for k, _ in items)
+    for k, v in items:
+        print(f"{k.ljust(width)}  {v}")
+    return 0
+
+
+def _print_answer(a: TextAnswer, rows: int) -> None:
+    print(f"{a.text!r}: {len(a)} Gaussians, {a.elapsed_ms:.1f} ms")
+    n = min(rows, len(a))
+    if n:
+        table = []
+        for r in range(n):
+            row: list[object] = [r + 1, int(a.index[r]), float(a.relevancy[r])]
+            row.append(float(a.similarity[r]) if a.similarity is not None else "")
+            row += [_vec(a.mean[r]) if a.mean is not None else ""]
+            if a.instance is not None:
+                row.append(int(a.instance[r]))
+            table.append(row)
+        header = ["rank", "gaussian", "relevancy", "similarity", "mean x y z"]
+        if a.instance is not None:
+            header.append("instance")
+        print(_table(table, header))
+        if n < len(a):
+            print(f"... {len(a) - n} more")
+    if a.instances:
+        print(f"{len(a.instances)} instances:")
+        rows_i = [
+            (i.id, i.score, i.num_members, _vec(i.centroid), _vec(i.aabb.extent), _vec(i.obb.extent))
+            for i in a.instances
+        ]
+        print(_table(rows_i, ("id", "score", "members", "centroid", "aabb extent", "obb extent")))
+
+
+def cmd_query(client: FmgsClient, args: argparse.Namespace) -> int:
+    fields = ["similarity", "mean"]
+    answers = client.query(
+        args.scene,
+        args.texts,
+        top_k=args.top_k,
+        threshold=args.threshold,
+        fields=fields,
+        instances=args.instances,
+    )
+    for k, a in enumerate(answers):
+        if k:
+            print()
+        _print_answer(a, args.rows)
+    if args.ply is not None:
+        for k, a in enumerate(answers):
+            out = (
+                args.ply if len(answers) == 1 else args.ply.with_name(f"{args.ply.stem}-{k}{args.ply.suffix}")
+            )
+            scalars = {"relevancy": a.relevancy, "gaussian": a.index}
+            if a.similarity is not None:
+                scalars["similarity"] = a.similarity
+            if a.instance is not None:
+                scalars["instance"] = a.instance
+            write_ply(out, a.mean, colorize(a.relevancy), scalars)
+            print(f"wrote {out} ({len(a)} points, {a.text!r})")
+    return 0
+
+
+def cmd_render(client: FmgsClient, args: argparse.Namespace) -> int:
+    cam = _camera(args, client)
+    outputs = ["relevancy"] + ["rgb"] * (args.rgb is not None) + ["depth"] * (args.depth is not None)
+    t0 = time.perf_counter()
+    r = client.render(args.scene, cam, args.text, outputs=outputs)
+    wall = (time.perf_counter() - t0) * 1e3
+    relevancy_png(args.out, r.relevancy)
+    print(f"wrote {args.out} ({r.width}x{r.height})")
+    if args.rgb is not None and r.rgb is not None:
+        write_png(args.rgb, to_uint8(r.rgb))
+        print(f"wrote {args.rgb}")
+    if args.depth is not None and r.depth is not None:
+        write_png(args.depth, depth_to_uint16(r.depth))
+        print(f"wrote {args.depth} (16-bit millimetres)")
+    if r.argmax is not None:
+        print(f"argmax pixel x={r.argmax.x} y={r.argmax.y} relevancy={r.argmax.value:.4f}")
+    print(f"server {r.elapsed_ms:.1f} ms, round trip {wall:.1f} ms")
+    return 0
+
+
+def cmd_stream(client: FmgsClient, args: argparse.Namespace) -> int:
+    info = client.scene(args.scene)
+    cams = orbit(info, args.frames, args.up, args.size, args.fov)
+    if args.out_dir is not None:
+        args.out_dir.mkdir(parents=True, exist_ok=True)
+    n, server_ms = 0, 0.0
+    t0 = time.perf_counter()
+    for r in client.stream(args.scene, iter(cams), args.text, encoding=args.encoding):
+        n += 1
+        server_ms += r.elapsed_ms
+        if args.out_dir is not None and r.relevancy is not None:
+            relevancy_png(args.out_dir / f"frame_{r.sequence:05d}.png", r.relevancy)
+    wall = time.perf_counter() - t0
+    fps = n / wall if wall > 0 else float("inf")
+    print(f"{n} of {len(cams)} poses rendered in {wall:.2f} s: {fps:.1f} frames/s")
+    if n:
+        print(f"server {server_ms / n:.1f} ms per frame")
+    return 0
+
+
+def cmd_segment(client: FmgsClient, args: argparse.Namespace) -> int:
+    cam = _camera(args, client) if (args.eye is not None or args.out is not None) else None
+    r = client.segment(args.scene, args.names, camera=cam, per_gaussian=True)
+    print(f"segmented in {r.elapsed_ms:.1f} ms")
+    rows = []
+    for k, name in enumerate(r.class_names):
+        g = int((r.gaussian_labels == k).sum()) if r.gaussian_labels is not None else 0
+        p = int((r.pixel_labels == k).sum()) if r.pixel_labels is not None else 0
+        rows.append((k, name, g, p))
+    print(_table(rows, ("label", "class", "gaussians", "pixels")))
+    if args.out is not None and r.pixel_labels is not None:
+        write_png(args.out, label_colors(r.pixel_labels))
+        print(f"wrote {args.out}")
+    return 0
+
+
+def cmd_health(client: FmgsClient, args: argparse.Namespace) -> int:
+    status = client.health(args.service)
+    print(status)
+    return 0 if status == "SERVING" else 1
+
+
+# ---------------------------------------------------------------- parser
+
+
+def _camera_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--eye", type=float, nargs=3, metavar=("X", "Y", "Z"), help="camera position")
+    p.add_argument("--target", type=float, nargs=3, metavar=("X", "Y", "Z"), help="point looked at")
+    _view_options(p)
+
+
+def _view_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--up", type=float, nargs=3, default=(0.0, 0.0, 1.0), metavar=("X", "Y", "Z"))
+    p.add_argument("--size", type=_size, default=(640, 480), help="WxH (default 640x480)")
+    p.add_argument("--fov", type=float, default=60.0, help="horizontal field of view, degrees")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(prog="fmgs-client", description="Query an FMGS server.")
+    ap.add_argument("--address", default=DEFAULT_ADDRESS, help=f"host:port (default {DEFAULT_ADDRESS})")
+    ap.add_argument("--token-file", type=Path, help="file holding the bearer token")
+    ap.add_argument("--root-cert", type=Path, help="CA certificate (PEM): use TLS")
+    ap.add_argument("--client-cert", type=Path, help="client certificate (PEM) for mutual TLS")
+    ap.add_argument("--client-key", type=Path, help="client private key (PEM) for mutual TLS")
+    ap.add_argument("--timeout", type=float, default=30.0, help="seconds per call (default 30)")
+    sub = ap.add_subparsers(dest="command", required=True)
+
+    p = sub.add_parser("list", help="list the server's scenes")
+    p.set_defaults(fn=cmd_list)
+
+    p = sub.add_parser("info", help="one scene's metadata")
+    p.add_argument("scene")
+    p.set_defaults(fn=cmd_info)
+
+    p = sub.add_parser("query", help="Gaussians most relevant to each text")
+    p.add_argument("scene")
+    p.add_argument("texts", nargs="+", metavar="TEXT")
+    p.add_argument("--top-k", type=int, default=100)
+    p.add_argument("--threshold", type=float, default=0.0)
+    p.add_argument("--instances", action="store_true", help="group the Gaussians into object instances")
+    p.add_argument("--rows", type=int, default=10, help="table rows to print per text (default 10)")
+    p.add_argument("--ply", type=Path, help="write the Gaussians coloured by relevancy (one file per text)")
+    p.set_defaults(fn=cmd_query)
+
+    p = sub.add_parser("render", help="relevancy image of one view")
+    p.add_argument("scene")
+    p.add_argument("text")
+    _camera_options(p)
+    p.add_argument("--out", type=Path, required=True, help="relevancy PNG (colour-mapped)")
+    p.add_argument("--rgb", type=Path, help="also write the colour image")
+    p.add_argument("--depth", type=Path, help="also write depth (16-bit PNG, millimetres)")
+    p.set_defaults(fn=cmd_render)
+
+    p = sub.add_parser("stream", help="stream an orbit of poses; report frames per second")
+    p.add_argument("scene")
+    p.add_argument("text")
+    p.add_argument("--frames", type=int, default=60)
+    _view_options(p)
+    p.add_argument("--encoding", choices=("float32", "png"), default="float32")
+    p.add_argument("--out-dir", type=Path, help="write each received frame's relevancy PNG here")
+    p.set_defaults(fn=cmd_stream)
+
+    p = sub.add_parser("segment", help="label Gaussians (and a view's pixels) with class names")
+    p.add_argument("scene")
+    p.add_argument("names", nargs="+", metavar="NAME")
+    _camera_options(p)
+    p.add_argument("--out", type=Path, help="label image PNG (a colour per class)")
+    p.set_defaults(fn=cmd_segment)
+
+    p = sub.add_parser("health", help="gRPC health check (exit 0 when SERVING)")
+    p.add_argument("service", nargs="?", default="")
+    p.set_defaults(fn=cmd_health)
+    return ap
+
+
+def _client(args: argparse.Namespace) -> FmgsClient:
+    token = args.token_file.read_text().strip() if args.token_file else None
+    return FmgsClient(
+        args.address,
+        token=token,
+        root_cert=args.root_cert,
+        client_cert=args.client_cert,
+        client_key=args.client_key,
+        timeout=args.timeout if args.timeout > 0 else None,
+    )
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point; returns the exit status (0 ok, 1 failure, 2 bad usage)."""
+    args = build_parser().parse_args(argv)
+    try:
+        with _client(args) as client:
+            return args.fn(client, args)
+    except FmgsError as e:
+        print(f"error: {e.code}: {e.details}", file=sys.stderr)
+    except (OSError, ValueError) as e:
+        print(f"error: {e}", file=sys.stderr)
+    except KeyboardInterrupt:
+        print("error: interrupted", file=sys.stderr)
+    return 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

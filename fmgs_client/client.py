@@ -252,42 +252,42 @@ def assemble_render(chunks: Iterable[pb.RenderChunk]) -> RenderResult:
 
 
 def assemble_segment(chunks: Iterable[pb.SegmentChunk]) -> SegmentResult:
-    """Reassemble the chunks of a ``Segment`` call (ends at ``last`` or at the end of the stream)."""
+    """Reassemble the chunks of a ``Segment`` call (ends at ``last`` or at the end of the stream).
+
+    Each array is concatenated over the chunks that carry it (the server may send them one after the
+    other, not row-aligned); the index and label arrays must end up the same length.
+    """
     first: pb.SegmentChunk | None = None
-    pix: list[np.ndarray] = []
-    gidx: list[np.ndarray] = []
-    glab: list[np.ndarray] = []
+    parts: dict[str, list[np.ndarray]] = {"pixel_labels": [], "gaussian_index": [], "gaussian_labels": []}
+    dtypes = {"pixel_labels": np.int32, "gaussian_index": np.int64, "gaussian_labels": np.int32}
     for c in chunks:
         if first is None:
             first = c
         w = int(first.width)
-        if c.HasField("pixel_labels"):
-            a = from_tensor(c.pixel_labels, "segment.pixel_labels")
-            if a.ndim != 2 or a.shape[1] != w:
-                raise TensorError("segment.pixel_labels", f"expected shape [h,{w}], got {list(a.shape)}")
-            pix.append(a.astype(np.int32, copy=False))
-        if c.HasField("gaussian_index") or c.HasField("gaussian_labels"):
-            gi = _rows(c.gaussian_index, "segment.gaussian_index", (), np.int64)
-            gl = _rows(c.gaussian_labels, "segment.gaussian_labels", (), np.int32)
-            if len(gi) != len(gl):
-                raise ChunkError(f"segment: {len(gi)} Gaussian indices but {len(gl)} labels in a chunk")
-            gidx.append(gi)
-            glab.append(gl)
+        for n, dt in dtypes.items():
+            if c.HasField(n):
+                tail = (w,) if n == "pixel_labels" else ()
+                parts[n].append(_rows(getattr(c, n), f"segment.{n}", tail, dt))
         if c.last:
             break
     if first is None:
         raise ChunkError("segment: empty answer")
     h, w = int(first.height), int(first.width)
     labels = None
-    if pix or h or w:
-        labels = join(pix, (0, w), np.int32)
+    if parts["pixel_labels"] or h or w:
+        labels = join(parts["pixel_labels"], (0, w), np.int32)
         if labels.shape != (h, w):
             raise ChunkError(f"segment.pixel_labels: got {list(labels.shape)}, expected [{h},{w}]")
+    gidx = join(parts["gaussian_index"], (0,), np.int64) if parts["gaussian_index"] else None
+    glab = join(parts["gaussian_labels"], (0,), np.int32) if parts["gaussian_labels"] else None
+    if (gidx is None) != (glab is None) or (gidx is not None and len(gidx) != len(glab)):
+        n_i, n_l = (None if a is None else len(a) for a in (gidx, glab))
+        raise ChunkError(f"segment: {n_i} Gaussian indices but {n_l} labels")
     return SegmentResult(
         class_names=tuple(first.class_names),
         pixel_labels=labels,
-        gaussian_index=join(gidx, (0,), np.int64) if gidx else None,
-        gaussian_labels=join(glab, (0,), np.int32) if glab else None,
+        gaussian_index=gidx,
+        gaussian_labels=glab,
         elapsed_ms=float(first.elapsed_ms),
     )
 

@@ -115,10 +115,32 @@ def _unfilter(raw: np.ndarray, h: int, stride: int, bpp: int) -> np.ndarray:
     return out
 
 
-def decode_png(data: bytes) -> np.ndarray:
-    """Decode a non-interlaced 8-bit grey/RGB or 16-bit grey PNG into ``uint8``/``uint16`` arrays."""
+def _decode_with_pillow(data: bytes) -> np.ndarray | None:
+    """Pillow's decoder (C, ~50x faster on adaptively filtered images) when installed and the mode fits."""
+    try:
+        from PIL import Image
+    except ImportError:
+        return None
+    import io
+
+    with Image.open(io.BytesIO(data)) as im:
+        if im.format != "PNG" or im.mode not in ("L", "RGB", "I;16"):
+            return None
+        return np.asarray(im).copy()
+
+
+def decode_png(data: bytes, use_pillow: bool = True) -> np.ndarray:
+    """Decode a non-interlaced 8-bit grey/RGB or 16-bit grey PNG into ``uint8``/``uint16`` arrays.
+
+    The pure zlib/numpy decoder needs nothing else but walks Average/Paeth-filtered rows in Python
+    (~0.4 s for a 640x480 RGB image); with ``use_pillow`` and Pillow installed, Pillow decodes instead.
+    """
     if not data.startswith(_SIGNATURE):
         raise ValueError("decode_png: not a PNG (bad signature)")
+    if use_pillow:
+        img = _decode_with_pillow(data)
+        if img is not None:
+            return img
     pos, ihdr, idat = len(_SIGNATURE), None, []
     while pos + 8 <= len(data):
         (n,) = struct.unpack(">I", data[pos : pos + 4])

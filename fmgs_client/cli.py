@@ -8,8 +8,9 @@ from __future__ import annotations
 import argparse
 import math
 import sys
+import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -92,9 +93,19 @@ def orbit(
     return cams
 
 
+def scene_with_bounds(client: FmgsClient, name: str) -> SceneInfo:
+    """The scene's info with its bounds. The server knows a scene's bounds once it is loaded and loads
+    scenes lazily on their first query, so an unloaded scene is touched with a one-Gaussian query."""
+    info = client.scene(name)
+    if info.bounds is None and info.state in ("unloaded", "loading"):
+        client.query(name, "object", top_k=1)
+        info = client.scene(name)
+    return info
+
+
 def _camera(args: argparse.Namespace, client: FmgsClient) -> CameraSpec:
     if args.eye is None:
-        return default_camera(client.scene(args.scene), args.up, args.size, args.fov)
+        return default_camera(scene_with_bounds(client, args.scene), args.up, args.size, args.fov)
     if args.target is None:
         raise ValueError("--eye needs --target")
     return CameraSpec.look_at(args.eye, args.target, args.up, args.size[0], args.size[1], args.fov)
@@ -128,7 +139,10 @@ def cmd_info(client: FmgsClient, args: argparse.Namespace) -> int:
         ("canonical phrases", ", ".join(s.canonical_phrases)),
         ("label names", ", ".join(s.label_names) or "-"),
         ("resident", f"{s.resident_bytes / 2**20:.1f} MiB"),
-        ("bounds", "-" if s.bounds is None else f"min {_vec(s.bounds[0])}  max {_vec(s.bounds[1])}"),
+        (
+            "bounds",
+            "(once loaded)" if s.bounds is None else f"min {_vec(s.bounds[0])}  max {_vec(s.bounds[1])}",
+        ),
     ]
     width = max(len(k) for k, _ in items)
     for k, v in items:
@@ -194,11 +208,15 @@ def cmd_query(client: FmgsClient, args: argparse.Namespace) -> int:
 
 def cmd_render(client: FmgsClient, args: argparse.Namespace) -> int:
     cam = _camera(args, client)
-    outputs = ["relevancy"] + ["rgb"] * (args.rgb is not None) + ["depth"] * (args.depth is not None)
+    outputs = ["relevancy", "alpha"] + ["rgb"] * (args.rgb is not None) + ["depth"] * (args.depth is not None)
     t0 = time.perf_counter()
     r = client.render(args.scene, cam, args.text, outputs=outputs)
     wall = (time.perf_counter() - t0) * 1e3
-    relevancy_png(args.out, r.relevancy)
+    colours = colorize(r.relevancy).astype(np.float32)
+    if not args.raw and r.alpha is not None:
+        # Empty pixels have no feature and a meaningless relevancy (0.5): fade them to black.
+        colours *= np.clip(r.alpha, 0, 1)[..., None]
+    write_png(args.out, np.round(colours).astype(np.uint8))
     print(f"wrote {args.out} ({r.width}x{r.height})")
     if args.rgb is not None and r.rgb is not None:
         write_png(args.rgb, to_uint8(r.rgb))
@@ -212,21 +230,41 @@ def cmd_render(client: FmgsClient, args: argparse.Namespace) -> int:
     return 0
 
 
+def paced(
+    cams: Sequence[CameraSpec], window: threading.Semaphore, stop: threading.Event
+) -> Iterator[CameraSpec]:
+    """Yield cameras only while fewer than the window's size are unanswered (a closed loop): sending
+    every pose at once would just make the server skip to the newest one."""
+    for cam in cams:
+        while not window.acquire(timeout=0.2):
+            if stop.is_set():
+                return
+        yield cam
+
+
 def cmd_stream(client: FmgsClient, args: argparse.Namespace) -> int:
-    info = client.scene(args.scene)
+    info = scene_with_bounds(client, args.scene)
     cams = orbit(info, args.frames, args.up, args.size, args.fov)
     if args.out_dir is not None:
         args.out_dir.mkdir(parents=True, exist_ok=True)
-    n, server_ms = 0, 0.0
+    window, stop = threading.Semaphore(max(1, args.in_flight)), threading.Event()
+    n, server_ms, done = 0, 0.0, -1
     t0 = time.perf_counter()
-    for r in client.stream(args.scene, iter(cams), args.text, encoding=args.encoding):
-        n += 1
-        server_ms += r.elapsed_ms
-        if args.out_dir is not None and r.relevancy is not None:
-            relevancy_png(args.out_dir / f"frame_{r.sequence:05d}.png", r.relevancy)
+    try:
+        for r in client.stream(args.scene, paced(cams, window, stop), args.text, encoding=args.encoding):
+            # An answer settles its pose and every older one (skipped by latest-pose-wins).
+            window.release(max(0, r.sequence - done))
+            done = max(done, r.sequence)
+            n += 1
+            server_ms += r.elapsed_ms
+            if args.out_dir is not None and r.relevancy is not None:
+                relevancy_png(args.out_dir / f"frame_{r.sequence:05d}.png", r.relevancy)
+    finally:
+        stop.set()
     wall = time.perf_counter() - t0
     fps = n / wall if wall > 0 else float("inf")
-    print(f"{n} of {len(cams)} poses rendered in {wall:.2f} s: {fps:.1f} frames/s")
+    w, h = args.size
+    print(f"{n} of {len(cams)} poses rendered in {wall:.2f} s: {fps:.1f} frames/s at {w}x{h}")
     if n:
         print(f"server {server_ms / n:.1f} ms per frame")
     return 0
@@ -240,8 +278,9 @@ def cmd_segment(client: FmgsClient, args: argparse.Namespace) -> int:
     for k, name in enumerate(r.class_names):
         g = int((r.gaussian_labels == k).sum()) if r.gaussian_labels is not None else 0
         p = int((r.pixel_labels == k).sum()) if r.pixel_labels is not None else 0
-        rows.append((k, name, g, p))
-    print(_table(rows, ("label", "class", "gaussians", "pixels")))
+        colour = "#" + bytes(label_colors(np.array([k]))[0]).hex() if r.pixel_labels is not None else ""
+        rows.append((k, name, g, p, colour))
+    print(_table(rows, ("label", "class", "gaussians", "pixels", "colour")))
     if args.out is not None and r.pixel_labels is not None:
         write_png(args.out, label_colors(r.pixel_labels))
         print(f"wrote {args.out}")
@@ -300,7 +339,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("scene")
     p.add_argument("text")
     _camera_options(p)
-    p.add_argument("--out", type=Path, required=True, help="relevancy PNG (colour-mapped)")
+    p.add_argument("--out", type=Path, required=True, help="relevancy PNG (colour-mapped, faded by alpha)")
+    p.add_argument("--raw", action="store_true", help="do not fade empty pixels: colours of relevancy only")
     p.add_argument("--rgb", type=Path, help="also write the colour image")
     p.add_argument("--depth", type=Path, help="also write depth (16-bit PNG, millimetres)")
     p.set_defaults(fn=cmd_render)
@@ -311,6 +351,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--frames", type=int, default=60)
     _view_options(p)
     p.add_argument("--encoding", choices=("float32", "png"), default="float32")
+    p.add_argument("--in-flight", type=int, default=1, help="poses sent ahead of their answers (default 1)")
     p.add_argument("--out-dir", type=Path, help="write each received frame's relevancy PNG here")
     p.set_defaults(fn=cmd_stream)
 

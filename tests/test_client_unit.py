@@ -285,6 +285,19 @@ def test_segment_chunks():
     c1.gaussian_index.CopyFrom(to_tensor(gi[2:]))
     c1.gaussian_labels.CopyFrom(to_tensor(gl[2:]))
     r = assemble_segment([c0, c1])
+    # The same arrays sent one after the other (not row-aligned), as the server does.
+    seq = [pb.SegmentChunk(class_names=["a", "b"], width=3, height=4)]
+    for name, a, step in (("pixel_labels", labels, 3), ("gaussian_index", gi, 2), ("gaussian_labels", gl, 4)):
+        for s0 in range(0, len(a), step):
+            c = pb.SegmentChunk()
+            getattr(c, name).CopyFrom(to_tensor(a[s0 : s0 + step]))
+            seq.append(c)
+    seq[-1].last = True
+    r2 = assemble_segment([*seq, pb.SegmentChunk(class_names=["ignored after last"])])
+    for n in ("pixel_labels", "gaussian_index", "gaussian_labels"):
+        np.testing.assert_array_equal(getattr(r2, n), getattr(r, n))
+    with pytest.raises(ChunkError, match="5 Gaussian indices but 4 labels"):
+        assemble_segment(seq[:-1])
     assert r.class_names == ("a", "b")
     np.testing.assert_array_equal(r.pixel_labels, labels)
     np.testing.assert_array_equal(r.gaussian_index, gi)
@@ -371,11 +384,15 @@ def test_png_writer_read_by_pillow(tmp_path, dtype, shape, mode):
         assert im.mode == mode and im.size == (shape[1], shape[0])
         back = np.asarray(im)
     np.testing.assert_array_equal(back, img)
-    np.testing.assert_array_equal(decode_png(path.read_bytes()), img)
-    # PNGs from another encoder (pillow: adaptive filters, several IDAT chunks) decode too.
+    for use_pillow in (False, True):
+        np.testing.assert_array_equal(decode_png(path.read_bytes(), use_pillow), img)
+    # PNGs from another encoder (pillow: adaptive filters) decode with the pure decoder too.
     buf = io.BytesIO()
     Image.fromarray(img).save(buf, format="PNG", optimize=True)
-    np.testing.assert_array_equal(decode_png(buf.getvalue()), img)
+    for use_pillow in (False, True):
+        back = decode_png(buf.getvalue(), use_pillow)
+        assert back.dtype == img.dtype
+        np.testing.assert_array_equal(back, img)
 
 
 def test_png_decoder_all_filters():
@@ -384,8 +401,8 @@ def test_png_decoder_all_filters():
         rng.integers(0, 256, (10, 9, 3), dtype=np.uint8),
         rng.integers(0, 256, (10, 9), dtype=np.uint8),
     ):
-        np.testing.assert_array_equal(decode_png(_png_with_filters(img, [0, 1, 2, 3, 4])), img)
-        np.testing.assert_array_equal(decode_png(_png_with_filters(img, [4, 3, 1])), img)
+        np.testing.assert_array_equal(decode_png(_png_with_filters(img, [0, 1, 2, 3, 4]), False), img)
+        np.testing.assert_array_equal(decode_png(_png_with_filters(img, [4, 3, 1]), False), img)
     with pytest.raises(ValueError, match="signature"):
         decode_png(b"GIF89a")
     with pytest.raises(ValueError, match="need uint8"):

@@ -73,7 +73,9 @@ def cmd_synth(args: argparse.Namespace) -> int:
     from fmgs.synth import SynthConfig, generate
 
     w, h = (int(v) for v in args.size.lower().split("x"))
-    cfg = SynthConfig(views=args.views, width=w, height=h, objects=args.objects, seed=args.seed)
+    cfg = SynthConfig(
+        views=args.views, width=w, height=h, objects=args.objects, seed=args.seed, points=args.points
+    )
     t0 = time.perf_counter()
     path = generate(args.out, cfg)
     secs = time.perf_counter() - t0
@@ -162,7 +164,12 @@ def _target_spec(args: argparse.Namespace):
 def _field_config(args: argparse.Namespace):
     from fmgs.train.field import FieldTrainConfig
 
-    base = FieldTrainConfig(device=args.device, seed=args.seed, per_gaussian=args.per_gaussian)
+    base = FieldTrainConfig(
+        device=args.device,
+        seed=args.seed,
+        per_gaussian=args.per_gaussian,
+        adaptive_resolution=args.adaptive_resolution,
+    )
     cfg = base if args.field_steps == base.steps else base.reduced(args.field_steps)
     if args.no_dotsim:
         cfg = replace(cfg, dotsim_weight=0.0)
@@ -200,7 +207,9 @@ def cmd_train_field(args: argparse.Namespace) -> int:
     )
     if args.package:
         enc = load_text_encoder(cache.targets["clip"].encoder)
-        out = package_from_field(args.package, g, res, enc, include_dino=args.include_dino)
+        out = package_from_field(
+            args.package, g, res, enc, include_dino=args.include_dino, field_dtype=args.field_dtype
+        )
         print(f"wrote scene package {out}")
     return 0
 
@@ -208,7 +217,16 @@ def cmd_train_field(args: argparse.Namespace) -> int:
 def cmd_build(args: argparse.Namespace) -> int:
     """Photos (or a posed dataset, or a .ply with its posed images) to a scene package in models/."""
     from fmgs.build import BuildConfig, build_scene
+    from fmgs.errors import ValidationError
 
+    extra = {}
+    if args.extra:
+        try:
+            extra = json.loads(Path(args.extra).read_text())
+        except (OSError, json.JSONDecodeError) as e:
+            raise ValidationError("--extra", f"cannot read {args.extra} ({e})") from e
+        if not isinstance(extra, dict):
+            raise ValidationError("--extra", f"{args.extra} must hold a JSON object")
     cfg = BuildConfig(
         name=args.name,
         models=args.models,
@@ -216,9 +234,13 @@ def cmd_build(args: argparse.Namespace) -> int:
         ply=args.ply,
         gs_steps=args.gs_steps,
         gs_scale=args.gs_scale,
+        gs_sh_degree=args.sh_degree,
+        gs_grad_threshold=args.grad_threshold,
         targets=_target_spec(args),
         field=_field_config(args),
         include_dino=args.include_dino,
+        field_dtype=args.field_dtype,
+        extra=extra,
         device=args.device,
     )
     out = build_scene(args.source, cfg)
@@ -242,6 +264,17 @@ def _add_field_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--per-gaussian", action="store_true", help="ablation: per-Gaussian features")
     p.add_argument("--no-dotsim", action="store_true", help="ablation: no dot-product-similarity loss")
     p.add_argument("--include-dino", action="store_true", help="keep the DINO head in the package")
+    p.add_argument(
+        "--adaptive-resolution",
+        action="store_true",
+        help="finest hash level at the Gaussians' median spacing (fewer table rows, smaller package)",
+    )
+    p.add_argument(
+        "--field-dtype",
+        default="float32",
+        choices=["float32", "float16"],
+        help="storage of the field's table and heads in the package (float16: half the size)",
+    )
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -266,6 +299,7 @@ def build_parser() -> argparse.ArgumentParser:
     sy.add_argument("--size", default="128x96", help="WxH")
     sy.add_argument("--objects", type=int, default=6)
     sy.add_argument("--seed", type=int, default=0)
+    sy.add_argument("--points", type=int, default=20_000, help="surface samples in points3D.ply")
     sy.set_defaults(func=cmd_synth)
     sf = sub.add_parser("sfm", help="photos to poses with pycolmap; writes OUT/undistorted (a dataset)")
     sf.add_argument("images", help="folder of photos")
@@ -318,6 +352,9 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--ply", help="existing 3DGS .ply: skip geometry training")
     b.add_argument("--gs-steps", type=int, default=30_000)
     b.add_argument("--gs-scale", type=float, default=1.0)
+    b.add_argument("--sh-degree", type=int, default=3, help="final SH degree of the 3DGS stage")
+    b.add_argument("--grad-threshold", type=float, help="3DGS densification threshold (default 2e-4)")
+    b.add_argument("--extra", help="JSON file with an object merged into the manifest's extra")
     _add_target_args(b)
     _add_field_args(b)
     b.add_argument("--device", default="cuda" if _cuda() else "cpu")
@@ -332,7 +369,7 @@ def build_parser() -> argparse.ArgumentParser:
     sv.add_argument("--max-streams", type=int, default=32)
     sv.add_argument("--memory-budget-mb", type=float, default=0, help="unload LRU scenes beyond it (0: none)")
     sv.add_argument("--preload", action="store_true", help="load every scene and its text encoder now")
-    sv.add_argument("--index-rank", type=int, default=32, help="compact query state rank (0: exact)")
+    sv.add_argument("--index-rank", type=int, default=64, help="compact query state rank (0: exact)")
     sv.add_argument("--device", default="cpu")
     sv.add_argument("--tls-cert", help="server certificate (PEM)")
     sv.add_argument("--tls-key", help="server key (PEM)")

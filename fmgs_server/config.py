@@ -53,7 +53,7 @@ class ServerConfig:
     """How often a scene's files are checked for changes (on access)."""
     preload: bool = False
     """Load every scene (and its text encoder) at start instead of on first use."""
-    index_rank: int = 32
+    index_rank: int = 64
     """Rank of the compact per-Gaussian query state (0: exact float32 embeddings)."""
     exact_below: int = 200_000
     """Scenes with fewer embedded Gaussians keep exact float32 embeddings."""

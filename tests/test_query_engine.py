@@ -194,7 +194,7 @@ def test_query_state_bytes_per_gaussian():
     emb = safe_normalize(torch.randn(M, 512, generator=g)).half()
     canon = torch.randn(M, 4, generator=g)
     idx = EmbeddingIndex.build(emb, canon, IndexConfig(rank=32, exact_below=0))
-    per = (idx.nbytes() - idx.basis.numel() * 4) / M + 8  # + the int64 scene index
+    per = (idx.nbytes() - idx.basis.numel() * 4 - idx.scales.numel() * 4) / M + 8  # + int64 scene index
     assert per <= 160, per
 
 
@@ -204,3 +204,21 @@ def test_engine_config_rejects_nonsense():
     with pytest.raises(ValidationError):
         InstanceConfig(eps=float("nan"))
     assert EngineConfig().backend == "auto"
+
+
+def test_int8_kernel_matches_reference():
+    from fmgs.query.index import int8_dots_reference
+
+    g = torch.Generator().manual_seed(3)
+    emb = safe_normalize(torch.randn(3000, 48, generator=g))
+    idx = EmbeddingIndex.build(emb, torch.randn(3000, 4, generator=g), IndexConfig(rank=24, exact_below=0))
+    assert idx.coeffs.dtype == torch.int8 and idx.scales.shape == (24,)
+    v = safe_normalize(torch.randn(5, 48, generator=g))
+    fast = idx.dots(v)
+    ref = int8_dots_reference(idx.coeffs, idx.scales, idx.basis, v)
+    assert (fast - ref).abs().max() < 1e-5
+    shift = torch.randn(3000, generator=g)
+    assert (idx.dots(v, shift) - (ref - shift[:, None])).abs().max() < 1e-5
+    # Quantisation error against the unquantised rank-24 projection stays at the int8 step size.
+    proj = (emb @ idx.basis.T) @ (v @ idx.basis.T).T
+    assert (ref - proj).abs().max() < 24 * float(idx.scales.max()) / 2

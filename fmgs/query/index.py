@@ -2,10 +2,11 @@
 
 Exact path (small scenes, or ``rank=0``): the stored embeddings [M,D] as float32; a query is one
 matrix-vector product. Compact path (large scenes): a rank-r basis B [r,D] of the scene's embeddings
-(top eigenvectors of E^T E) and coefficients E B^T [M,r] in float32, so a query costs r/D of the exact
-product and 4r bytes per Gaussian; the best ``rerank * k`` candidates are then rescored exactly from the
-full embeddings, memory-mapped from the package, so the returned scores are exact and the ranking is
-exact whenever the true top-k lie among the candidates (measured in benchmarks/query.py).
+(top eigenvectors of E^T E) and coefficients E B^T [M,r] quantised to int8 with one scale per basis
+vector, so a query reads r bytes per Gaussian (a numba kernel); the best ``rerank * k`` candidates are
+then rescored exactly from the full embeddings, memory-mapped from the package, so the returned scores
+are exact and the ranking is exact whenever the true top-k lie among the candidates (measured in
+benchmarks/server.py).
 
 Scores: relevancy = min_n sigmoid(t (f.q - f.c_n)) = sigmoid(t (f.q - max_n f.c_n)); Gaussians are ranked
 by the exact margin f.q - max_n f.c_n (ties by index), which orders them as relevancy does but never
@@ -28,11 +29,11 @@ from fmgs.query.relevancy import TEMPERATURE
 class IndexConfig:
     """How a scene's embeddings are held for queries."""
 
-    rank: int = 32
-    """Basis size of the compact path; 0 keeps the exact float32 embeddings."""
+    rank: int = 64
+    """Basis size of the compact path (int8 coefficients: r bytes per Gaussian); 0 keeps exact float32."""
     exact_below: int = 200_000
     """Scenes with fewer embedded Gaussians use the exact path (4*D bytes per Gaussian)."""
-    rerank: int = 4
+    rerank: int = 10
     """The compact path rescores rerank * k candidates exactly (0: return the compact scores)."""
     basis_sample: int = 100_000
     """Rows used to estimate the basis (a seeded sample; all rows when fewer)."""
@@ -67,11 +68,14 @@ class EmbeddingIndex:
         canonical: torch.Tensor,
         read_rows: RowReader | None,
         cfg: IndexConfig,
+        scales: torch.Tensor | None = None,
     ) -> None:
         self.coeffs = coeffs
-        """[M,r] float32 coefficients (the embeddings themselves on the exact path, r = D)."""
+        """[M,r] int8 coefficients (float32 embeddings on the exact path, r = D)."""
         self.basis = basis
         """[r,D] float32 orthonormal rows, or None on the exact path."""
+        self.scales = scales
+        """[r] float32 dequantisation scale per basis vector (compact path)."""
         self.canonical = canonical
         """[M,C] float32 dot products with the scene's canonical phrases (exact, from the package)."""
         self.canonical_max = canonical.amax(1) if canonical.shape[1] else torch.zeros(len(canonical))
@@ -97,16 +101,14 @@ class EmbeddingIndex:
         if cfg.rank == 0 or cfg.rank >= D or M < cfg.exact_below:
             return cls(embeddings.float().contiguous(), None, canonical, None, cfg)
         basis = _basis(embeddings, cfg.rank, cfg.basis_sample)
-        coeffs = torch.empty(M, cfg.rank)
-        for s in range(0, M, 65536):  # chunked: never a full float32 copy of [M,D]
-            coeffs[s : s + 65536] = embeddings[s : s + 65536].float() @ basis.T
+        coeffs, scales = _quantise(embeddings, basis)
         if read_rows is None:
             src = embeddings
 
             def read_rows(rows: np.ndarray) -> torch.Tensor:
                 return src[torch.from_numpy(rows)].float()
 
-        return cls(coeffs, basis, canonical, read_rows, cfg)
+        return cls(coeffs, basis, canonical, read_rows, cfg, scales)
 
     @property
     def exact(self) -> bool:
@@ -123,12 +125,22 @@ class EmbeddingIndex:
         )
         return sum(x.numel() * x.element_size() for x in t)
 
-    def dots(self, vectors: torch.Tensor) -> torch.Tensor:
-        """[M,n] f.v for unit vectors [n,D] (compact approximation on the compact path)."""
+    def dots(self, vectors: torch.Tensor, shift: torch.Tensor | None = None) -> torch.Tensor:
+        """[M,n] f.v - shift for unit vectors [n,D] (compact approximation on the compact path).
+
+        shift [M] (default 0) is subtracted from every column, fused into the kernel.
+        """
         v = vectors.float()
-        if self.basis is not None:
-            v = v @ self.basis.T  # [n,r]
-        return self.coeffs @ v.T
+        if self.basis is None:
+            d = self.coeffs @ v.T
+            return d if shift is None else d - shift[:, None]
+        from fmgs.query.kernels import int8_dots
+
+        W = ((v @ self.basis.T) * self.scales).T.contiguous()  # [r,n]
+        out = np.empty((self.num, len(v)), np.float32)
+        sh = np.zeros(self.num, np.float32) if shift is None else shift.float().contiguous().numpy()
+        int8_dots(self.coeffs.numpy(), W.numpy(), sh, out)
+        return torch.from_numpy(out)
 
     def exact_dots(self, rows: torch.Tensor, vectors: torch.Tensor) -> torch.Tensor:
         """[k,n] exact f.v for rows [k] (any order)."""
@@ -155,13 +167,20 @@ class EmbeddingIndex:
             e = torch.zeros(0)
             return Ranked(torch.zeros(0, dtype=torch.int64), e, e)
         vecs = query[None] if canonical_vectors is None else torch.cat([query[None], canonical_vectors])
-        d = self.dots(vecs)  # [M, 1 or 1+C]
-        cmax = self.canonical_max if canonical_vectors is None else d[:, 1:].amax(1)
-        margin = d[:, 0] - cmax
+        if canonical_vectors is None and not self.exact:  # margin f.q - max_n f.c_n from the kernel
+            margin = self.dots(vecs, self.canonical_max)[:, 0]
+            d = None
+        elif canonical_vectors is None:
+            d = self.dots(vecs)
+            margin = d[:, 0] - self.canonical_max
+        else:
+            d = self.dots(vecs)  # [M, 1+C]
+            margin = d[:, 0] - d[:, 1:].amax(1)
         n_cand = k if (self.exact or self.cfg.rerank == 0) else min(M, self.cfg.rerank * k)
         cand = torch.topk(margin, n_cand, sorted=False).indices
         if self.exact or self.cfg.rerank == 0:
-            sim, m = d[cand, 0], margin[cand]
+            m = margin[cand]
+            sim = m + self.canonical_max[cand] if d is None else d[cand, 0]
         else:
             ex = self.exact_dots(cand, vecs)
             sim = ex[:, 0]
@@ -184,6 +203,26 @@ def rank_reference(
     rel = torch.sigmoid(TEMPERATURE * m[order])
     keep = rel >= threshold
     return Ranked(rows[order][keep], rel[keep], sim[order][keep])
+
+
+def _quantise(embeddings: torch.Tensor, basis: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """int8 coefficients [M,r] and per-basis-vector scales [r] of E B^T (two chunked passes)."""
+    M, r = embeddings.shape[0], basis.shape[0]
+    step = 65536
+    amax = torch.zeros(r)
+    for s in range(0, M, step):  # never a full float32 copy of [M,D]
+        amax = torch.maximum(amax, (embeddings[s : s + step].float() @ basis.T).abs().amax(0))
+    scales = (amax / 127).clamp_min(1e-30)
+    q = torch.empty(M, r, dtype=torch.int8)
+    for s in range(0, M, step):
+        c = embeddings[s : s + step].float() @ basis.T
+        q[s : s + step] = (c / scales).round().clamp(-127, 127).to(torch.int8)
+    return q, scales
+
+
+def int8_dots_reference(coeffs: torch.Tensor, scales: torch.Tensor, basis: torch.Tensor, v: torch.Tensor):
+    """Twin of the kernel path of ``EmbeddingIndex.dots``: [M,n] (dequantised coefficients) . (B v)."""
+    return (coeffs.float() * scales) @ (v.float() @ basis.T).T
 
 
 def _order(margin: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:

@@ -1,0 +1,365 @@
+"""Query-server performance: text queries on large scenes, pose renders and pose streams through gRPC.
+
+    python benchmarks/server.py            # full: 1M-Gaussian text scene, garden renders, 32 streams
+    python benchmarks/server.py --quick    # CI size (completion only)
+
+Writes benchmarks/SERVER.md and SERVER.json (or --out DIR). Text embeddings come from a fixed table
+(the target is measured "with the text embedding cached"); scene embeddings are field-like: a random
+two-layer MLP (256 hidden, as the FMGS language head) over Fourier features of the positions, unit-norm.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as dt
+import json
+import statistics
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from benchmarks.raster import _rss_gb, machine  # noqa: E402
+from benchmarks.scenes import garden, synthetic  # noqa: E402
+from fmgs.gaussians import SH_C0, GaussianSet  # noqa: E402
+from fmgs.query.engine import EngineConfig, SceneEngine  # noqa: E402
+from fmgs.query.index import IndexConfig  # noqa: E402
+from fmgs.scene.package import export_scene  # noqa: E402
+from fmgs.vecmath import safe_normalize  # noqa: E402
+
+D = 512
+ENC = "bench/fixed-table"
+
+
+def fieldlike(means: torch.Tensor, dim: int = D, seed: int = 0) -> torch.Tensor:
+    """[N,dim] unit embeddings that vary smoothly with position, of rank <= 257 like the real head."""
+    g = torch.Generator().manual_seed(seed)
+    lo, hi = means.min(0).values, means.max(0).values
+    B = torch.randn(3, 32, generator=g) * torch.linspace(1, 12, 32)
+    W1, b1 = torch.randn(64, 256, generator=g) / 8, torch.randn(256, generator=g) * 0.1
+    W2, b2 = torch.randn(256, dim, generator=g) / 16, torch.randn(dim, generator=g) * 0.3
+    out = torch.empty(len(means), dim)
+    for s in range(0, len(means), 65536):
+        x = (means[s : s + 65536] - lo) / (hi - lo).clamp_min(1e-9) @ B
+        h = torch.relu(torch.cat([x.sin(), x.cos()], 1) @ W1 + b1)
+        out[s : s + 65536] = safe_normalize(h @ W2 + b2)
+    return out
+
+
+class TableEncoder:
+    """Texts 'q<i>' map to fixed query vectors (the embedding cost is not what is measured)."""
+
+    id, dim = ENC, D
+
+    def __init__(self, queries: torch.Tensor, canonical: torch.Tensor) -> None:
+        self.table = {f"q{i}": v for i, v in enumerate(queries)}
+        self.table.update(zip(("object", "stuff", "things", "texture"), canonical, strict=True))
+
+    def encode_text(self, texts):
+        return torch.stack([self.table[t] for t in texts])
+
+
+def make_queries(emb: torch.Tensor, n: int, seed: int = 1) -> torch.Tensor:
+    """Queries near random scene embeddings (each has a clear best region)."""
+    g = torch.Generator().manual_seed(seed)
+    rows = torch.randint(0, len(emb), (n,), generator=g)
+    return safe_normalize(emb[rows] + 0.6 * safe_normalize(torch.randn(n, emb.shape[1], generator=g)))
+
+
+def export(folder: Path, g: GaussianSet, emb: torch.Tensor, canon: torch.Tensor, sel=None) -> Path:
+    sel = torch.arange(g.num) if sel is None else sel
+    return export_scene(folder, g, sel, emb, ENC, canon)
+
+
+def gaussians_from(scene) -> GaussianSet:
+    sh = ((scene.colors - 0.5) / SH_C0)[:, None, :]
+    return GaussianSet.from_activated(scene.means, scene.quats, scene.scales, scene.opacities, sh=sh)
+
+
+def _med(ts):
+    return statistics.median(ts) * 1e3
+
+
+def bench_text(out: Path, n: int, n_queries: int, top_k: int = 100) -> dict:
+    s = synthetic(n, seed=3)
+    g = gaussians_from(s)
+    emb = fieldlike(s.means)
+    canon = safe_normalize(torch.randn(4, D, generator=torch.Generator().manual_seed(9)))
+    queries = make_queries(emb, n_queries)
+    t0 = time.perf_counter()
+    pkg = export(out / "text", g, emb, canon)
+    export_s = time.perf_counter() - t0
+    del emb
+    res = {"gaussians": n, "dim": D, "queries": n_queries, "top_k": top_k, "export_s": export_s}
+    engines = {}
+    for name, cfg in (("exact", IndexConfig(rank=0)), ("compact", IndexConfig(exact_below=0))):
+        rss0 = _rss_gb()
+        t0 = time.perf_counter()
+        engines[name] = SceneEngine.open(pkg, EngineConfig(index=cfg))
+        res[f"{name}_open_s"] = time.perf_counter() - t0
+        res[f"{name}_rss_gb"] = _rss_gb() - rss0
+        idx = engines[name].index
+        res[f"{name}_state_bytes_per_gaussian"] = (
+            idx.nbytes() - (idx.basis.numel() * 4 if idx.basis is not None else 0)
+        ) / n + 8
+    # Side by side, alternating, so both see the same machine load.
+    times = {"exact": [], "compact": [], "compact_norerank": []}
+    same_order = same_set = 0
+    max_rel_err = 0.0
+    norerank = SceneEngine.__new__(SceneEngine)
+    norerank.__dict__.update(engines["compact"].__dict__)
+    from fmgs.query.index import EmbeddingIndex
+
+    ci = engines["compact"].index
+    nr_cfg = IndexConfig(exact_below=0, rerank=0)
+    norerank.index = EmbeddingIndex(ci.coeffs, ci.basis, ci.canonical, ci.read_rows, nr_cfg, ci.scales)
+    for q in queries:  # warm: kernel compiled, re-ranked rows in the page cache (as on a running server)
+        engines["compact"].text_query(q, top_k)
+    overlap_nr = []
+    for q in queries:
+        for name, eng in (
+            ("exact", engines["exact"]),
+            ("compact", engines["compact"]),
+            ("compact_norerank", norerank),
+        ):
+            t0 = time.perf_counter()
+            a = eng.text_query(q, top_k)
+            times[name].append(time.perf_counter() - t0)
+            if name == "exact":
+                ref = a
+            elif name == "compact":
+                same_order += int(torch.equal(a.index, ref.index))
+                same_set += int(set(a.index.tolist()) == set(ref.index.tolist()))
+                max_rel_err = max(max_rel_err, float((a.relevancy - ref.relevancy).abs().max()))
+            else:
+                overlap_nr.append(len(set(a.index.tolist()) & set(ref.index.tolist())) / top_k)
+    for k, v in times.items():
+        res[f"{k}_ms_median"] = _med(v)
+        res[f"{k}_ms_p90"] = float(np.percentile(v, 90) * 1e3)
+    res["compact_top_k_identical"] = same_order / n_queries
+    res["compact_top_k_same_set"] = same_set / n_queries
+    res["compact_max_relevancy_error"] = max_rel_err
+    res["norerank_mean_overlap"] = float(np.mean(overlap_nr))
+    del engines, norerank
+
+    # End to end through gRPC on loopback (compact state, as served).
+    import grpc
+
+    from fmgs_client._proto.fmgs.v1 import fmgs_pb2 as pb
+    from fmgs_client._proto.fmgs.v1 import fmgs_pb2_grpc as pb_grpc
+    from fmgs_server.config import ServerConfig
+    from fmgs_server.server import start_server
+
+    enc = TableEncoder(queries, canon)
+    srv = start_server(ServerConfig(models=out, port=0, exact_below=0), encoder_factory=lambda i: enc)
+    try:
+        with grpc.insecure_channel(srv.address) as ch:
+            stub = pb_grpc.FmgsStub(ch)
+            for i in range(len(queries)):  # warm: load, embed (cached from now on)
+                list(stub.TextQuery(pb.TextQueryRequest(scene="text", texts=[f"q{i}"], top_k=top_k)))
+            ts = []
+            for i in range(len(queries)):
+                t0 = time.perf_counter()
+                list(stub.TextQuery(pb.TextQueryRequest(scene="text", texts=[f"q{i}"], top_k=top_k)))
+                ts.append(time.perf_counter() - t0)
+            res["grpc_ms_median"] = _med(ts)
+            res["grpc_ms_p90"] = float(np.percentile(ts, 90) * 1e3)
+    finally:
+        srv.stop(0)
+    return res
+
+
+def bench_pose(out: Path, quick: bool, frames: int, streams: int, stream_s: float) -> dict:
+    import grpc
+
+    from fmgs_client._proto.fmgs.v1 import fmgs_pb2 as pb
+    from fmgs_client._proto.fmgs.v1 import fmgs_pb2_grpc as pb_grpc
+    from fmgs_server.config import ServerConfig
+    from fmgs_server.server import start_server
+
+    s = synthetic(20_000, seed=4) if quick else garden()
+    g = gaussians_from(s)
+    emb = fieldlike(s.means)
+    canon = safe_normalize(torch.randn(4, D, generator=torch.Generator().manual_seed(9)))
+    queries = make_queries(emb, 4)
+    export(out / "pose", g, emb, canon)
+    cam = s.cameras[0].resized(480, 270)
+    pcam = pb.Camera(
+        viewmat=cam.viewmat.reshape(-1).tolist(),
+        fx=cam.fx,
+        fy=cam.fy,
+        cx=cam.cx,
+        cy=cam.cy,
+        width=480,
+        height=270,
+    )
+    res = {"scene": s.name, "gaussians": g.num, "embedded": g.num, "size": "480x270"}
+    eng = SceneEngine.open(out / "pose")
+    from fmgs.query.pose import render_pose
+
+    ts = []
+    for i in range(frames):
+        t0 = time.perf_counter()
+        render_pose(eng, cam, queries[i % 4])
+        ts.append(time.perf_counter() - t0)
+    res["engine_ms_median"] = _med(ts)
+    del eng
+    enc = TableEncoder(queries, canon)
+    srv = start_server(ServerConfig(models=out, port=0), encoder_factory=lambda i: enc)
+    try:
+        with grpc.insecure_channel(srv.address) as ch:
+            stub = pb_grpc.FmgsStub(ch)
+            req = lambda i: pb.RenderRequest(scene="pose", camera=pcam, text=f"q{i % 4}", sequence=i)  # noqa: E731
+            for i in range(2):
+                list(stub.Render(req(i)))
+            ts = []
+            for i in range(frames):
+                t0 = time.perf_counter()
+                list(stub.Render(req(i)))
+                ts.append(time.perf_counter() - t0)
+            res["grpc_ms_median"] = _med(ts)
+            res["grpc_fps"] = 1e3 / res["grpc_ms_median"]
+            res.update(_streams(srv.address, req, streams, stream_s))
+    finally:
+        srv.stop(0)
+    return res
+
+
+def _streams(address: str, req, n: int, seconds: float) -> dict:
+    """n clients each push poses as fast as they can for ``seconds``; half of them read slowly."""
+    import grpc
+
+    from fmgs_client._proto.fmgs.v1 import fmgs_pb2_grpc as pb_grpc
+
+    done = threading.Event()
+    frames, errors, sent = [0] * n, [], [0] * n
+
+    def client(k: int) -> None:
+        def poses():
+            i = 0
+            while not done.is_set():
+                sent[k] += 1
+                yield req(i)
+                i += 1
+                time.sleep(0.005)
+
+        try:
+            with grpc.insecure_channel(address) as ch:
+                for c in pb_grpc.FmgsStub(ch).StreamRender(poses()):
+                    if c.last:
+                        frames[k] += 1
+                        if k % 2:
+                            time.sleep(0.2)  # a slow reader
+        except grpc.RpcError as e:
+            if not done.is_set() or e.code() != grpc.StatusCode.CANCELLED:
+                errors.append(e.code().name)
+
+    rss = [_rss_gb()]
+    th = [threading.Thread(target=client, args=(k,), daemon=True) for k in range(n)]
+    for t in th:
+        t.start()
+    t0 = time.perf_counter()
+    while time.perf_counter() - t0 < seconds:
+        time.sleep(seconds / 4)
+        rss.append(_rss_gb())
+    done.set()
+    for t in th:
+        t.join(timeout=30)
+    return {
+        "streams": n,
+        "stream_seconds": seconds,
+        "stream_frames_total": sum(frames),
+        "stream_fps_total": sum(frames) / seconds,
+        "stream_poses_sent": sum(sent),
+        "stream_min_frames_per_client": min(frames),
+        "stream_errors": errors,
+        "stream_rss_gb": rss,
+        "stream_threads_alive_after": sum(t.is_alive() for t in th),
+    }
+
+
+def report(res: dict, info: dict, quick: bool) -> str:
+    t, p = res["text"], res["pose"]
+    L = [
+        "# Query server performance",
+        "",
+        f"Machine: {info.get('cpu', '?')}, {info.get('cores', '?')} cores, torch {info.get('torch', '?')}; "
+        f"{info.get('date', '')}. {'QUICK (CI) size: not the targets.' if quick else ''}",
+        "Reproduce: `python benchmarks/server.py` (CI: `--quick`). Medians of repeated runs; compact and",
+        "exact text queries alternate in one loop, so their ratio is measured side by side.",
+        "",
+        f"## Text query: {t['gaussians']:,} Gaussians, D={t['dim']}, top-{t['top_k']}, "
+        f"{t['queries']} queries",
+        "",
+        "| path | median ms | p90 ms | query state bytes/Gaussian | open s |",
+        "|---|---|---|---|---|",
+        f"| exact float32 (rank 0) | {t['exact_ms_median']:.1f} | {t['exact_ms_p90']:.1f} | "
+        f"{t['exact_state_bytes_per_gaussian']:.0f} | {t['exact_open_s']:.1f} |",
+        f"| compact: rank 64 int8 + exact re-rank of 10k (default) | {t['compact_ms_median']:.1f} | "
+        f"{t['compact_ms_p90']:.1f} | {t['compact_state_bytes_per_gaussian']:.0f} | "
+        f"{t['compact_open_s']:.1f} |",
+        f"| compact, no re-rank | {t['compact_norerank_ms_median']:.1f} | "
+        f"{t['compact_norerank_ms_p90']:.1f} | same | |",
+        f"| gRPC end to end, loopback, compact, embedding cached | {t['grpc_ms_median']:.1f} | "
+        f"{t['grpc_ms_p90']:.1f} | | |",
+        "",
+        f"Error of the compact default against exact float32: top-{t['top_k']} identical (same order) in "
+        f"{100 * t['compact_top_k_identical']:.1f}% of queries, same set in "
+        f"{100 * t['compact_top_k_same_set']:.1f}%; "
+        f"max relevancy error {t['compact_max_relevancy_error']:.2e} (re-ranked scores are exact). Without "
+        f"re-ranking the mean top-{t['top_k']} overlap is {100 * t['norerank_mean_overlap']:.1f}%.",
+        "",
+        f"## Pose query: {p['scene']} ({p['gaussians']:,} Gaussians, all embedded, D={D}), {p['size']}",
+        "",
+        f"- engine (dot-then-render, CPU backend): {p['engine_ms_median']:.1f} ms median",
+        f"- gRPC end to end (float32 relevancy, one client): {p['grpc_ms_median']:.1f} ms median = "
+        f"**{p['grpc_fps']:.1f} images/s**",
+        f"- {p['streams']} concurrent pose streams for {p['stream_seconds']:.0f} s (half the clients read "
+        f"slowly): {p['stream_frames_total']} frames ({p['stream_fps_total']:.1f}/s in total) for "
+        f"{p['stream_poses_sent']} poses sent, at least {p['stream_min_frames_per_client']} per client; "
+        f"errors: {p['stream_errors'] or 'none'}; process RSS over the run (GB): "
+        + ", ".join(f"{x:.2f}" for x in p["stream_rss_gb"]),
+        "",
+    ]
+    return "\n".join(L)
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true")
+    ap.add_argument("--out", type=Path, default=ROOT / "benchmarks")
+    ap.add_argument("--gaussians", type=int, default=1_000_000)
+    ap.add_argument("--queries", type=int, default=100)
+    ap.add_argument("--frames", type=int, default=20)
+    ap.add_argument("--streams", type=int, default=32)
+    ap.add_argument("--stream-seconds", type=float, default=30.0)
+    a = ap.parse_args()
+    if a.quick:
+        a.gaussians, a.queries, a.frames, a.streams, a.stream_seconds = 50_000, 10, 3, 4, 3.0
+    info = machine()
+    info["date"] = dt.datetime.now(dt.UTC).strftime("%Y-%m-%d %H:%M UTC")
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp = Path(tmp)
+        (tmp / "a").mkdir()
+        (tmp / "b").mkdir()
+        res = {"text": bench_text(tmp / "a", a.gaussians, a.queries)}
+        print(json.dumps(res["text"], indent=1), flush=True)
+        res["pose"] = bench_pose(tmp / "b", a.quick, a.frames, a.streams, a.stream_seconds)
+        print(json.dumps(res["pose"], indent=1), flush=True)
+    a.out.mkdir(parents=True, exist_ok=True)
+    name = "SERVER_QUICK" if a.quick else "SERVER"
+    (a.out / f"{name}.json").write_text(json.dumps({"machine": info, **res}, indent=1))
+    (a.out / f"{name}.md").write_text(report(res, info, a.quick))
+    print(report(res, info, a.quick))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,63 @@
+"""No Docker engine runs here: check that every path and command the Dockerfile names exists and parses."""
+
+from __future__ import annotations
+
+import json
+import re
+import shlex
+import tomllib
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _instructions() -> list[tuple[str, str]]:
+    text = (ROOT / "Dockerfile").read_text().replace("\\\n", " ")
+    out = []
+    for line in text.splitlines():
+        line = line.strip()
+        if line and not line.startswith("#"):
+            op, _, rest = line.partition(" ")
+            out.append((op.upper(), rest.strip()))
+    return out
+
+
+def test_copied_paths_exist():
+    copies = [rest for op, rest in _instructions() if op == "COPY" and not rest.startswith("--from")]
+    assert copies
+    for rest in copies:
+        *sources, _ = shlex.split(rest)
+        for s in sources:
+            assert (ROOT / s).exists(), f"Dockerfile copies {s}, which is not in the project"
+
+
+def test_files_named_in_run_lines_exist():
+    runs = " ".join(rest for op, rest in _instructions() if op == "RUN")
+    for path in re.findall(r"(?:requirements|scripts)/[\w./-]+", runs):
+        assert (ROOT / path).exists(), path
+    # The pinned torch in the image is the CPU pin's version.
+    pin = re.search(r"^torch==(\S+)", (ROOT / "requirements/cpu.txt").read_text(), re.M).group(1)
+    assert f"torch=={pin}" in runs
+
+
+def test_entrypoint_and_healthcheck_are_real_commands():
+    ins = dict(_instructions())
+    scripts = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["scripts"]
+    entry = json.loads(ins["ENTRYPOINT"])
+    assert entry[0] in scripts and entry[1] == "serve"
+    from fmgs.cli import build_parser
+
+    a = build_parser().parse_args(entry[1:])
+    assert a.models == "/models" and a.host == "0.0.0.0" and a.func.__name__ == "cmd_serve"
+    health = json.loads(ins["HEALTHCHECK"].split("CMD", 1)[1].strip())
+    assert health[0] in scripts
+    from fmgs_client.cli import build_parser as client_parser
+
+    c = client_parser().parse_args(health[1:])
+    assert c.address == "127.0.0.1:50051"
+    assert str(entry[entry.index("--port") + 1]) == c.address.rsplit(":", 1)[1]
+
+
+def test_image_is_multi_stage_with_a_runtime_base():
+    froms = [rest for op, rest in _instructions() if op == "FROM"]
+    assert len(froms) == 2 and "devel" in froms[0] and "runtime" in froms[1]

@@ -328,3 +328,37 @@ def test_cli_serve_parser_defaults_bind_loopback():
     a = build_parser().parse_args(["serve"])
     assert a.host == "127.0.0.1" and a.models == "models"
     assert torch.get_num_threads() >= 1
+
+
+def test_fmgs_serve_process_answers_and_stops_on_sigterm(models):
+    import os
+    import signal
+    import subprocess
+    import sys
+
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    cmd = [
+        sys.executable,
+        "-m",
+        "fmgs.cli",
+        "serve",
+        "--models",
+        str(models),
+        "--port",
+        "0",
+        "--log-level",
+        "WARNING",
+    ]
+    p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    try:
+        line = p.stdout.readline()
+        assert "serving" in line, p.stderr.read()
+        address = line.rsplit(" ", 1)[1].strip()
+        with grpc.insecure_channel(address) as ch:
+            r = pb_grpc.FmgsStub(ch).ListScenes(pb.ListScenesRequest(), timeout=30)
+            assert [s.name for s in r.scenes] == ["blobs", "plain"]
+        p.send_signal(signal.SIGTERM)
+        assert p.wait(timeout=30) == 0
+    finally:
+        if p.poll() is None:
+            p.kill()

@@ -128,14 +128,23 @@ class FmgsService(pb_grpc.FmgsServicer):
     # ------------------------------------------------------------------ helpers
 
     @contextmanager
-    def _compute(self, context):
-        """A compute slot, waited for at most queue_timeout_s (and never past the deadline)."""
-        wait = self.cfg.queue_timeout_s
-        left = context.time_remaining()
-        if left is not None:
-            wait = min(wait, max(0.0, left))
-        if not self._slots.acquire(timeout=wait):
-            raise ResourceExhausted("server busy: no compute slot free; retry later")
+    def _compute(self, context, patient: bool = False):
+        """A compute slot, waited for at most queue_timeout_s (and never past the deadline).
+
+        ``patient`` (pose streams): wait as long as the client is there; a stream's next frame simply
+        comes later, and its newest pose replaces any it could not render meanwhile.
+        """
+        if patient:
+            while not self._slots.acquire(timeout=0.25):
+                if not context.is_active():
+                    raise ResourceExhausted("the client went away while waiting for a compute slot")
+        else:
+            wait = self.cfg.queue_timeout_s
+            left = context.time_remaining()
+            if left is not None:
+                wait = min(wait, max(0.0, left))
+            if not self._slots.acquire(timeout=wait):
+                raise ResourceExhausted("server busy: no compute slot free; retry later")
         try:
             yield
         finally:
@@ -262,7 +271,7 @@ class FmgsService(pb_grpc.FmgsServicer):
 
     # ------------------------------------------------------------------ render
 
-    def _render_request(self, request, context) -> Iterator[pb.RenderChunk]:
+    def _render_request(self, request, context, patient: bool = False) -> Iterator[pb.RenderChunk]:
         cfg = self.cfg
         cam = convert.camera(request.camera, cfg, request.HasField("camera"))
         outputs = tuple(dict.fromkeys(convert.OUTPUT_NAMES.get(o, "?") for o in request.outputs)) or (
@@ -274,7 +283,7 @@ class FmgsService(pb_grpc.FmgsServicer):
         if encoding not in (pb.IMAGE_ENCODING_FLOAT32, pb.IMAGE_ENCODING_PNG):
             raise InvalidArgument(f"encoding: unknown value {encoding}")
         engine = self.repo.get(request.scene)
-        with self._compute(context):
+        with self._compute(context, patient):
             t0 = time.perf_counter()
             q = None
             if "relevancy" in outputs:
@@ -352,7 +361,7 @@ class FmgsService(pb_grpc.FmgsServicer):
                 req, state["latest"] = state["latest"], None
                 if req is None and state["done"]:
                     return
-            yield from self._render_request(req, context)
+            yield from self._render_request(req, context, patient=True)
 
     # ------------------------------------------------------------------ points and segmentation
 

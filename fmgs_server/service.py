@@ -25,7 +25,13 @@ from fmgs_client.tensors import row_chunks, to_tensor
 from fmgs_server import convert
 from fmgs_server.config import ServerConfig
 from fmgs_server.encoders import EncoderCache
-from fmgs_server.errors import FailedPrecondition, InvalidArgument, ResourceExhausted, ServiceError
+from fmgs_server.errors import (
+    DeadlineExceeded,
+    FailedPrecondition,
+    InvalidArgument,
+    ResourceExhausted,
+    ServiceError,
+)
 from fmgs_server.repository import FAILED, LOADING, READY, UNLOADED, SceneRepository
 
 log = logging.getLogger("fmgs_server")
@@ -142,8 +148,13 @@ class FmgsService(pb_grpc.FmgsServicer):
             wait = self.cfg.queue_timeout_s
             left = context.time_remaining()
             if left is not None:
-                wait = min(wait, max(0.0, left))
+                if left <= 0:
+                    raise DeadlineExceeded("the deadline passed before the work could start")
+                wait = min(wait, left)
             if not self._slots.acquire(timeout=wait):
+                left = context.time_remaining()
+                if left is not None and left <= 0:
+                    raise DeadlineExceeded("the deadline passed while waiting for a compute slot")
                 raise ResourceExhausted("server busy: no compute slot free; retry later")
         try:
             yield

@@ -272,7 +272,7 @@ def test_sigterm_drains_in_flight_and_restart_serves_the_same(tmp_path):
         scene="s", texts=["x"], top_k=50, encoder_id=FakeEncoder.id, embeddings=to_tensor(q)
     )
     cam = pb.Camera(
-        viewmat=np.eye(4).ravel().tolist(), fx=900, fy=900, cx=900, cy=900, width=1800, height=1800
+        viewmat=np.eye(4).ravel().tolist(), fx=900, fy=900, cx=2000, cy=1000, width=4000, height=2000
     )
     p, address = _serve_process(root)
     try:
@@ -290,7 +290,8 @@ def test_sigterm_drains_in_flight_and_restart_serves_the_same(tmp_path):
 
             t = threading.Thread(target=render)
             t.start()
-            time.sleep(0.3)
+            time.sleep(0.5)
+            assert "chunks" not in result  # still rendering when the signal comes
             p.send_signal(signal.SIGTERM)
             t.join(60)
             assert result.get("chunks") and result["chunks"][-1].last

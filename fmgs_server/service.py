@@ -183,6 +183,9 @@ class FmgsService(pb_grpc.FmgsServicer):
                 info.has_field = bool(m.get("field"))
                 info.canonical_phrases.extend(str(c) for c in m["canonical"])
                 info.label_names.extend(str(c) for c in (m.get("extra") or {}).get("label_names", []))
+                b = m.get("bounds")
+                if isinstance(b, list) and len(b) == 6:
+                    info.bounds.extend(float(v) for v in b)
             except (OSError, ValueError, KeyError, TypeError):
                 pass  # a broken manifest shows as FAILED once loading is tried
             return info

@@ -78,6 +78,7 @@ def test_listing_and_lazy_load(stub):
     assert all(s.state == pb.SCENE_STATE_UNLOADED for s in r.scenes)
     assert r.scenes[0].encoder_id == ENCODER_ID and r.scenes[0].num_gaussians == 180
     assert list(r.scenes[0].label_names) == list(CLASS_NAMES) and r.scenes[0].has_field
+    assert len(r.scenes[0].bounds) == 6  # from the manifest, before loading
     list(stub.TextQuery(pb.TextQueryRequest(scene="blobs", texts=["red cube"])))
     info = stub.GetScene(pb.SceneRequest(scene="blobs"))
     assert info.state == pb.SCENE_STATE_READY and info.resident_bytes > 0 and len(info.bounds) == 6

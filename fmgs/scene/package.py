@@ -123,6 +123,7 @@ def export_scene(
         "canonical": list(canonical_phrases),
         "sh_degree": gaussians.sh_degree,
         "counts": {"gaussians": gaussians.num, "selected": M},
+        "bounds": _bounds(gaussians.means),
         "embedding_dtype": "float16",
         "field": None,
         "extra": extra or {},
@@ -156,6 +157,14 @@ def export_scene(
             }
         (tmp / "manifest.json").write_text(json.dumps(manifest, indent=1))
     return out
+
+
+def _bounds(means: torch.Tensor) -> list[float]:
+    """[min x, min y, min z, max x, max y, max z] of the means (zeros for an empty scene)."""
+    if means.shape[0] == 0:
+        return [0.0] * 6
+    m = means.detach().double().cpu()
+    return [float(v) for v in torch.cat([m.amin(0), m.amax(0)])]
 
 
 def load_scene(path: str | Path, device: str | torch.device = "cpu", mmap: bool = False) -> ScenePackage:

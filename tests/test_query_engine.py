@@ -222,3 +222,16 @@ def test_int8_kernel_matches_reference():
     # Quantisation error against the unquantised rank-24 projection stays at the int8 step size.
     proj = (emb @ idx.basis.T) @ (v @ idx.basis.T).T
     assert (ref - proj).abs().max() < 24 * float(idx.scales.max()) / 2
+
+
+def test_relevancy_channels_cache_is_exact_and_bounded(tmp_path):
+    p, classes, canon = _scene(tmp_path)
+    eng = SceneEngine.open(p)
+    first = eng.relevancy_channels(classes[0]).clone()
+    assert torch.equal(eng.relevancy_channels(classes[0]), first)
+    assert torch.equal(first, torch.cat([eng.channels(eng.unit(classes[0][None])), eng.index.canonical], 1))
+    other = eng.relevancy_channels(classes[0], canon[:2])
+    assert other.shape == (eng.num_embedded, 3)
+    for i in range(20):
+        eng.relevancy_channels(safe_normalize(torch.randn(D, generator=torch.Generator().manual_seed(i))))
+    assert len(eng._chan_cache) == eng.CHANNEL_CACHE

@@ -6,6 +6,8 @@ caller's job, so the same engine serves any text encoder the scene was trained w
 
 from __future__ import annotations
 
+import threading
+from collections import OrderedDict
 from dataclasses import dataclass, field
 from typing import NamedTuple
 
@@ -49,7 +51,12 @@ class TextAnswer(NamedTuple):
 class SceneEngine:
     """Everything a server needs to answer queries on one scene."""
 
+    CHANNEL_CACHE = 8
+    """Relevancy channel sets kept for repeated queries ([M,5] float32 each)."""
+
     def __init__(self, package: ScenePackage, cfg: EngineConfig = EngineConfig()) -> None:
+        self._chan_cache: OrderedDict[bytes, torch.Tensor] = OrderedDict()
+        self._cache_lock = threading.Lock()
         self.name = package.name
         self.manifest = package.manifest
         self.cfg = cfg
@@ -91,7 +98,7 @@ class SceneEngine:
         n += sum(t.numel() * t.element_size() for t in self.geometry)
         if self.field is not None:
             n += sum(p.numel() * p.element_size() for p in self.field.state_dict().values())
-        return n
+        return n + self.CHANNEL_CACHE * self.num_embedded * (1 + self.index.canonical.shape[1]) * 4
 
     def unit(self, vectors: torch.Tensor, what: str = "query embedding") -> torch.Tensor:
         """[n,D] finite non-zero vectors, unit-normalised; ValidationError names ``what`` otherwise."""
@@ -134,3 +141,27 @@ class SceneEngine:
     def channels(self, vectors: torch.Tensor) -> torch.Tensor:
         """[M,n] f.v per embedded Gaussian for unit vectors [n,D] (the index's dots)."""
         return self.index.dots(vectors)
+
+    def relevancy_channels(self, query: torch.Tensor, canonical: torch.Tensor | None = None) -> torch.Tensor:
+        """[M,1+C] (f.q, f.c_n) per embedded Gaussian, the channels of a relevancy render.
+
+        Cached for the last few queries: a pose stream asks the same text for many poses, and then
+        each frame costs only the rasterisation.
+        """
+        vecs = self.unit(query[None])
+        canon = None if canonical is None else self.unit(canonical, "canonical embeddings")
+        key = vecs.numpy().tobytes() + (b"" if canon is None else canon.numpy().tobytes())
+        with self._cache_lock:
+            hit = self._chan_cache.get(key)
+            if hit is not None:
+                self._chan_cache.move_to_end(key)
+                return hit
+        if canon is None:
+            chans = torch.cat([self.channels(vecs), self.index.canonical], 1)
+        else:
+            chans = self.channels(torch.cat([vecs, canon]))
+        with self._cache_lock:
+            self._chan_cache[key] = chans
+            while len(self._chan_cache) > self.CHANNEL_CACHE:
+                self._chan_cache.popitem(last=False)
+        return chans

@@ -51,11 +51,7 @@ def render_pose(
         if "relevancy" in outputs:
             if query is None:
                 raise ValidationError("text", "a query is needed for a relevancy image")
-            vecs = engine.unit(query[None])
-            if canonical is not None:
-                chans = engine.channels(torch.cat([vecs, engine.unit(canonical, "canonical embeddings")]))
-            else:
-                chans = torch.cat([engine.channels(vecs), engine.index.canonical], 1)
+            chans = engine.relevancy_channels(query, canonical)
         else:
             chans = torch.ones(engine.num_embedded, 1)
         out = rasterize(*engine.geometry, chans.to(engine.geometry[0]), camera, backend=engine.cfg.backend)

@@ -12,7 +12,8 @@ addr="127.0.0.1:$port"
 .venv/bin/fmgs serve --models models --port "$port" --preload >"$out/server.log" 2>&1 &
 pid=$!
 trap 'kill -TERM $pid 2>/dev/null || true; wait $pid 2>/dev/null || true' EXIT
-client() { .venv/bin/fmgs-client --address "$addr" "$@"; }
+# FMGS_CLIENT: another fmgs-client to use (CI runs one from a venv without torch).
+client() { "${FMGS_CLIENT:-.venv/bin/fmgs-client}" --address "$addr" "$@"; }
 for _ in $(seq 1 180); do
   if client health >/dev/null 2>&1; then break; fi
   if ! kill -0 "$pid" 2>/dev/null; then cat "$out/server.log"; echo "server exited" >&2; exit 1; fi

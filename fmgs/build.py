@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import json
 import time
-from dataclasses import dataclass, replace
+from dataclasses import asdict, dataclass, replace
 from dataclasses import field as dc_field
 from pathlib import Path
 
@@ -61,12 +61,20 @@ class BuildConfig:
     """3DGS steps (fewer compresses the schedule)."""
     gs_scale: float = 1.0
     """3DGS training image scale."""
+    gs_sh_degree: int = 3
+    """Final SH degree of the 3DGS stage (0 suits view-independent, diffuse scenes and is 4x smaller)."""
+    gs_grad_threshold: float | None = None
+    """3DGS densification threshold (None: graphdeco's 2e-4; larger grows fewer Gaussians)."""
     targets: TargetSpec = dc_field(default_factory=TargetSpec)
     """Feature targets."""
     field: FieldTrainConfig = dc_field(default_factory=FieldTrainConfig)
     """Distillation settings."""
     include_dino: bool = False
     """Keep the DINO head in the package."""
+    field_dtype: str = "float32"
+    """Storage of the field's table and heads in the package: "float32" or "float16" (half the size)."""
+    extra: dict = dc_field(default_factory=dict)
+    """Merged into the manifest's ``extra`` (e.g. a description); label targets add ``label_names``."""
     device: str = "cpu"
     """Torch device for every stage."""
 
@@ -78,8 +86,10 @@ def package_from_field(
     encoder,
     include_dino: bool = False,
     extra: dict | None = None,
+    field_dtype: str = "float32",
 ) -> Path:
-    """Decode each selected Gaussian's embedding once and write the scene package to ``out``."""
+    """Decode each selected Gaussian's embedding once and write the scene package to ``out``
+    (``field_dtype``: storage of the field's tensors, see ``export_scene``)."""
     from fmgs.field.model import FeatureField
     from fmgs.query.relevancy import CANONICAL_PHRASES
     from fmgs.scene.package import export_scene
@@ -104,6 +114,7 @@ def package_from_field(
         field=field,
         include_dino=include_dino,
         extra=extra,
+        field_dtype=field_dtype,
     )
 
 
@@ -175,19 +186,21 @@ def build_scene(source: str | Path, cfg: BuildConfig, progress: bool = True) -> 
         _stage(2, "geometry", f"given {cfg.ply}")
         ply = Path(cfg.ply)
     else:
+        from fmgs.train.gaussians import GSTrainConfig, train_gaussians
+
+        kw = dict(image_scale=cfg.gs_scale, sh_degree=cfg.gs_sh_degree, device=cfg.device)
+        gcfg = GSTrainConfig(**kw) if cfg.gs_steps == 30_000 else GSTrainConfig.reduced(cfg.gs_steps, **kw)
+        if cfg.gs_grad_threshold is not None:
+            gcfg = replace(gcfg, densify=replace(gcfg.densify, grad_threshold=cfg.gs_grad_threshold))
         ply = work / "gs" / "point_cloud.ply"
         done = work / "gs" / "train.json"
-        if ply.is_file() and done.is_file() and json.loads(done.read_text()).get("steps") == cfg.gs_steps:
+        record = json.loads(done.read_text()) if ply.is_file() and done.is_file() else {}
+        if record.get("config") == json.loads(json.dumps(asdict(gcfg))):  # same steps and settings
             _stage(2, "geometry", f"complete ({ply})")
         else:
-            from fmgs.train.gaussians import GSTrainConfig, train_gaussians
-
             _stage(2, "geometry", f"3DGS, {cfg.gs_steps} steps")
-            kw = dict(image_scale=cfg.gs_scale, device=cfg.device)
-            gcfg = (
-                GSTrainConfig(**kw) if cfg.gs_steps == 30_000 else GSTrainConfig.reduced(cfg.gs_steps, **kw)
-            )
-            train_gaussians(ds, work / "gs", gcfg, progress=progress)
+            # A finished run with other settings starts over; an interrupted one (no train.json) resumes.
+            train_gaussians(ds, work / "gs", gcfg, progress=progress, resume=not record)
     gaussians = read_ply(ply)
 
     cache_dir = work / "features"
@@ -207,4 +220,9 @@ def build_scene(source: str | Path, cfg: BuildConfig, progress: bool = True) -> 
     _stage(5, "package", str(out))
     encoder = load_text_encoder(cache.targets["clip"].encoder, device="cpu")
     extra = {"source": str(source), "build_seconds": round(time.perf_counter() - t0, 1)}
-    return package_from_field(out, gaussians, res, encoder, cfg.include_dino, extra)
+    if cfg.targets.kind == "labels":
+        from fmgs.features.extract import read_label_names
+
+        extra["label_names"] = read_label_names(cfg.targets.names or ds.root / "scene.json")
+    extra.update(cfg.extra)
+    return package_from_field(out, gaussians, res, encoder, cfg.include_dino, extra, cfg.field_dtype)

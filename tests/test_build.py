@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 
 import pytest
+import torch
 
 from fmgs.cli import main
 
@@ -16,6 +17,7 @@ def built(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("build")
     generate(tmp / "scene", SynthConfig(views=16, width=48, height=36, points=4000, supersample=1))
     _surface_ply(tmp / "scene", tmp / "surface.ply")
+    (tmp / "extra.json").write_text(json.dumps({"description": "toy scene", "source": "test"}))
     args = [
         "build",
         str(tmp / "scene"),
@@ -31,6 +33,10 @@ def built(tmp_path_factory):
         str(tmp / "surface.ply"),
         "--field-steps",
         "400",
+        "--field-dtype",
+        "float16",
+        "--extra",
+        str(tmp / "extra.json"),
         "--device",
         "cpu",
     ]
@@ -69,6 +75,10 @@ def test_build_writes_a_package_that_answers_queries(built):
     enc = load_text_encoder(scene.encoder_id)
     r = rank_gaussians(scene, enc.encode_text(["blue ball"])[0], top_k=10)
     assert len(r.index) == 10 and float(r.relevancy[0]) > 0.5
+    extra = scene.manifest["extra"]
+    assert extra["label_names"][:4] == ["background", "floor", "red cube", "blue ball"]
+    assert extra["description"] == "toy scene" and extra["source"] == "test"  # --extra wins
+    assert scene.manifest["field"]["dtype"] == "float16" and scene.field.grid.table.dtype == torch.float32
     ds = load_dataset(tmp / "scene")
     q = evaluate_field(scene, ds, enc, ds.split(8)[1], tmp / "scene" / "scene.json")
     # A tiny, briefly trained scene: far from the benchmark's thresholds, far above chance (1/6).
@@ -92,3 +102,41 @@ def test_build_rejects_bad_names_and_sources(tmp_path, capsys):
     assert "scene name" in capsys.readouterr().err
     assert main(["build", str(tmp_path / "missing"), "--name", "ok", "--models", str(tmp_path / "m")]) == 2
     assert "not a folder" in capsys.readouterr().err
+
+
+def test_geometry_settings_reach_3dgs_and_a_change_retrains(tmp_path, monkeypatch, capsys):
+    from dataclasses import asdict
+
+    from fmgs.synth import SynthConfig, generate
+    from fmgs.train import gaussians as gs_mod
+
+    generate(tmp_path / "scene", SynthConfig(views=9, width=32, height=24, points=800, supersample=1))
+    calls = []
+
+    def fake_train(ds, out, cfg, progress=True, resume=True):  # a stand-in fit: the surface samples
+        calls.append((cfg, resume))
+        _surface_ply(tmp_path / "scene", out / "point_cloud.ply")
+        (out / "train.json").write_text(json.dumps({"steps": cfg.steps, "config": asdict(cfg)}))
+
+    monkeypatch.setattr(gs_mod, "train_gaussians", fake_train)
+    args = ["build", str(tmp_path / "scene"), "--name", "g", "--models", str(tmp_path / "m")]
+    args += ["--targets", "labels", "--gs-steps", "12", "--field-steps", "3", "--device", "cpu"]
+    assert main([*args, "--sh-degree", "0", "--grad-threshold", "0.5"]) == 0
+    cfg, resume = calls[-1]
+    assert (cfg.steps, cfg.sh_degree, cfg.densify.grad_threshold, resume) == (12, 0, 0.5, True)
+    capsys.readouterr()
+    assert main([*args, "--sh-degree", "0", "--grad-threshold", "0.5"]) == 0
+    assert "[2/5] geometry: complete" in capsys.readouterr().out and len(calls) == 1
+    assert main([*args, "--sh-degree", "1", "--grad-threshold", "0.5"]) == 0
+    assert "[2/5] geometry: 3DGS, 12 steps" in capsys.readouterr().out
+    cfg, resume = calls[-1]
+    assert cfg.sh_degree == 1 and not resume  # a finished run with other settings starts over
+
+
+def test_build_rejects_a_bad_extra_file(tmp_path, capsys):
+    (tmp_path / "extra.json").write_text("[1, 2]")
+    args = ["build", str(tmp_path), "--name", "x", "--models", str(tmp_path / "m")]
+    assert main([*args, "--extra", str(tmp_path / "extra.json")]) == 2
+    assert "must hold a JSON object" in capsys.readouterr().err
+    assert main([*args, "--extra", str(tmp_path / "missing.json")]) == 2
+    assert "cannot read" in capsys.readouterr().err

@@ -106,3 +106,64 @@ def test_copy_of_a_package_loads_under_its_new_name(tmp_path):
     p, *_ = _export(tmp_path / "a")
     shutil.copytree(p, tmp_path / "b")
     assert load_scene(tmp_path / "b").name == "a"  # the manifest keeps the name it was built with
+
+
+def _field_export(path, field_dtype="float32"):
+    from fmgs.field.hashgrid import HashGridConfig
+    from fmgs.field.model import FeatureField, FieldConfig
+
+    g = _gaussians()
+    sel = torch.arange(0, 40, 2)
+    grid = HashGridConfig(levels=4, min_res=4, max_res=16, log2_table=10, features=2)
+    cfg = FieldConfig(grid=grid, clip_dim=6, clip_hidden=8, clip_layers=1, dino_dim=0)
+    field = FeatureField.for_points(cfg, g.means[sel])
+    with torch.no_grad():
+        field.grid.table.normal_(0, 0.5, generator=torch.Generator().manual_seed(1))
+        emb = field(g.means[sel]).clip
+    canon = safe_normalize(torch.randn(4, 6))
+    p = export_scene(path, g, sel, emb, "test/enc", canon, field=field, field_dtype=field_dtype)
+    return p, field, g.means[sel]
+
+
+def test_field_stored_as_float16_round_trips_at_half_the_size(tmp_path):
+    from safetensors.torch import load_file
+
+    p32, field, pts = _field_export(tmp_path / "f32")
+    p16, _, _ = _field_export(tmp_path / "f16", field_dtype="float16")
+    assert json.loads((p16 / "manifest.json").read_text())["field"]["dtype"] == "float16"
+    stored = load_file(str(p16 / "field.safetensors"))
+    assert stored["grid.keys"].dtype == torch.int64
+    assert all(v.dtype == torch.float16 for k, v in stored.items() if k != "grid.keys")
+    s32, s16 = load_scene(p32), load_scene(p16)
+    ref = field.state_dict()
+    for k, v in s16.field.state_dict().items():
+        assert v.dtype == ref[k].dtype  # upcast on load
+        assert torch.equal(v, ref[k].half().to(ref[k].dtype) if v.is_floating_point() else ref[k]), k
+    assert all(torch.equal(v, ref[k]) for k, v in s32.field.state_dict().items())  # float32 is exact
+    with torch.no_grad():
+        assert (s16.field(pts).clip - field(pts).clip).abs().max() < 1e-2
+    size = lambda p: (p / "field.safetensors").stat().st_size  # noqa: E731
+    assert size(p16) < 0.75 * size(p32)
+
+
+def test_packages_without_a_field_dtype_load_as_float32(tmp_path):
+    p, field, _ = _field_export(tmp_path / "old")
+    m = json.loads((p / "manifest.json").read_text())
+    del m["field"]["dtype"]  # as written before the option existed
+    (p / "manifest.json").write_text(json.dumps(m))
+    s = load_scene(p)
+    assert all(torch.equal(v, field.state_dict()[k]) for k, v in s.field.state_dict().items())
+
+
+@pytest.mark.parametrize(
+    "dtype, message", [("float32", "is torch.float16, the manifest says float32"), ("int8", "field dtype")]
+)
+def test_field_dtype_that_does_not_match_the_tensors_is_rejected(tmp_path, dtype, message):
+    p, *_ = _field_export(tmp_path / "s", field_dtype="float16")
+    m = json.loads((p / "manifest.json").read_text())
+    m["field"]["dtype"] = dtype
+    (p / "manifest.json").write_text(json.dumps(m))
+    with pytest.raises(ValidationError, match=message):
+        load_scene(p)
+    with pytest.raises(ValidationError, match="field_dtype"):
+        _field_export(tmp_path / "t", field_dtype="int8")

@@ -173,26 +173,26 @@ def test_in_flight_request_finishes_on_its_version(served, models):
     before = join([from_tensor(c.relevancy) for c in stub.Render(req)])
     engine = srv.service.repo.get("victim")
     gate, entered = threading.Event(), threading.Event()
-    real = type(engine).channels
+    real = type(engine).relevancy_channels
 
-    def slow_channels(self, v):  # hold the render until the scene has been replaced
+    def slow_channels(self, *a):  # hold the render until the scene has been replaced
         entered.set()
         gate.wait(10)
-        return real(self, v)
+        return real(self, *a)
 
     out = {}
-    type(engine).channels = slow_channels
+    type(engine).relevancy_channels = slow_channels
     try:
         t = threading.Thread(target=lambda: out.setdefault("r", list(stub.Render(req))))
         t.start()
         assert entered.wait(10)
-        type(engine).channels = real
+        type(engine).relevancy_channels = real
         blob_scene(models / "victim", seed=9)
         after = join([from_tensor(c.relevancy) for c in stub.Render(req)])
         gate.set()
         t.join(10)
     finally:
-        type(engine).channels = real
+        type(engine).relevancy_channels = real
         gate.set()
     during = join([from_tensor(c.relevancy) for c in out["r"]])
     assert np.array_equal(during, before) and not np.array_equal(after, before)
@@ -345,3 +345,30 @@ def test_disconnected_stream_frees_its_slot(models):
                 assert srv.service._streams._value == 1
     finally:
         srv.stop(0)
+
+
+def test_atomic_dir_swap_never_leaves_the_path_missing(tmp_path):
+    from fmgs.io.atomic import atomic_dir
+
+    target = tmp_path / "scene"
+    with atomic_dir(target) as d:
+        (d / "manifest.json").write_text("0")
+    missing, stop = [], threading.Event()
+
+    def watch():
+        while not stop.is_set():
+            try:
+                (target / "manifest.json").read_text()
+            except OSError:
+                missing.append(1)
+
+    t = threading.Thread(target=watch)
+    t.start()
+    for i in range(200):
+        with atomic_dir(target) as d:
+            (d / "manifest.json").write_text(str(i))
+    stop.set()
+    t.join()
+    assert (target / "manifest.json").read_text() == "199"
+    assert not missing, f"the folder was missing {len(missing)} times"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["scene"]

@@ -232,7 +232,7 @@ QUICK = Sizes(
 FULL = Sizes(
     text=TextSizes(gaussians=1_000_000, queries=30),
     pose=PoseSizes("garden", 480, 270, queries=4, reps=3),
-    scene=SceneSizes(views=32, width=96, height=72),
+    scene=SceneSizes(views=32, width=64, height=48),
     field=FieldSizes(steps=(250, 500, 1000, 2000, 4200), base_steps=1000, paper_steps=4200, gs_steps=2000),
     gs=GSSizes(steps=(100, 300, 1000, 2000)),
     scaling=ScalingSizes(
@@ -301,12 +301,16 @@ class ImageError(NamedTuple):
     max_abs: float
     mean_abs: float
     argmax_same: bool
+    argmax_px: float
+    """Distance in pixels between the two most relevant pixels."""
 
 
 def image_error(rel: torch.Tensor, ref: torch.Tensor) -> ImageError:
-    """Max and mean |rel - ref| over the pixels, and whether the most relevant pixel is the same one."""
+    """Max and mean |rel - ref| over [H,W] pixels, whether the most relevant pixel is the same one and how
+    far it moved."""
     d = (rel.double() - ref.double()).abs()
-    return ImageError(float(d.max()), float(d.mean()), int(torch.argmax(rel)) == int(torch.argmax(ref)))
+    a, b = divmod(int(torch.argmax(rel)), rel.shape[-1]), divmod(int(torch.argmax(ref)), ref.shape[-1])
+    return ImageError(float(d.max()), float(d.mean()), a == b, math.dist(a, b))
 
 
 def exact_failures(results: dict[str, dict]) -> list[str]:
@@ -597,6 +601,10 @@ def text_section(sz: TextSizes) -> dict:
         rel = [
             sorted_relevancy_error(o.relevancy, r.relevancy) for o, r in zip(outs[name], refs, strict=True)
         ]
+        vs16 = [
+            overlap_error(o.rows.tolist(), r.rows.tolist(), k)
+            for o, r in zip(outs[name], outs["f16as32"], strict=True)
+        ]
         extra = 0 if isinstance(ranker, SubsetScan | Fp16Scan) else n * 8  # + scene index per row
         points.append(
             Point(
@@ -610,6 +618,8 @@ def text_section(sz: TextSizes) -> dict:
                     "p90_ms": float(np.percentile(times[name], 90) * 1e3),
                     "bytes_per_gaussian": (ranker.nbytes() + extra) / n,
                     "setting": name,
+                    "overlap_vs_f16": float(np.mean(vs16)),
+                    "overlap_vs_f16_worst": max(vs16),
                 },
             )
         )
@@ -747,6 +757,7 @@ def pose_section(sz: PoseSizes) -> dict:
                         "max": max(e.max_abs for e in errs),
                         "mean": float(np.mean([e.mean_abs for e in errs])),
                         "argmax_disagree": 1.0 - float(np.mean([e.argmax_same for e in errs])),
+                        "argmax_px": float(np.mean([e.argmax_px for e in errs])),
                     },
                     exact=name == "full/reference",
                     default=name == "dtr/cpu",
@@ -1285,9 +1296,9 @@ def floor_section(sz: FloorSizes, threads: int) -> dict:
 def stamp_line(sec: dict) -> str:
     m = sec["machine"]
     return (
-        f"{m['cpu']}, {m['cores']} cores ({sec['threads']} thread(s) for queries), {m['ram_gb']} GiB; "
-        f"torch {m['torch']}, numba {m['numba']}, numpy {m['numpy']}, Python {m['python']}; "
-        f"commit {m['commit']}{' (dirty tree)' if m.get('dirty') else ''}; {m['date']}"
+        f"{m['cpu']}, {m['cores']} cores ({sec['threads']} thread(s) for queries), {m['ram_gb']} GiB; torch "
+        f"{m['torch']}, numba {m['numba']}, numpy {m['numpy']}, Python {m['python']}; commit "
+        f"{m['commit']}{' (dirty tree)' if m.get('dirty') else ''}; {m['date']}"
     )
 
 
@@ -1542,30 +1553,35 @@ def text_md(sec: dict, img: str) -> list[str]:
         "## 1. Text query",
         "",
         f"Scene: {n:,} embedded Gaussians with field-like unit embeddings (D = {sec['dim']}; a random "
-        "two-layer "
-        "MLP over Fourier features of the positions, as benchmarks/server.py), 4 canonical vectors, "
-        f"{cfg['queries']} queries near scene embeddings, top-{cfg['top_k']}. Reference: `rank_reference` on "
-        "the "
-        "float32 embeddings. Errors: 1 - top-100 overlap (mean over queries / worst query) and the largest "
-        "|relevancy difference| position by position along the two sorted top-100 lists. Time: median per "
-        "query, every setting run once per query in rotating order. Compact settings are built like the "
-        "engine builds them from a package (float16 embeddings, canonical dots from them, re-rank reading "
-        "the "
-        "float16 rows); the opacity subsets rank exact float32 scores of the most opaque Gaussians only.",
+        "two-layer MLP over Fourier features of the positions, as benchmarks/server.py), 4 canonical "
+        f"vectors, {cfg['queries']} queries near scene embeddings, top-{cfg['top_k']}. Reference: "
+        "`rank_reference` on the float32 embeddings. Errors: 1 - top-100 overlap (mean over queries / "
+        "worst query) and the largest |relevancy difference| position by position along the two sorted "
+        "top-100 lists. Time: median per query, every setting run once per query in rotating order. "
+        "Compact settings are built like the engine builds them from a package (float16 embeddings, "
+        "canonical dots from them, re-rank reading the float16 rows); the opacity subsets rank exact "
+        "float32 scores of the most opaque Gaussians only.",
         "",
         f"![text query work-precision]({img})",
         "",
-        "| knob | setting | median ms | p90 ms | bytes / Gaussian | 1 - overlap (mean / worst) "
-        "| max relevancy error | GPU |",
-        "|---|---|---:|---:|---:|---:|---:|---|",
+        "| knob | setting | median ms | p90 ms | bytes / Gaussian | 1 - overlap (mean / worst) | max "
+        "relevancy error | 1 - overlap with exact float16 (mean / worst) | GPU |",
+        "|---|---|---:|---:|---:|---:|---:|---:|---|",
     ]
     for p in sec["points"]:
         flags = (" **(exact reference)**" if p["exact"] else "") + (" **(default)**" if p["default"] else "")
         L.append(
             f"| {p['curve']} | {p['label']}{flags} | {p['time_ms']:.2f} | {p['info']['p90_ms']:.2f} | "
             f"{p['info']['bytes_per_gaussian']:.0f} | {e(p['errors']['overlap'])} / "
-            f"{e(p['errors']['overlap_worst'])} | {e(p['errors']['relevancy'])} | {GPU_NOTE} |"
+            f"{e(p['errors']['overlap_worst'])} | {e(p['errors']['relevancy'])} | "
+            f"{e(p['info'].get('overlap_vs_f16', float('nan')))} / "
+            f"{e(p['info'].get('overlap_vs_f16_worst', float('nan')))} | {GPU_NOTE} |"
         )
+    L += [
+        "",
+        "The last column compares with the exact scores of the float16-rounded embeddings (what a package "
+        "stores): it separates what the compact scan loses from what float16 storage itself changes.",
+    ]
     return L
 
 
@@ -1575,27 +1591,26 @@ def pose_md(sec: dict, img: str) -> list[str]:
         "## 2. Pose query (relevancy image)",
         "",
         f"Scene: {cfg['scene']} ({sec['gaussians']:,} Gaussians, all embedded, field-like D = {D} "
-        "embeddings), "
-        f"{cfg['width']}x{cfg['height']}, {cfg['queries']} queries x {cfg['reps']} passes. Reference: the "
-        "full "
-        f"{D}-channel feature image rendered on the reference backend, then f.q and f.c_n per pixel and the "
-        "relevancy (render_pose_reference-style). Errors over all pixels at full size: max and mean "
-        "|relevancy difference|, and the share of queries whose most relevant pixel moved. Lower resolutions "
-        "render the 5 channels at x0.5 / x0.25 and upsample them bilinearly before scoring. The reference "
-        f"images' relevancy spans {sec.get('reference_spread', float('nan')):.3f} (max - min, mean over "
-        "queries).",
+        f"embeddings), {cfg['width']}x{cfg['height']}, {cfg['queries']} queries x {cfg['reps']} passes. "
+        f"Reference: the full {D}-channel feature image rendered on the reference backend, then f.q and "
+        "f.c_n per pixel and the relevancy (render_pose_reference-style). Errors over all pixels at full "
+        "size: max and mean |relevancy difference|, and the share of queries whose most relevant pixel "
+        "moved. Lower resolutions render the 5 channels at x0.5 / x0.25 and upsample them bilinearly "
+        "before scoring. The reference images' relevancy spans "
+        f"{sec.get('reference_spread', float('nan')):.3f} (max - min, mean over queries).",
         "",
         f"![pose query work-precision]({img})",
         "",
-        "| setting | on curves | median ms | max error | mean error | argmax moved | GPU |",
+        "| setting | on curves | median ms | max error | mean error | argmax moved (queries / mean px) | "
+        "GPU |",
         "|---|---|---:|---:|---:|---:|---|",
     ]
     for p in by_setting(sec["points"]).values():
         flags = (" **(exact reference)**" if p["exact"] else "") + (" **(default)**" if p["default"] else "")
         L.append(
             f"| {p['label']}{flags} | {', '.join(p['curves'])} | {p['time_ms']:.1f} | "
-            f"{e(p['errors']['max'])} | "
-            f"{e(p['errors']['mean'])} | {pct(p['errors']['argmax_disagree'])} | {GPU_NOTE} |"
+            f"{e(p['errors']['max'])} | {e(p['errors']['mean'])} | {pct(p['errors']['argmax_disagree'])} / "
+            f"{p['errors'].get('argmax_px', float('nan')):.1f} | {GPU_NOTE} |"
         )
     return L
 
@@ -1606,14 +1621,12 @@ def field_md(sec: dict, img: str) -> list[str]:
         "## 3. Feature-field training",
         "",
         f"Scene: `fmgs synth` ({s['views']} views, {s['width']}x{s['height']}, 6 labelled objects), "
-        "geometry: "
-        f"this report's {geo['steps']}-step 3DGS fit ({geo['gaussians']:,} Gaussians). Targets: label masks "
-        "embedded by their names with the offline MiniLM encoder (CLIP/DINO weights cannot be downloaded "
-        "here). Scores on the held-out views (every 8th): LERF protocol (highest-relevancy pixel inside the "
-        "object's 2D box), 3D localisation (top Gaussian inside the 3D box) and mIoU of the per-pixel "
-        "argmax. "
-        "Time: wall time of `train_field` (selection, view weights and the optimisation loop), one run per "
-        "setting. Knobs other than steps are run at "
+        f"geometry: this report's {geo['steps']}-step 3DGS fit ({geo['gaussians']:,} Gaussians). Targets: "
+        "label masks embedded by their names with the offline MiniLM encoder (CLIP/DINO weights cannot be "
+        "downloaded here). Scores on the held-out views (every 8th): LERF protocol (highest-relevancy "
+        "pixel inside the object's 2D box), 3D localisation (top Gaussian inside the 3D box) and mIoU of "
+        "the per-pixel argmax. Time: wall time of `train_field` (selection, view weights and the "
+        "optimisation loop), one run per setting. Knobs other than steps are run at "
         f"{sec['config']['base_steps']} steps with the other settings at their defaults (feature maps at "
         "fmgs build's 0.25 of the image, 24 levels 16 to 512, 2^20 rows per level).",
         "",
@@ -1660,8 +1673,7 @@ def gs_md(sec: dict, img: str) -> list[str]:
 def _fit_line(name: str, f: dict, unit: str) -> str:
     return (
         f"| {name} | {f['model']} | {f['exponent']:.2f} | {f['fixed_ms']:.2f} | {f['per_unit_ns']:.3g} "
-        f"ns/{unit} | "
-        f"{pct(f['rel_rms_linear'])} | {pct(f['rel_rms_nlogn'])} | {f['linear_from']:,.0f} |"
+        f"ns/{unit} | {pct(f['rel_rms_linear'])} | {pct(f['rel_rms_nlogn'])} | {f['linear_from']:,.0f} |"
     )
 
 
@@ -1672,11 +1684,11 @@ def scaling_md(sec: dict, img: str) -> list[str]:
         "",
         "Text queries (top-100) on field-like scenes built like packages; sizes marked *tiled* reuse the "
         "largest built scene's int8 coefficients and canonical dots tiled to the size (the compact state "
-        "built directly, not through an exported package; re-ranking reads the float16 rows modulo the built "
-        "size): their latency and memory are real, their answers are not meaningful. The exact float32 state "
-        "is built up to the largest built size; beyond it its memory is computed (4*D + 28 bytes per "
-        "Gaussian), not measured. Memory: bytes of the resident query state (int8 coefficients, basis, "
-        "canonical dots, scene index). Renders: 5 channels, cpu backend, tile 16.",
+        "built directly, not through an exported package; re-ranking reads the float16 rows modulo the "
+        "built size): their latency and memory are real, their answers are not meaningful. The exact "
+        "float32 state is built up to the largest built size; beyond it its memory is computed (4*D + 28 "
+        "bytes per Gaussian), not measured. Memory: bytes of the resident query state (int8 coefficients, "
+        "basis, canonical dots, scene index). Renders: 5 channels, cpu backend, tile 16.",
         "",
         f"![scaling]({img})",
         "",
@@ -1689,8 +1701,7 @@ def scaling_md(sec: dict, img: str) -> list[str]:
         exb = f"{r['exact_bytes'] / 2**20:,.0f}" + ("" if r["exact_built"] else " (computed)")
         L.append(
             f"| {r['gaussians']:,} | {r['state']} | {r['compact_ms']:.2f} | {r['compact_all_cores_ms']:.2f} "
-            "| "
-            f"{r['compact_no_rerank_ms']:.2f} | {ex} | {r['compact_bytes'] / 2**20:,.1f} "
+            f"| {r['compact_no_rerank_ms']:.2f} | {ex} | {r['compact_bytes'] / 2**20:,.1f} "
             f"({r['compact_bytes'] / r['gaussians']:.0f}) | {exb} | {GPU_NOTE} |"
         )
     L += [
@@ -1706,10 +1717,9 @@ def scaling_md(sec: dict, img: str) -> list[str]:
     L += [
         "",
         "gRPC: text queries (top-100) from N concurrent clients (fmgs_client.load.run_load, one channel "
-        "each) "
-        f"to an in-process server on loopback serving a {sec['config']['grpc_gaussians']:,}-Gaussian scene "
-        f"package as `fmgs serve` would (compute slots = {gr[0]['workers'] if gr else '?'}, text embeddings "
-        "cached).",
+        f"each) to an in-process server on loopback serving a {sec['config']['grpc_gaussians']:,}-Gaussian "
+        f"scene package as `fmgs serve` would (compute slots = {gr[0]['workers'] if gr else '?'}, text "
+        "embeddings cached).",
         "",
         "| clients | requests | OK | median ms | p90 ms | p99 ms | answered / s |",
         "|---:|---:|---:|---:|---:|---:|---:|",
@@ -1724,9 +1734,8 @@ def scaling_md(sec: dict, img: str) -> list[str]:
         "",
         "Growth fits: exponent = slope of log time against log size over the largest half of the sizes; "
         "linear fit time = fixed + per-unit x size (least relative squares) and the same with size x "
-        "log2(size); "
-        "'linear from' = the smallest size from which the time per unit stays within 25% of the largest "
-        "size's (below it the fixed cost dominates).",
+        "log2(size); 'linear from' = the smallest size from which the time per unit stays within 25% of "
+        "the largest size's (below it the fixed cost dominates).",
         "",
         "| series | growth | exponent | fixed ms | per unit | rel. RMS linear | rel. RMS n log n | linear "
         "from |",
@@ -1751,19 +1760,19 @@ def floor_md(sec: dict, img: str) -> list[str]:
         "",
         f"This machine, measured here (best of {sec['config']['reps']}): memory read bandwidth "
         f"**{r['bandwidth_gbs']:.1f} GB/s** (sum of a {sec['config']['stream_bytes'] / 2**20:.0f} MiB "
-        "float32 "
-        f"array) and float32 arithmetic **{r['gflops']:.0f} GFLOP/s** ({sec['config']['matmul_n']}^2 matmul) "
-        f"with the query thread count; on all cores {ra['bandwidth_gbs']:.1f} GB/s and {ra['gflops']:.0f} "
-        "GFLOP/s (other people's jobs share the cores). Floor = max(bytes / bandwidth, flops / rate) with "
-        "the query-thread rates; measured = median of the runs.",
+        f"float32 array) and float32 arithmetic **{r['gflops']:.0f} GFLOP/s** "
+        f"({sec['config']['matmul_n']}^2 matmul) with the query thread count; on all cores "
+        f"{ra['bandwidth_gbs']:.1f} GB/s and {ra['gflops']:.0f} GFLOP/s (other people's jobs share the "
+        "cores). Floor = max(bytes / bandwidth, flops / rate) with the query-thread rates; measured = "
+        "median of the runs.",
         "",
         "Cost models: text query (compact) reads M*r int8 coefficients + 3 float32 per Gaussian (canonical "
-        "shift read, score written, score read by top-k) and does 2*M*r flops; the re-rank adds 1000 rows x "
-        "D float16 and 2*5*D flops per row. Exact scan: 4*D + 12 bytes and 2*D flops per Gaussian. Render: "
-        f"{RENDER_FLOPS_PER_PAIR} + 2*channels flops per contributing (pixel, Gaussian) pair (RenderOutput."
-        f"n_contrib summed) + {PROJECT_FLOPS} flops per Gaussian for the projection; bytes: each Gaussian's "
-        "projected parameters and channels read once, the image written once. Pairs that are evaluated but "
-        "fall below alpha_min are not counted, so the render floor is optimistic.",
+        "shift read, score written, score read by top-k) and does 2*M*r flops; the re-rank adds 1000 rows "
+        "x D float16 and 2*5*D flops per row. Exact scan: 4*D + 12 bytes and 2*D flops per Gaussian. "
+        f"Render: {RENDER_FLOPS_PER_PAIR} + 2*channels flops per contributing (pixel, Gaussian) pair "
+        f"(RenderOutput.n_contrib summed) + {PROJECT_FLOPS} flops per Gaussian for the projection; bytes: "
+        "each Gaussian's projected parameters and channels read once, the image written once. Pairs that "
+        "are evaluated but fall below alpha_min are not counted, so the render floor is optimistic.",
         "",
         f"![floor]({img})",
         "",
@@ -1784,35 +1793,39 @@ def text_reading(sec: dict) -> list[str]:
     bpg = lambda p: p["info"]["bytes_per_gaussian"]  # noqa: E731
     L = [
         "- **Text query: compact rank 64 int8 + exact re-rank of 10k above 200K embedded Gaussians, exact "
-        f"below.** At {n:,} Gaussians the exact float32 scan takes {ex['time_ms']:.1f} ms and "
-        f"{bpg(ex):.0f} B/Gaussian (top-100 relevancies of the reference span {sec['reference_spread']:.3f} "
-        "on average, the scale against which the relevancy errors below read)."
+        f"below.** At {n:,} Gaussians the exact float32 scan takes {ex['time_ms']:.1f} ms and {bpg(ex):.0f} "
+        f"B/Gaussian (the reference's top-100 relevancies span {sec['reference_spread']:.1e} on average: the "
+        "scale the relevancy errors below read against)."
     ]
     ranks = sec["config"]["ranks"]
     if "r64" in s:
         d, nr = s["r64"], s["r64nr"]
-        exact_ranks = [f"{r}" for r in ranks if s[f"r{r}"]["errors"]["overlap_worst"] == 0]
+        same = [f"{r}" for r in ranks if s[f"r{r}"]["info"].get("overlap_vs_f16_worst", 1) == 0]
         kept = ", ".join(f"{100 * (1 - s[f'r{r}nr']['errors']['overlap']):.0f}% at rank {r}" for r in ranks)
         L.append(
-            f"  Rank 64 with re-rank: {d['time_ms']:.1f} ms ({ex['time_ms'] / d['time_ms']:.1f}x faster), "
-            f"{bpg(d):.0f} B/Gaussian ({bpg(ex) / bpg(d):.0f}x less), top-100 overlap error "
-            f"{e(d['errors']['overlap'])} (worst query {e(d['errors']['overlap_worst'])}), max relevancy "
-            "error "
-            f"{e(d['errors']['relevancy'])}: re-ranked scores come from the float16 package values, so what "
-            "is "
-            f"left is their rounding. Without the re-rank the same scan loses {pct(nr['errors']['overlap'])} "
-            "of "
-            f"the top-100 (max relevancy error {e(nr['errors']['relevancy'])}). Ranks whose re-ranked "
-            "top-100 "
-            f"equalled the exact one in every query: {', '.join(exact_ranks) or 'none'}. The compact scores "
-            "alone "
-            f"keep {kept} of the exact top-100, i.e. how deep the true top-100 sit among the 10k candidates: "
-            "64 keeps a margin over 32 for scenes less smooth than these, at 64 B + 28 B (canonical dots, "
-            "shift, index) per Gaussian, under 1 GiB for 10M Gaussians; 128 buys little more."
+            f"  Rank 64 with re-rank: {d['time_ms']:.1f} ms ({ex['time_ms'] / d['time_ms']:.0f}x faster), "
+            f"{bpg(d):.0f} B/Gaussian ({bpg(ex) / bpg(d):.0f}x less); top-100 overlap error "
+            f"{e(d['errors']['overlap'])} (worst query {e(d['errors']['overlap_worst'])}) and max relevancy "
+            f"error {e(d['errors']['relevancy'])} against float32, "
+            f"{e(d['info'].get('overlap_vs_f16', float('nan')))} against the exact scores of the float16 "
+            "values it re-ranks from. Without the re-rank the same scan loses "
+            f"{pct(nr['errors']['overlap'])} of the top-100 (max relevancy error "
+            f"{e(nr['errors']['relevancy'])}). Ranks whose re-ranked top-100 equalled the float16 exact one "
+            f"in every query: {', '.join(same) or 'none'}. The compact scores alone keep {kept} of the exact "
+            "top-100 (how deep the true top-100 sit among the 10k candidates): 64 keeps a margin where 32 "
+            "is already close to losing Gaussians, at 64 B + 28 B per Gaussian (canonical dots, shift, "
+            "index), under 1 GiB for 10M; 128 costs more time and memory for a margin the re-rank does not "
+            "need."
         )
     f16, f16c = s["f16as32"], s["f16"]
+    if f16["errors"]["overlap"] > 0:
+        L.append(
+            f"  Float16 storage itself changes the top-100 set: {pct(f16['errors']['overlap'])} of it on "
+            f"average, {pct(f16['errors']['overlap_worst'])} in the worst query (near ties at the 100th "
+            "place); every path that reads a package, compact or exact, inherits this."
+        )
     L.append(
-        f"  Below 200K the engine holds the package's float16 values as float32 (max relevancy error "
+        "  Below 200K the engine holds the package's float16 values as float32 (max relevancy error "
         f"{e(f16['errors']['relevancy'])}, {f16['time_ms']:.1f} ms, as fast as float32); keeping them as "
         f"float16 and widening chunk by chunk halves the memory but took {f16c['time_ms']:.1f} ms "
         f"({f16c['time_ms'] / ex['time_ms']:.1f}x the float32 scan: torch widens float16 slowly on this CPU)."
@@ -1820,12 +1833,12 @@ def text_reading(sec: dict) -> list[str]:
     subs = [p for p in sec["points"] if p["curve"].startswith("most opaque")]
     if subs:
         worst = max(subs, key=lambda p: float(p["label"].rstrip("%")))
+        saved = 1 - float(worst["label"].rstrip("%")) / 100
         L.append(
             f"  Ranking only the most opaque Gaussians is not a default: even the top {worst['label']} miss "
-            f"{pct(worst['errors']['overlap'])} of the exact top-100 for a "
-            f"{1 - float(worst['label'].rstrip('%')) / 100:.0%} saving "
-            "(opacity says nothing about meaning here; the field's own selection, opacity > 0.25 and a "
-            "projected radius > 2 px, is applied before any of this)."
+            f"{pct(worst['errors']['overlap'])} of the exact top-100 to save {saved:.0%} of the scan "
+            "(opacity says nothing about meaning; the field's own selection, opacity > 0.25 and a projected "
+            "radius > 2 px, is applied before any of this)."
         )
     return L
 
@@ -1837,24 +1850,18 @@ def pose_reading(sec: dict) -> list[str]:
     rel = lambda p: f"{100 * (p['time_ms'] / dc['time_ms'] - 1):+.0f}%"  # noqa: E731
     return [
         "- **Pose query: dot-then-render on the cpu backend, full size, tile 16.** Dot-then-render equals "
-        "the "
-        f"full {D}-channel render up to float32 rounding (max error {e(dc['errors']['max'])}, against a "
+        f"the full {D}-channel render up to float32 rounding (max error {e(dc['errors']['max'])}, against a "
         f"relevancy spread of {sec['reference_spread']:.3f} per image) and takes {dc['time_ms']:.0f} ms, "
-        "against "
-        f"{fc['time_ms']:.0f} ms for all channels on the same backend and {ref['time_ms']:.0f} ms for the "
-        f"reference; the reference backend with 5 channels takes {dr['time_ms']:.0f} ms. Tiles of 8 and 32 "
-        f"give the same image (max error {e(t8['errors']['max'])} / {e(t32['errors']['max'])}) in {rel(t8)} "
-        "/ "
-        f"{rel(t32)} of the tile-16 time (differences of a few percent are within this shared machine's "
-        f"noise). Half resolution saves {100 * (1 - h['time_ms'] / dc['time_ms']):.0f}% of the time but "
-        "moves "
-        f"the most relevant pixel in {pct(h['errors']['argmax_disagree'])} of the queries (max error "
-        f"{e(h['errors']['max'])}): a client that can live with it asks for a smaller image. The int8 "
-        "rank-64 "
-        f"dots (the engine's dots for scenes of 200K+ embedded Gaussians) change the relevancy by up to "
-        f"{e(q['errors']['max'])} and move the argmax in {pct(q['errors']['argmax_disagree'])} of the "
-        "queries "
-        f"for {rel(q)} time (the render dominates); below 200K the dots are exact."
+        f"against {fc['time_ms']:.0f} ms for all channels on the same backend and {ref['time_ms']:.0f} ms "
+        f"for the reference; the reference backend with 5 channels takes {dr['time_ms']:.0f} ms. Tiles of 8 "
+        f"and 32 give the same image (max error {e(t8['errors']['max'])} / {e(t32['errors']['max'])}) in "
+        f"{rel(t8)} / {rel(t32)} of the tile-16 time (differences of a few percent are within this shared "
+        f"machine's noise). Half resolution saves {100 * (1 - h['time_ms'] / dc['time_ms']):.0f}% of the "
+        f"time but moves the most relevant pixel in {pct(h['errors']['argmax_disagree'])} of the queries "
+        f"(max error {e(h['errors']['max'])}): a client that can live with it asks for a smaller image. The "
+        "int8 rank-64 dots (the engine's dots for scenes of 200K+ embedded Gaussians) change the relevancy "
+        f"by up to {e(q['errors']['max'])} and move the argmax in {pct(q['errors']['argmax_disagree'])} of "
+        f"the queries for {rel(q)} time (the render dominates); below 200K the dots are exact."
     ]
 
 
@@ -1863,8 +1870,8 @@ def field_reading(sec: dict) -> list[str]:
     st = sorted((p for p in pts if p["curve"] == "training steps"), key=lambda p: p["info"]["steps"])
     score = lambda p: f"{pct(p['info']['localisation_2d'])} / {p['info']['miou']:.2f}"  # noqa: E731
     L = [
-        "- **Field: the paper's settings** (4.2K steps, 24 levels, 2^20 rows per level; maps at fmgs build's "
-        "0.25 of the image). 2D localisation / mIoU along the steps curve: "
+        "- **Field: the paper's settings** (4.2K steps, 24 levels, 2^20 rows per level; maps at fmgs "
+        "build's 0.25 of the image). 2D localisation / mIoU along the steps curve: "
         + ", ".join(f"{score(p)} at {p['label']} ({p['time_ms'] / 1e3:.0f} s)" for p in st)
         + "."
     ]
@@ -1932,16 +1939,15 @@ def readings(res: dict) -> list[str]:
         )
         L.append(
             f"- **Scaling.** Compact text query without re-rank: {tn['model']} (exponent "
-            f"{tn['exponent']:.2f} "
-            f"over the largest sizes, {tn['per_unit_ns']:.2g} ns per Gaussian, per-Gaussian time settled "
-            "from "
-            f"{tn['linear_from']:,.0f}); with the re-rank (default): exponent {tc['exponent']:.2f}, a fixed "
-            f"{tc['fixed_ms']:.1f} ms (top-k of 1000 candidates and their float16 rows) that dominates below "
-            f"{tc['linear_from']:,.0f} Gaussians. Render: {rp['model']} in pixels (exponent "
-            f"{rp['exponent']:.2f}), exponent {rg['exponent']:.2f} in Gaussians (the synthetic scenes shrink "
-            "their Gaussians as n^-1/3, so the blended work per pixel grows slowly). gRPC: median latency "
-            f"{gc['model']} in clients ({gc['per_unit_ns'] / 1e6:.1f} ms per extra client), throughput flat "
-            "once the compute slots are busy: the server is compute bound and queues fairly."
+            f"{tn['exponent']:.2f} over the largest sizes, {tn['per_unit_ns']:.2g} ns per Gaussian, "
+            f"per-Gaussian time settled from {tn['linear_from']:,.0f}); with the re-rank (default): exponent "
+            f"{tc['exponent']:.2f}, a fixed {tc['fixed_ms']:.1f} ms (top-k of 1000 candidates and their "
+            f"float16 rows) that dominates below {tc['linear_from']:,.0f} Gaussians. Render: {rp['model']} "
+            f"in pixels (exponent {rp['exponent']:.2f}), exponent {rg['exponent']:.2f} in Gaussians (the "
+            "synthetic scenes shrink their Gaussians as n^-1/3, so the blended work per pixel grows "
+            f"slowly). gRPC: median latency {gc['model']} in clients ({gc['per_unit_ns'] / 1e6:.1f} ms per "
+            "extra client), throughput flat once the compute slots are busy: the server is compute bound "
+            "and queues fairly."
         )
     if "floor" in res:
         rows = res["floor"]["rows"]
@@ -1950,8 +1956,7 @@ def readings(res: dict) -> list[str]:
             + "; ".join(f"{r['path']}: x{r['multiple']:.1f} its {r['bound']} floor" for r in rows)
             + ". The scans run within a small multiple of the memory floor; the render is far from its "
             "arithmetic floor (serial per-pixel blending with an exp per pair, not the dense multiply-adds "
-            "the "
-            "rate was measured on)."
+            "the rate was measured on)."
         )
     L.append(
         f"- **GPU:** every GPU column reads '{GPU_NOTE}': this session had no device machine; nothing was "
@@ -2029,14 +2034,12 @@ def write_report(res: dict, out: Path, report: Path, quick: bool) -> None:
         + ".",
         "",
         "Timing: every compared setting runs in the same process, interleaved with the others (rotating "
-        "order "
-        "per input), and the median is reported. Queries and renders run on "
-        f"{first['threads']} thread(s): this 2-core machine is shared with other people's jobs, and a "
-        "parallel "
-        "region then waits for the second core's time slice (measured: the int8 scan of 20K Gaussians takes "
-        "0.14 ms on one thread and 8 ms on two under that load), which would bury every difference between "
-        "settings; the scaling section shows both. Training sections use all cores. Load average (1 min) at "
-        "the start and end of each section: "
+        f"order per input), and the median is reported. Queries and renders run on {first['threads']} "
+        "thread(s): this 2-core machine is shared with other people's jobs, and a parallel region then "
+        "waits for the second core's time slice (measured: the int8 scan of 20K Gaussians takes 0.14 ms on "
+        "one thread and 8 ms on two under that load), which would bury every difference between settings; "
+        "the scaling section shows both. Training sections use all cores. Load average (1 min) at the start "
+        "and end of each section: "
         + ", ".join(f"{k} {v['load'][0]:.1f} -> {v['load'][1]:.1f}" for k, v in res.items())
         + ".",
         "",

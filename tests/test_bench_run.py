@@ -42,11 +42,12 @@ def test_sorted_relevancy_error():
 def test_image_error():
     ref = torch.zeros(4, 5)
     ref[1, 2] = 1.0
-    assert image_error(ref, ref.clone()) == (0.0, 0.0, True)
+    assert image_error(ref, ref.clone()) == (0.0, 0.0, True, 0.0)
     moved = torch.zeros(4, 5)
     moved[3, 3] = 0.5
     err = image_error(moved, ref)
     assert err.max_abs == 1.0 and err.mean_abs == pytest.approx(1.5 / 20) and not err.argmax_same
+    assert err.argmax_px == pytest.approx(math.hypot(2, 1))
 
 
 def _point(exact: bool, errors: dict) -> dict:

@@ -57,10 +57,10 @@ def test_scenes(client):
     info = client.scene("blobs")
     assert info.encoder_id == ENCODER_ID and info.num_gaussians == 180 and info.has_field
     assert info.label_names == CLASS_NAMES and len(info.canonical_phrases) == 4
-    if info.bounds is None:  # bounds are known once the scene is loaded (lazily, by its first query)
-        assert info.state == "unloaded"
-        client.query("blobs", "red cube", top_k=1)
-        info = client.scene("blobs")
+    assert info.state == "unloaded" and info.resident_bytes == 0  # scenes load on first use
+    assert info.bounds.shape == (2, 3)  # from the manifest, before loading
+    client.query("blobs", "red cube", top_k=1)
+    info = client.scene("blobs")
     assert info.state == "ready" and info.resident_bytes > 0
     assert info.bounds.shape == (2, 3) and np.all(info.bounds[0] <= info.bounds[1])
     with pytest.raises(FmgsError) as e:

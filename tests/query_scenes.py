@@ -77,3 +77,28 @@ def camera(w: int = 48, h: int = 40) -> Camera:
     """Looks down +z from the origin at the blobs."""
     K = torch.tensor([[40.0, 0, w / 2], [0, 40.0, h / 2], [0, 0, 1]], dtype=torch.float64)
     return Camera(K, torch.eye(4, dtype=torch.float64), w, h)
+
+
+def serve_process(models):
+    """Start ``fmgs serve`` on port 0 in a subprocess; returns (process, address)."""
+    import os
+    import subprocess
+    import sys
+
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    cmd = [
+        sys.executable,
+        "-m",
+        "fmgs.cli",
+        "serve",
+        "--models",
+        str(models),
+        "--port",
+        "0",
+        "--log-level",
+        "WARNING",
+    ]
+    p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    line = p.stdout.readline()
+    assert "serving" in line, p.stderr.read()
+    return p, line.rsplit(" ", 1)[1].strip()

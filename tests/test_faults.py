@@ -6,8 +6,6 @@ from __future__ import annotations
 import errno
 import os
 import signal
-import subprocess
-import sys
 import threading
 import time
 
@@ -23,7 +21,7 @@ from fmgs_client._proto.fmgs.v1 import fmgs_pb2_grpc as pb_grpc
 from fmgs_client.tensors import from_tensor, join
 from fmgs_server.config import ServerConfig
 from fmgs_server.server import start_server
-from tests.query_scenes import FakeEncoder, blob_scene
+from tests.query_scenes import FakeEncoder, blob_scene, serve_process
 
 C = grpc.StatusCode
 
@@ -239,26 +237,6 @@ def test_loader_never_reads_a_half_written_package(models):
         load_scene(half)
 
 
-def _serve_process(models):
-    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
-    cmd = [
-        sys.executable,
-        "-m",
-        "fmgs.cli",
-        "serve",
-        "--models",
-        str(models),
-        "--port",
-        "0",
-        "--log-level",
-        "WARNING",
-    ]
-    p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
-    line = p.stdout.readline()
-    assert "serving" in line, p.stderr.read()
-    return p, line.rsplit(" ", 1)[1].strip()
-
-
 def test_sigterm_drains_in_flight_and_restart_serves_the_same(tmp_path):
     from fmgs_client.tensors import to_tensor
 
@@ -274,7 +252,7 @@ def test_sigterm_drains_in_flight_and_restart_serves_the_same(tmp_path):
     cam = pb.Camera(
         viewmat=np.eye(4).ravel().tolist(), fx=900, fy=900, cx=2000, cy=1000, width=4000, height=2000
     )
-    p, address = _serve_process(root)
+    p, address = serve_process(root)
     try:
         with grpc.insecure_channel(address) as ch:
             stub = pb_grpc.FmgsStub(ch)
@@ -300,13 +278,13 @@ def test_sigterm_drains_in_flight_and_restart_serves_the_same(tmp_path):
         if p.poll() is None:
             p.kill()
     # Crash and restart: kill -9, start again, identical answers.
-    p, address = _serve_process(root)
+    p, address = serve_process(root)
     try:
         with grpc.insecure_channel(address) as ch:
             assert _answer(pb_grpc.FmgsStub(ch), req) == first
         p.kill()
         p.wait(timeout=30)
-        p, address = _serve_process(root)
+        p, address = serve_process(root)
         with grpc.insecure_channel(address) as ch:
             assert _answer(pb_grpc.FmgsStub(ch), req) == first
     finally:

@@ -19,7 +19,7 @@ from fmgs_client._proto.fmgs.v1 import fmgs_pb2_grpc as pb_grpc
 from fmgs_client.tensors import from_tensor, join, to_tensor
 from fmgs_server.config import ServerConfig
 from fmgs_server.server import scene_health_name, start_server
-from tests.query_scenes import CLASS_NAMES, ENCODER_ID, FakeEncoder, blob_scene, camera
+from tests.query_scenes import CLASS_NAMES, ENCODER_ID, FakeEncoder, blob_scene, camera, serve_process
 
 C = grpc.StatusCode
 
@@ -332,29 +332,10 @@ def test_cli_serve_parser_defaults_bind_loopback():
 
 
 def test_fmgs_serve_process_answers_and_stops_on_sigterm(models):
-    import os
     import signal
-    import subprocess
-    import sys
 
-    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
-    cmd = [
-        sys.executable,
-        "-m",
-        "fmgs.cli",
-        "serve",
-        "--models",
-        str(models),
-        "--port",
-        "0",
-        "--log-level",
-        "WARNING",
-    ]
-    p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    p, address = serve_process(models)
     try:
-        line = p.stdout.readline()
-        assert "serving" in line, p.stderr.read()
-        address = line.rsplit(" ", 1)[1].strip()
         with grpc.insecure_channel(address) as ch:
             r = pb_grpc.FmgsStub(ch).ListScenes(pb.ListScenesRequest(), timeout=30)
             assert [s.name for s in r.scenes] == ["blobs", "plain"]

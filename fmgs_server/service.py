@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import functools
 import io
+import json
 import logging
 import threading
 import time
@@ -172,8 +173,6 @@ class FmgsService(pb_grpc.FmgsServicer):
         e = slot.engine
         if e is None:
             try:
-                import json
-
                 m = json.loads((self.repo.root / slot.name / "manifest.json").read_text())
                 info.encoder_id = str(m["encoder"]["id"])
                 info.embedding_dim = int(m["encoder"]["dim"])

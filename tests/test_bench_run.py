@@ -92,7 +92,10 @@ def test_fit_growth_recognises_linear_and_fixed_cost():
     lin = fit_growth(n, [2 + x * 1e-5 for x in n])
     assert lin.model == "linear" and math.isclose(lin.exponent, 1.0, abs_tol=0.1)
     assert lin.fixed_ms == pytest.approx(2, rel=1e-6) and lin.per_unit_ns == pytest.approx(10, rel=1e-6)
-    assert lin.linear_from == 1e6  # below it the fixed 2 ms dominates
+    assert (lin.linear_lo, lin.linear_hi) == (1e6, 1e7)  # below 1e6 the fixed 2 ms dominates
+    assert lin.best_unit_ns == pytest.approx(10.2) and lin.top_unit_ns == lin.best_unit_ns
+    jump = fit_growth(n, [1.0, 10.0, 100.0, 3000.0])  # linear, then 3x per unit at the top
+    assert (jump.linear_lo, jump.linear_hi) == (1e4, 1e6) and jump.top_unit_ns == pytest.approx(300)
     flat = fit_growth(n, [5.0, 5.0, 5.1, 5.0])
     assert flat.model == "sub-linear"
     nlogn = fit_growth(n, [x * math.log2(x) * 1e-6 for x in n])

@@ -1697,17 +1697,21 @@ def field_md(sec: dict, img: str) -> list[str]:
         "",
         f"![field work-precision]({img})",
         "",
-        "| knob | setting | train CPU s (wall s) | selected | table rows kept | 2D loc. | 3D loc. | mIoU | "
-        "GPU |",
-        "|---|---|---:|---:|---:|---:|---:|---:|---|",
+        "| steps | feature maps | table | levels | on curves | train CPU s (wall s) | selected | table "
+        "rows kept | 2D loc. | 3D loc. | mIoU | GPU |",
+        "|---:|---:|---:|---:|---|---:|---:|---:|---:|---:|---:|---|",
     ]
+    runs: dict[tuple, list[dict]] = {}
     for p in sec["points"]:
         i = p["info"]
+        runs.setdefault((i["steps"], i["feature_scale"], i["log2_table"], i["levels"]), []).append(p)
+    for (steps, fs, t, lv), ps in runs.items():
+        p, i = ps[0], ps[0]["info"]
         flags = " **(paper default)**" if p["default"] else ""
         L.append(
-            f"| {p['curve']} | {p['label']}{flags} | {p['time_ms'] / 1e3:.0f} ({i['wall_seconds']:.0f}) | "
-            f"{i['selected']:,} | {i['table_rows']:,} | {pct(i['localisation_2d'])} | "
-            f"{pct(i['localisation_3d'])} | {i['miou']:.3f} | {GPU_NOTE} |"
+            f"| {steps}{flags} | x{fs} | 2^{t} | {lv} | {', '.join(q['curve'] for q in ps)} | "
+            f"{p['time_ms'] / 1e3:.0f} ({i['wall_seconds']:.0f}) | {i['selected']:,} | {i['table_rows']:,} | "
+            f"{pct(i['localisation_2d'])} | {pct(i['localisation_3d'])} | {i['miou']:.3f} | {GPU_NOTE} |"
         )
     return L
 
@@ -1738,10 +1742,12 @@ def gs_md(sec: dict, img: str) -> list[str]:
 
 
 def _fit_line(name: str, f: dict, unit: str) -> str:
+    ms = unit == "client"  # per-unit times of milliseconds read better in ms
+    t = (lambda ns: f"{ns / 1e6:.3g} ms") if ms else (lambda ns: f"{ns:.3g} ns")
     return (
-        f"| {name} | {f['model']} | {f['exponent']:.2f} | {f['fixed_ms']:.2f} | {f['per_unit_ns']:.3g} "
-        f"ns/{unit} | {pct(f['rel_rms_linear'])} | {pct(f['rel_rms_nlogn'])} | {f['linear_lo']:,.0f} to "
-        f"{f['linear_hi']:,.0f} | {f['best_unit_ns']:.3g} / {f['top_unit_ns']:.3g} ns |"
+        f"| {name} | {f['model']} | {f['exponent']:.2f} | {f['fixed_ms']:.2f} | {t(f['per_unit_ns'])}/{unit} "
+        f"| {pct(f['rel_rms_linear'])} | {pct(f['rel_rms_nlogn'])} | {f['linear_lo']:,.0f} to "
+        f"{f['linear_hi']:,.0f} | {t(f['best_unit_ns'])} / {t(f['top_unit_ns'])} |"
     )
 
 
@@ -1868,7 +1874,8 @@ def rank_choice(s: dict[str, dict], ranks: Sequence[int]) -> str:
             f"rank {r} missed up to {pct(s[f'r{r}']['info']['overlap_vs_f16_worst'])}" for r in below
         )
         return (
-            f"64 is the smallest rank that did ({miss}), {cost}; 128 costs more time and memory for nothing."
+            f"64 is the smallest rank that did ({miss}), {cost}; 128 costs more time and memory for no gain "
+            "here."
         )
     if min(ok) < 64:
         return (
@@ -1934,7 +1941,12 @@ def pose_reading(sec: dict) -> list[str]:
     s = {p["info"]["setting"]: p for p in sec["points"]}
     ref, dc, dr, fc = s["full/reference"], s["dtr/cpu"], s["dtr/reference"], s["full/cpu"]
     t8, t32, h, q = s["tile 8"], s["tile 32"], s["scale 0.5"], s["compact dots"]
-    rel = lambda p: f"{100 * (p['time_ms'] / dc['time_ms'] - 1):+.0f}%"  # noqa: E731
+
+    def rel(p: dict) -> str:
+        x = 100 * (p["time_ms"] / dc["time_ms"] - 1)
+        return f"{abs(x):.0f}% {'less' if x < 0 else 'more'} time"
+
+    px = lambda p: p["errors"].get("argmax_px", float("nan"))  # noqa: E731
     return [
         "- **Pose query: dot-then-render on the cpu backend, full size, tile 16.** Dot-then-render equals "
         f"the full {D}-channel render up to float32 rounding (max error {e(dc['errors']['max'])}, against a "
@@ -1942,13 +1954,14 @@ def pose_reading(sec: dict) -> list[str]:
         f"against {fc['time_ms']:.0f} ms for all channels on the same backend and {ref['time_ms']:.0f} ms "
         f"for the reference; the reference backend with 5 channels takes {dr['time_ms']:.0f} ms. Tiles of 8 "
         f"and 32 give the same image (max error {e(t8['errors']['max'])} / {e(t32['errors']['max'])}) in "
-        f"{rel(t8)} / {rel(t32)} of the tile-16 time (differences of a few percent are within this shared "
-        f"machine's noise). Half resolution saves {100 * (1 - h['time_ms'] / dc['time_ms']):.0f}% of the "
-        f"time but moves the most relevant pixel in {pct(h['errors']['argmax_disagree'])} of the queries "
-        f"(max error {e(h['errors']['max'])}): a client that can live with it asks for a smaller image. The "
-        "int8 rank-64 dots (the engine's dots for scenes of 200K+ embedded Gaussians) change the relevancy "
-        f"by up to {e(q['errors']['max'])} and move the argmax in {pct(q['errors']['argmax_disagree'])} of "
-        f"the queries for {rel(q)} time (the render dominates); below 200K the dots are exact."
+        f"{rel(t8)} / {rel(t32)} than tile 16 (the tile size changes the binning, never the image; 16 stays, "
+        "one run of a few repetitions on a shared machine does not separate 16 from 32). Half resolution "
+        f"takes {rel(h)} but moves the most relevant pixel in {pct(h['errors']['argmax_disagree'])} of the "
+        f"queries, by {px(h):.1f} px on average (max error {e(h['errors']['max'])}): a client that can live "
+        "with that asks for a smaller image. The int8 rank-64 dots (the engine's dots for scenes of 200K+ "
+        f"embedded Gaussians) change the relevancy by up to {e(q['errors']['max'])} and move the argmax in "
+        f"{pct(q['errors']['argmax_disagree'])} of the queries, for {rel(q)} (the render dominates); below "
+        "200K the dots are exact."
     ]
 
 
@@ -1995,9 +2008,10 @@ def field_reading(sec: dict) -> list[str]:
         + (
             "Settings that beat the default value on both scores: "
             + "; ".join(better)
-            + f". On these {s['width']}x{s['height']} images fmgs build's 0.25 gives {maps} target maps; the "
-            "default is kept for photo-sized images (a 480x270 view gives 120x68 maps), and this is a lead "
-            "for the field issue (single runs on one small synthetic scene), not a new default."
+            + f". On these {s['width']}x{s['height']} images fmgs build's 0.25 gives {maps} target maps, "
+            "coarse for the label boundaries; on photo-sized images it gives far more (a 480x270 view: "
+            "120x68). A lead for the field issue (single runs on one small synthetic scene), not a new "
+            "default."
             if better
             else "No alternative beat the default value on both scores, so the defaults stay the paper's."
         )
@@ -2007,9 +2021,11 @@ def field_reading(sec: dict) -> list[str]:
 
 def growth_words(g: dict, unit: str) -> str:
     """'linear from A to B (... ns per unit), a fixed cost below A, +x% per unit above B' in words."""
-    out = (
-        f"{g['model']} (exponent {g['exponent']:.2f} over the larger sizes); linear from "
-        f"{g['linear_lo']:,.0f} to {g['linear_hi']:,.0f} {unit} at {g['best_unit_ns']:.3g} ns each"
+    out = f"{g['model']} (exponent {g['exponent']:.2f} over the larger sizes); " + (
+        f"linear from {g['linear_lo']:,.0f} to {g['linear_hi']:,.0f} {unit} at {g['best_unit_ns']:.3g} ns "
+        "each"
+        if g["linear_hi"] > g["linear_lo"]
+        else f"cheapest per unit at {g['linear_lo']:,.0f} {unit} ({g['best_unit_ns']:.3g} ns each)"
     )
     if g["fixed_ms"] > 0:
         out += f", a fixed {g['fixed_ms']:.1f} ms dominating below"
@@ -2040,8 +2056,8 @@ def floor_reading(rows: list[dict]) -> list[str]:
         )
         if rest > 0 and tk["measured_ms"] >= 0.5 * rest:
             text += " So the selection, not the scan, is most of what the query spends beyond the scan" + (
-                "; a partition-based selection (or a threshold inside the scan kernel) would remove "
-                "most of it."
+                "; a partition-based selection (or a threshold inside the scan kernel) would remove most of "
+                "it."
                 if ap["measured_ms"] < 0.5 * tk["measured_ms"]
                 else "."
             )
@@ -2087,11 +2103,27 @@ def readings(res: dict) -> list[str]:
             f"({gc['per_unit_ns'] / 1e6:.1f} ms per extra client), throughput flat once the compute slots "
             "are busy: the server is compute bound and queues fairly."
         )
+        t = res["scaling"]["text"]
+        ratio = statistics.median(r["compact_all_cores_ms"] / r["compact_ms"] for r in t)
+        rows = res["scaling"]["render_gaussians"] + res["scaling"]["render_pixels"]
+        rratio = statistics.median(r["ms_all_cores"] / r["ms"] for r in rows)
+        L.append(
+            f"  On all cores the compact text query took {ratio:.2f}x and the render {rratio:.2f}x their "
+            "one-thread time (medians over the sizes): on this shared machine the second core is mostly "
+            "someone else's, so the single-thread figures are the ones to read."
+        )
     if "floor" in res:
         L += floor_reading(res["floor"]["rows"])
     L.append(
         f"- **GPU:** every GPU column reads '{GPU_NOTE}': this session had no device machine; nothing was "
         "measured on a GPU."
+    )
+    L.append(
+        "- **Not measured here:** GPU timings (above); the field with CLIP/DINO targets and the dotsim term "
+        "(pretrained weights cannot be downloaded on this machine; label-mask targets instead); 3DGS and "
+        "field training at paper scale (30K / 4.2K steps on photo-sized scenes: CPU time); exact float32 "
+        "text queries beyond the largest built size (their memory is computed, not measured); scenes beyond "
+        "the largest built size through an exported package (their compact state is tiled directly)."
     )
     return L
 
@@ -2156,11 +2188,16 @@ def write_report(res: dict, out: Path, report: Path, quick: bool) -> None:
     head = [
         "# Work-precision report" + (" (quick, CI size)" if quick else ""),
         "",
-        f"Measured on {stamp_line(first)}; GPU: {GPU_NOTE}. Per-section stamps are in the plots, the CSV "
-        f"files and `{img('results.json')}`.",
+        f"Measured on {stamp_line(first).split('; commit')[0]}; GPU: {GPU_NOTE}. Sections measured at "
+        + ", ".join(
+            f"{k}: commit {v['machine']['commit']}{' (dirty tree)' if v['machine'].get('dirty') else ''}, "
+            f"{v['machine']['date']}"
+            for k, v in res.items()
+        )
+        + f". Per-section stamps are also in the plots, the CSV files and `{img('results.json')}`.",
         "",
         "Regenerate: `python benchmarks/run.py` (full size; `--quick` is the CI size, `--only text,pose` "
-        "re-runs sections into the same results). This run took "
+        "re-runs sections into the same results). Measuring took "
         + ", ".join(f"{k} {v['seconds'] / 60:.1f} min" for k, v in res.items())
         + ".",
         "",

@@ -313,7 +313,7 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--out", required=True)
     t.add_argument("--steps", type=int, default=30_000, help="fewer steps compress the schedule to match")
     t.add_argument("--scale", type=float, default=1.0, help="train on images resized by this factor")
-    t.add_argument("--backend", default="auto", choices=["auto", "reference", "cuda"])
+    t.add_argument("--backend", default="auto", choices=["auto", "cpu", "reference", "cuda"])
     t.add_argument("--device", default="cuda" if _cuda() else "cpu")
     t.add_argument("--seed", type=int, default=0)
     t.add_argument("--checkpoint-every", type=int, default=0)

@@ -95,7 +95,7 @@ def test_ci_sized_training_learns_the_scene(tiny_scene, tmp_path):
         b = render_rgb(read_ply(tmp_path / "run" / "point_cloud.ply"), cam, background=torch.tensor(bg)).image
     assert torch.equal(a, b)
     meta = json.loads((tmp_path / "run" / "train.json").read_text())
-    assert meta["steps"] == 200 and meta["gaussians"] == res.gaussians.num and meta["backend"] == "reference"
+    assert meta["steps"] == 200 and meta["gaussians"] == res.gaussians.num and meta["backend"] == "cpu"
 
 
 def _init_only(ds, cfg):

@@ -1,10 +1,13 @@
 """One rasteriser interface over three backends.
 
 - ``reference``: pure PyTorch, differentiable, any device, float32/float64 (``reference.py``);
-- ``cpu``: compiled numba kernel for inference without gradients (``cpu_fast.py``), loaded lazily;
+- ``cpu``: compiled numba kernels, loaded lazily: without gradients the fast inference path
+  (``cpu_fast.py``), with gradients numba blending forward and backward behind the reference's
+  projection (``cpu_grad.py``);
 - ``cuda``: gsplat on a CUDA device (``cuda_gsplat.py``), loaded lazily.
 
-``backend="auto"`` picks ``cuda`` for CUDA tensors, ``cpu`` when no gradient is needed, else ``reference``.
+``backend="auto"`` picks ``cuda`` for CUDA tensors, ``cpu`` on the CPU when no gradient is needed or the
+features are narrow (RGB training), else ``reference``.
 """
 
 from __future__ import annotations
@@ -63,6 +66,12 @@ def validate_inputs(
         check_finite("background", background)
 
 
+def _grad_channels() -> int:
+    from fmgs.render.cpu_grad import MAX_AUTO_CHANNELS
+
+    return MAX_AUTO_CHANNELS
+
+
 def rasterize(
     means: torch.Tensor,
     quats: torch.Tensor,
@@ -89,7 +98,7 @@ def rasterize(
     if backend == "auto":
         if features.is_cuda:
             backend = "cuda"
-        elif features.device.type == "cpu" and not needs_grad:
+        elif features.device.type == "cpu" and (not needs_grad or features.shape[1] <= _grad_channels()):
             backend = "cpu"
         else:
             backend = "reference"
@@ -99,7 +108,9 @@ def rasterize(
         return rasterize_reference(means, quats, scales, opacities, features, camera, background, config)
     if backend == "cpu":
         if needs_grad:
-            raise ValidationError("backend", "the cpu backend has no gradients; use backend='reference'")
+            from fmgs.render.cpu_grad import rasterize_cpu_grad
+
+            return rasterize_cpu_grad(means, quats, scales, opacities, features, camera, background, config)
         from fmgs.render.cpu_fast import rasterize_cpu
 
         return rasterize_cpu(means, quats, scales, opacities, features, camera, background, config)

@@ -66,9 +66,9 @@ def report(args) -> None:
         "Every 8th image is held out (never trained on); PSNR/SSIM are means over those views at the "
         "training resolution. Regenerate: `python benchmarks/gs.py run DATA OUT ...`, then `report OUT ...`.",
         "",
-        "| dataset | image size | steps | grad threshold | Gaussians | train time | held-out PSNR | SSIM "
-        "| backend |",
-        "|---|---|---:|---:|---:|---:|---:|---:|---|",
+        "| dataset | views (train/held-out) | image size | steps | grad threshold | Gaussians | train time "
+        "| held-out PSNR | SSIM | backend |",
+        "|---|---:|---|---:|---:|---:|---:|---:|---:|---|",
     ]
     for d in args.runs:
         d = Path(d)
@@ -76,14 +76,17 @@ def report(args) -> None:
         e = json.loads((d / "eval" / "eval.json").read_text())
         data = (d / "data.txt").read_text().strip() if (d / "data.txt").is_file() else "?"
         cfg = t["config"]
-        size = f"scale {cfg['image_scale']}"
+        size, views = f"scale {cfg['image_scale']}", "?"
         if Path(data).exists():
             from fmgs.data.dataset import load_dataset
 
-            cam = load_dataset(data).frames[0].camera.scaled(cfg["image_scale"])
+            ds = load_dataset(data)
+            cam = ds.frames[0].camera.scaled(cfg["image_scale"])
             size = f"{cam.width}x{cam.height}"
+            train, held = ds.split(cfg["holdout_every"])
+            views = f"{len(train)}/{len(held)}"
         lines.append(
-            f"| {Path(data).name} | {size} | {t['steps']} | {cfg['densify']['grad_threshold']:g} "
+            f"| {Path(data).name} | {views} | {size} | {t['steps']} | {cfg['densify']['grad_threshold']:g} "
             f"| {t['gaussians']:,} | {t['seconds'] / 60:.1f} min | **{e['psnr']:.2f} dB** | {e['ssim']:.3f} "
             f"| {t.get('backend', cfg['backend'])} |"
         )

@@ -10,6 +10,7 @@ only for values within ~1e-15 (relative) of a threshold. Threads: numba's pool
 from __future__ import annotations
 
 import functools
+import importlib
 
 import numpy as np
 import torch
@@ -19,37 +20,44 @@ from fmgs.errors import BackendUnavailableError
 from fmgs.render.types import RasterConfig, RenderOutput
 
 
-def _kernels():
+def load_kernels(module: str = "cpu_kernels"):
+    """Import a numba kernel module of fmgs.render on first use (numba is imported only then)."""
     try:
-        from fmgs.render import cpu_kernels
+        return importlib.import_module(f"fmgs.render.{module}")
     except ImportError as e:  # pragma: no cover - numba is a core dependency
         raise BackendUnavailableError(f"the cpu backend needs numba ({e}); pip install 'fmgs[core]'") from e
-    return cpu_kernels
+
+
+def costliest_tiles_first(offsets: np.ndarray) -> np.ndarray:
+    """Non-empty tile ids by descending list length (offsets [T+1]), so the threads finish together."""
+    lens = np.diff(offsets)
+    return np.argsort(-lens, kind="stable")[: int((lens > 0).sum())]
 
 
 @functools.lru_cache(maxsize=8)
 def _exp_table(alpha_min: float) -> np.ndarray:
-    return _kernels().exp_table(alpha_min)
+    return load_kernels().exp_table(alpha_min)
 
 
 def _np(t: torch.Tensor) -> np.ndarray:
     return np.ascontiguousarray(t.detach().cpu().numpy())
 
 
-def _f64(t: torch.Tensor) -> np.ndarray:
+def f64_array(t: torch.Tensor) -> np.ndarray:
+    """A contiguous float64 numpy copy (or view) of a tensor, detached and on the CPU."""
     return np.ascontiguousarray(t.detach().cpu().to(torch.float64).numpy())
 
 
 def _geom(t: torch.Tensor) -> np.ndarray:
     """Geometry as float32 or float64 without a copy; the kernels widen every value to float64."""
-    return _np(t) if t.dtype in (torch.float32, torch.float64) else _f64(t)
+    return _np(t) if t.dtype in (torch.float32, torch.float64) else f64_array(t)
 
 
 def project_cpu(
     means, quats, scales, opacities, camera: Camera, config: RasterConfig
 ) -> dict[str, np.ndarray]:
     """Run the projection kernel; returns float64/int numpy arrays keyed like fmgs.render.types.Projection."""
-    k = _kernels()
+    k = load_kernels()
     n = means.shape[0]
     out = {
         "means2d": np.empty((n, 2)),
@@ -87,7 +95,7 @@ def rasterize_cpu(
     """Same contract as fmgs.render.rasterize; CPU tensors, no gradients."""
     import numba
 
-    k = _kernels()
+    k = load_kernels()
     N, D = features.shape
     W, H, T = camera.width, camera.height, config.tile_size
     p = project_cpu(means, quats, scales, opacities, camera, config)
@@ -95,15 +103,13 @@ def rasterize_cpu(
     order = vis[k.stable_argsort_positive(p["depths"][vis])]  # visible depths are > near > 0
     tiles_x, tiles_y = -(-W // T), -(-H // T)
     ids, offsets = k.bin_kernel(order, p["tbox"], tiles_x, tiles_y)
-    # Costliest tiles first, one at a time, so the two threads finish together.
-    lens = np.diff(offsets)
-    tile_order = np.argsort(-lens, kind="stable")[: int((lens > 0).sum())]
+    tile_order = costliest_tiles_first(offsets)  # handed out one at a time
     feats = _geom(features)  # float16/bfloat16 features are widened (numba has no half arithmetic)
     out_dtype = feats.dtype
     image = np.zeros((H, W, D), dtype=out_dtype)
     alpha = np.zeros((H, W))
     depth = np.zeros((H, W))
-    bg = _f64(background) if background is not None else np.zeros(D)
+    bg = f64_array(background) if background is not None else np.zeros(D)
     if background is not None:
         image[:] = bg.astype(out_dtype)  # tiles with no Gaussian see only the background
     pair_cnt = np.zeros(len(ids), dtype=np.int64)

@@ -9,32 +9,17 @@ better served by the reference path, which ``backend="auto"`` picks for them.
 
 from __future__ import annotations
 
-import functools
-
 import numpy as np
 import torch
 
 from fmgs.cameras import Camera
-from fmgs.errors import BackendUnavailableError
 from fmgs.render.binning import bin_tiles
+from fmgs.render.cpu_fast import costliest_tiles_first, f64_array, load_kernels
 from fmgs.render.projection import project
 from fmgs.render.types import RasterConfig, RenderOutput
 
 # auto uses this path for gradients up to this many channels (RGB training); wider goes to the reference
 MAX_AUTO_CHANNELS = 32
-
-
-@functools.cache
-def _kernels():
-    try:
-        from fmgs.render import cpu_grad_kernels
-    except ImportError as e:  # pragma: no cover - numba is a core dependency
-        raise BackendUnavailableError(f"the cpu backend needs numba ({e}); pip install 'fmgs[core]'") from e
-    return cpu_grad_kernels
-
-
-def _np64(t: torch.Tensor) -> np.ndarray:
-    return np.ascontiguousarray(t.detach().cpu().to(torch.float64).numpy())
 
 
 class _Blend(torch.autograd.Function):
@@ -44,19 +29,17 @@ class _Blend(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, means2d, conics, opac, depths, features, bins, bbox, camera, config):
-        k = _kernels()
+        k = load_kernels("cpu_grad_kernels")
         import numba
 
         N, D = features.shape
         W, H, T = camera.width, camera.height, config.tile_size
         ids = np.ascontiguousarray(bins.gauss_ids.numpy())
         offsets = np.ascontiguousarray(bins.offsets.numpy())
-        lens = np.diff(offsets)
-        # Costliest tiles first, one at a time, so the threads finish together.
-        tile_order = np.argsort(-lens, kind="stable")[: int((lens > 0).sum())]
-        arrays = [_np64(x) for x in (means2d, conics, opac, depths)]
+        tile_order = costliest_tiles_first(offsets)  # handed out one at a time
+        arrays = [f64_array(x) for x in (means2d, conics, opac, depths)]
         box = np.ascontiguousarray(bbox.numpy())
-        feats = _np64(features)
+        feats = f64_array(features)
         feat = np.zeros((H, W, D))
         wsum = np.zeros((H, W))
         zsum = np.zeros((H, W))
@@ -79,12 +62,12 @@ class _Blend(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, g_feat, g_wsum, g_zsum, g_t, _g_cnt, _g_w):
-        k = _kernels()
+        k = load_kernels("cpu_grad_kernels")
         import numba
 
         geo, arrays, box, feats, t_img, last, config, N = ctx.saved
         ids = geo[0]
-        H, W, D = geo[6], geo[5], feats.shape[1]
+        (H, W), D = t_img.shape, feats.shape[1]
 
         def grad(x, shape):
             return np.zeros(shape) if x is None else np.ascontiguousarray(x.to(torch.float64).numpy())

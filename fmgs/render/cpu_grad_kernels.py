@@ -17,6 +17,8 @@ import math
 import numpy as np
 from numba import njit, prange
 
+from fmgs.render.cpu_kernels import tile_extent
+
 
 @njit(cache=True, parallel=True)
 def blend_forward(
@@ -51,10 +53,7 @@ def blend_forward(
     for q in prange(tile_order.shape[0]):
         t = tile_order[q]
         start, end = offsets[t], offsets[t + 1]
-        x_0 = (t % tiles_x) * tile
-        y_0 = (t // tiles_x) * tile
-        x_e = min(x_0 + tile, W) - 1
-        y_e = min(y_0 + tile, H) - 1
+        x_0, y_0, x_e, y_e = tile_extent(t, tiles_x, tile, W, H)
         npix = (x_e - x_0 + 1) * (y_e - y_0 + 1)
         T = np.ones(P)
         done = np.zeros(P, dtype=np.bool_)
@@ -150,10 +149,7 @@ def blend_backward(
     for q in prange(tile_order.shape[0]):
         t = tile_order[q]
         start = offsets[t]
-        x_0 = (t % tiles_x) * tile
-        y_0 = (t // tiles_x) * tile
-        x_e = min(x_0 + tile, W) - 1
-        y_e = min(y_0 + tile, H) - 1
+        x_0, y_0, x_e, y_e = tile_extent(t, tiles_x, tile, W, H)
         T = np.empty(P)
         S = np.empty(P)
         last = np.full(P, start)

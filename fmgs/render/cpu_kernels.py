@@ -225,6 +225,14 @@ def exp_table(alpha_min: float) -> np.ndarray:
     return np.exp(-np.arange(int(x_max * 256) + 2) / 256.0)
 
 
+@njit(cache=True, inline="always")
+def tile_extent(t, tiles_x, tile, W, H):  # pragma: no cover
+    """First column and row of tile ``t`` and its last ones inside the W x H image (inclusive)."""
+    x_0 = (t % tiles_x) * tile
+    y_0 = (t // tiles_x) * tile
+    return x_0, y_0, min(x_0 + tile, W) - 1, min(y_0 + tile, H) - 1
+
+
 @njit(cache=True, parallel=True, fastmath={"contract"})
 def raster_kernel(
     ids,
@@ -263,10 +271,7 @@ def raster_kernel(
     for q in prange(tile_order.shape[0]):
         t = tile_order[q]
         start, end = offsets[t], offsets[t + 1]
-        x_0 = (t % tiles_x) * tile
-        y_0 = (t // tiles_x) * tile
-        x_e = min(x_0 + tile, W) - 1
-        y_e = min(y_0 + tile, H) - 1
+        x_0, y_0, x_e, y_e = tile_extent(t, tiles_x, tile, W, H)
         npix = (x_e - x_0 + 1) * (y_e - y_0 + 1)
         T = np.ones(P)
         acc = np.zeros((P, D))

@@ -609,6 +609,7 @@ def test_import_is_cheap():
     subprocess.run([sys.executable, "-c", code], check=True)
 
 
+@pytest.mark.cuda
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
 def test_cuda_paths_match_cpu(tiny_clip, tiny_vit, tmp_path):
     """Encoders, the pyramid, label targets and the cache take CUDA tensors and agree with the CPU."""

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import threading
 from collections import OrderedDict
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import NamedTuple
 
 import numpy as np
@@ -30,7 +30,7 @@ class EngineConfig:
     backend: str = "auto"
     """Rasteriser backend for pose queries ("auto", "cpu", "reference", "cuda")."""
     device: str = "cpu"
-    """Device holding the render geometry."""
+    """Device holding the render geometry; a CUDA device also holds the query state (exact float32)."""
 
 
 class TextAnswer(NamedTuple):
@@ -72,7 +72,8 @@ class SceneEngine:
         sub = self.gaussians.subset(package.selected.to(self.gaussians.device))
         self.geometry = (sub.means, sub.quats, sub.scales.float(), sub.opacities.float())
         """Activated geometry of the embedded Gaussians (relevancy renders)."""
-        self.index = EmbeddingIndex.build(package.embeddings, package.canonical, cfg.index)
+        icfg = cfg.index if cfg.device == "cpu" else replace(cfg.index, device=cfg.device)
+        self.index = EmbeddingIndex.build(package.embeddings, package.canonical, icfg)
         means = g.means.detach().cpu().double().numpy()
         self.bounds = np.concatenate([means.min(0), means.max(0)]) if len(means) else np.zeros(6, np.float64)
         """[6] min xyz, max xyz of all means."""
@@ -151,6 +152,7 @@ class SceneEngine:
         vecs = self.unit(query[None])
         canon = None if canonical is None else self.unit(canonical, "canonical embeddings")
         key = vecs.numpy().tobytes() + (b"" if canon is None else canon.numpy().tobytes())
+        # Channels live on the index's device (the GPU with a CUDA engine): a cached query costs no copy.
         with self._cache_lock:
             hit = self._chan_cache.get(key)
             if hit is not None:

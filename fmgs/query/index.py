@@ -37,6 +37,9 @@ class IndexConfig:
     """The compact path rescores rerank * k candidates exactly (0: return the compact scores)."""
     basis_sample: int = 100_000
     """Rows used to estimate the basis (a seeded sample; all rows when fewer)."""
+    device: str = "cpu"
+    """Where the query state lives. A CUDA device always holds the exact float32 embeddings (4*D bytes
+    per Gaussian of device memory; the compact path is CPU-only); answers come back on the CPU."""
 
     def __post_init__(self) -> None:
         if self.rank < 0 or self.exact_below < 0 or self.rerank < 0 or self.basis_sample < 1:
@@ -78,7 +81,9 @@ class EmbeddingIndex:
         """[r] float32 dequantisation scale per basis vector (compact path)."""
         self.canonical = canonical
         """[M,C] float32 dot products with the scene's canonical phrases (exact, from the package)."""
-        self.canonical_max = canonical.amax(1) if canonical.shape[1] else torch.zeros(len(canonical))
+        self.canonical_max = (
+            canonical.amax(1) if canonical.shape[1] else torch.zeros(len(canonical), device=canonical.device)
+        )
         """[M] the largest canonical dot per Gaussian."""
         self.read_rows = read_rows
         self.cfg = cfg
@@ -97,6 +102,9 @@ class EmbeddingIndex:
         ``embeddings``, which then stay referenced).
         """
         M, D = embeddings.shape
+        dev = torch.device(cfg.device)
+        if dev.type != "cpu":
+            return cls(_float32_on(embeddings, dev), None, canonical.float().to(dev), None, cfg)
         canonical = canonical.float().contiguous()
         if cfg.rank == 0 or cfg.rank >= D or M < cfg.exact_below:
             return cls(embeddings.float().contiguous(), None, canonical, None, cfg)
@@ -125,12 +133,17 @@ class EmbeddingIndex:
         )
         return sum(x.numel() * x.element_size() for x in t)
 
+    @property
+    def device(self) -> torch.device:
+        return self.coeffs.device
+
     def dots(self, vectors: torch.Tensor, shift: torch.Tensor | None = None) -> torch.Tensor:
         """[M,n] f.v - shift for unit vectors [n,D] (compact approximation on the compact path).
 
-        shift [M] (default 0) is subtracted from every column, fused into the kernel.
+        shift [M] (default 0) is subtracted from every column, fused into the kernel. The result lives
+        on the index's device.
         """
-        v = vectors.float()
+        v = vectors.float().to(self.device)
         if self.basis is None:
             d = self.coeffs @ v.T
             return d if shift is None else d - shift[:, None]
@@ -145,7 +158,7 @@ class EmbeddingIndex:
     def exact_dots(self, rows: torch.Tensor, vectors: torch.Tensor) -> torch.Tensor:
         """[k,n] exact f.v for rows [k] (any order)."""
         if self.basis is None:
-            return self.coeffs[rows] @ vectors.float().T
+            return self.coeffs[rows.to(self.device)] @ vectors.float().to(self.device).T
         r = rows.numpy()
         uniq, inv = np.unique(r, return_inverse=True)
         return (self.read_rows(uniq) @ vectors.float().T)[torch.from_numpy(inv)]
@@ -167,6 +180,7 @@ class EmbeddingIndex:
             e = torch.zeros(0)
             return Ranked(torch.zeros(0, dtype=torch.int64), e, e)
         vecs = query[None] if canonical_vectors is None else torch.cat([query[None], canonical_vectors])
+        vecs = vecs.float().to(self.device)
         if canonical_vectors is None and not self.exact:  # margin f.q - max_n f.c_n from the kernel
             margin = self.dots(vecs, self.canonical_max)[:, 0]
             d = None
@@ -189,7 +203,16 @@ class EmbeddingIndex:
         rows, sim, m = cand[order], sim[order], m[order]
         rel = torch.sigmoid(TEMPERATURE * m)
         keep = rel >= threshold
-        return Ranked(rows[keep], rel[keep], sim[keep])
+        return Ranked(rows[keep].cpu(), rel[keep].cpu(), sim[keep].cpu())
+
+
+def _float32_on(embeddings: torch.Tensor, device: torch.device, step: int = 1 << 18) -> torch.Tensor:
+    """[M,D] float32 copy of embeddings on ``device``, converted there chunk by chunk (no host-side
+    float32 copy of a memory-mapped float16 table)."""
+    out = torch.empty(embeddings.shape, dtype=torch.float32, device=device)
+    for s in range(0, embeddings.shape[0], step):
+        out[s : s + step] = embeddings[s : s + step].to(device, non_blocking=False)
+    return out
 
 
 def rank_reference(

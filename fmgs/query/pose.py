@@ -55,10 +55,10 @@ def render_pose(
         else:
             chans = torch.ones(engine.num_embedded, 1)
         out = rasterize(*engine.geometry, chans.to(engine.geometry[0]), camera, backend=engine.cfg.backend)
-        img = out.image.float().cpu()
+        img = out.image.float()
         alpha = out.alpha.float().cpu()
-        if "relevancy" in outputs:
-            rel = relevancy(img[..., 0], img[..., 1:], TEMPERATURE)
+        if "relevancy" in outputs:  # scored where it was rendered: only [H,W] crosses to the host
+            rel = relevancy(img[..., 0], img[..., 1:], TEMPERATURE).cpu()
             flat = int(torch.argmax(rel))
             y, x = divmod(flat, rel.shape[1])
             arg = (x, y, float(rel[y, x]))

@@ -34,7 +34,7 @@ def segment(
     dots = engine.channels(v)  # [M,n]
     gi = gl = pix = None
     if per_gaussian:
-        gi, gl = engine.selected.clone(), dots.argmax(1).to(torch.int32)
+        gi, gl = engine.selected.clone(), dots.argmax(1).to(torch.int32).cpu()
     if camera is not None:
         out = rasterize(*engine.geometry, dots.to(engine.geometry[0]), camera, backend=engine.cfg.backend)
         pix = out.image.float().argmax(-1).to(torch.int32).cpu()

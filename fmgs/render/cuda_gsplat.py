@@ -16,8 +16,10 @@ from fmgs.cameras import Camera
 from fmgs.errors import BackendUnavailableError
 from fmgs.render.types import RasterConfig, RenderOutput
 
-# gsplat's widest compiled kernel handles 513 channels (512 features + the depth channel).
-_MAX_NATIVE_CHANNELS = 513
+# Channels gsplat blends per pass (it loops over chunks of this many). Measured on an H100
+# (benchmarks/GPU.md, part "chunks"): a 899-channel garden render takes 38 ms in passes of 513, 20 ms in
+# passes of 32; and gsplat 1.5.3's backward crashes the process (SIGSEGV) with 513-channel passes.
+CHANNEL_CHUNK = 32
 
 
 def load_gsplat():
@@ -66,16 +68,24 @@ def rasterize_gsplat(
         render_mode="RGB+ED",
         rasterize_mode="classic",
         backgrounds=None if background is None else background.to(dev, f32)[None],
-        channel_chunk=min(D + 1, _MAX_NATIVE_CHANNELS),
+        channel_chunk=min(D + 1, CHANNEL_CHUNK),
     )
     radii_xy = meta["radii"][0]
     visible = (radii_xy > 0).all(-1)
+    means2d = meta["means2d"][0]
+    if meta["means2d"].requires_grad:
+        # The image depends on gsplat's [1,N,2] tensor, not on this [N,2] view of it, so autograd never
+        # reaches the view: hand its gradient over (training reads out.means2d.grad for densification).
+        def _to_view(grad: torch.Tensor) -> None:
+            means2d.grad = grad[0]
+
+        meta["means2d"].register_hook(_to_view)
     return RenderOutput(
         image=colors[0, ..., :D].to(dt),
         alpha=alphas[0, ..., 0].to(dt),
         depth=colors[0, ..., D].to(dt),
         radii=torch.where(visible, radii_xy.amax(-1), 0).to(torch.int32),
-        means2d=meta["means2d"][0],
+        means2d=means2d,
         visible=visible,
         n_contrib=None,
         weight_sum=None,

@@ -47,14 +47,15 @@ def evaluate(
     _, test = ds.split(holdout_every)
     if not test:
         raise ValueError("no held-out frames (holdout_every < 2 or too few images)")
-    bg = torch.tensor(background, dtype=torch.float32)
+    dev = gaussians.means.device
+    bg = torch.tensor(background, dtype=torch.float32, device=dev)
     rows = []
     if out_dir is not None:
         (Path(out_dir) / "renders").mkdir(parents=True, exist_ok=True)
     for i in test:
         img, cam = ds.image(i, scale)
         with torch.no_grad():
-            out = render_rgb(gaussians, cam, background=bg, backend=backend).image.clamp(0, 1)
+            out = render_rgb(gaussians, cam, background=bg, backend=backend).image.clamp(0, 1).cpu()
         rows.append({"name": ds.frames[i].name, "psnr": psnr(out, img), "ssim": float(ssim(out, img))})
         if out_dir is not None:
             pair = torch.cat([img, out], 1).numpy()  # ground truth | render

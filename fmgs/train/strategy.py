@@ -144,7 +144,8 @@ def refine(
             R = quat_wxyz_to_rotmat(params["quats"][idx].double()).to(scales)
             s = scales[idx]
             for _ in range(2):
-                eps = torch.randn(len(idx), 3, generator=generator, device=s.device, dtype=s.dtype)
+                # drawn where the generator lives (a CPU generator also drives CUDA training)
+                eps = torch.randn(len(idx), 3, generator=generator, dtype=s.dtype).to(s.device)
                 new["means"].append(params["means"][idx] + torch.einsum("nij,nj->ni", R, eps * s))
                 new["log_scales"].append(params["log_scales"][idx] - torch.log(torch.tensor(1.6)))
                 for k in ("quats", "opacity_logits", "sh_dc", "sh_rest"):

@@ -1,0 +1,31 @@
+"""The GPU report writer: every section renders from partial, failed or complete figures."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from benchmarks.gpu_report import NOT_RUN, write_report
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_report_from_nothing_says_not_run(tmp_path):
+    write_report({}, tmp_path / "GPU.md")
+    text = (tmp_path / "GPU.md").read_text()
+    assert text.count("not run") >= 6 and NOT_RUN in text
+
+
+def test_report_names_failed_and_skipped_parts(tmp_path):
+    res = {"parts": {"pose": {"error": "RuntimeError: boom"}, "paper": {"skipped": "no time left"}}}
+    write_report(res, tmp_path / "GPU.md")
+    text = (tmp_path / "GPU.md").read_text()
+    assert "failed: RuntimeError: boom" in text and "skipped: no time left" in text
+
+
+def test_committed_report_is_written_from_the_committed_figures(tmp_path):
+    figures = json.loads((ROOT / "benchmarks" / "GPU.json").read_text())
+    write_report(figures, tmp_path / "GPU.md")
+    assert (tmp_path / "GPU.md").read_text() == (ROOT / "benchmarks" / "GPU.md").read_text()
+    tests = figures["parts"]["tests"]
+    assert tests["collected"] == tests["passed"] > 0  # the device run's CUDA tests all passed

@@ -1,4 +1,4 @@
-# GPU image for build + serve: `fmgs serve` on a mounted scene repository, health-checked over gRPC.
+# GPU image for build + serve: `fmgs-server` on a mounted scene repository, health-checked over gRPC.
 #   docker build -t fmgs .
 #   docker run --gpus all -p 50051:50051 -v "$PWD/models:/models" fmgs
 # Stage 1 compiles (CUDA toolkit, compilers); stage 2 carries only the virtual environment and the runtime.
@@ -46,4 +46,4 @@ EXPOSE 50051
 VOLUME ["/models"]
 HEALTHCHECK --interval=30s --timeout=5s --start-period=120s --retries=3 \
     CMD ["fmgs-client", "--address", "127.0.0.1:50051", "--timeout", "4", "health"]
-ENTRYPOINT ["fmgs", "serve", "--models", "/models", "--host", "0.0.0.0", "--port", "50051", "--device", "cuda"]
+ENTRYPOINT ["fmgs-server", "--models", "/models", "--host", "0.0.0.0", "--port", "50051", "--device", "cuda"]

@@ -23,7 +23,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from benchmarks.scenes import DATA, garden, synthetic  # noqa: E402
-from benchmarks.server import ENC, TableEncoder, fieldlike, gaussians_from  # noqa: E402
+from benchmarks.server import ENC, TableEncoder, fieldlike, gaussians_from, proto_camera  # noqa: E402
 from fmgs.vecmath import safe_normalize  # noqa: E402
 
 DEVICE = os.environ.get("FMGS_BENCH_DEVICE", "cuda")
@@ -92,6 +92,19 @@ def clip_like_queries(emb: torch.Tensor, n: int, cos: float = 0.3, seed: int = 1
     noise = torch.randn(n, emb.shape[1], generator=g)
     noise = safe_normalize(noise - (noise * e).sum(1, keepdim=True) * e)  # orthogonal to e
     return safe_normalize(cos * e + (1 - cos**2) ** 0.5 * noise)
+
+
+def _exported_scene(folder: Path, n: int, seed: int, n_queries: int):
+    """A synthetic n-Gaussian scene with field-like embeddings exported to ``folder``:
+    (scene, CLIP-like queries [n_queries,D], canonical embeddings [4,D])."""
+    from fmgs.scene.package import export_scene
+
+    s = synthetic(n, seed=seed)
+    emb = fieldlike(s.means)
+    canon = safe_normalize(torch.randn(4, emb.shape[1], generator=torch.Generator().manual_seed(9)))
+    queries = clip_like_queries(emb, n_queries)
+    export_scene(folder, gaussians_from(s), torch.arange(n), emb, ENC, canon)
+    return s, queries, canon
 
 
 # ---------------------------------------------------------------- env and build
@@ -187,21 +200,14 @@ def part_pose(work: Path, quick: bool) -> dict:
 
     from fmgs.query.engine import EngineConfig, SceneEngine
     from fmgs.query.pose import render_pose
-    from fmgs.scene.package import export_scene
-    from fmgs_client._proto.fmgs.v1 import fmgs_pb2 as pb
-    from fmgs_client._proto.fmgs.v1 import fmgs_pb2_grpc as pb_grpc
     from fmgs_server.config import ServerConfig
     from fmgs_server.server import start_server
+    from fmgs_wire.proto.fmgs.v1 import fmgs_pb2 as pb
+    from fmgs_wire.proto.fmgs.v1 import fmgs_pb2_grpc as pb_grpc
 
     n = 20_000 if quick else 1_000_000
-    s = synthetic(n, seed=4)
-    g = gaussians_from(s)
-    emb = fieldlike(s.means)
-    canon = safe_normalize(torch.randn(4, emb.shape[1], generator=torch.Generator().manual_seed(9)))
-    queries = clip_like_queries(emb, 64)
     models = work / "models-pose"
-    export_scene(models / "pose", g, torch.arange(n), emb, ENC, canon)
-    del emb
+    s, queries, canon = _exported_scene(models / "pose", n, seed=4, n_queries=64)
     cam = s.cameras[0].resized(480, 270)
     res: dict = {"gaussians": n, "size": "480x270", "target_images_per_s": 300}
 
@@ -233,15 +239,7 @@ def part_pose(work: Path, quick: bool) -> dict:
 
     enc = TableEncoder(queries, canon)
     srv = start_server(ServerConfig(models=models, port=0, device=DEVICE), encoder_factory=lambda i: enc)
-    pcam = pb.Camera(
-        viewmat=cam.viewmat.reshape(-1).tolist(),
-        fx=cam.fx,
-        fy=cam.fy,
-        cx=cam.cx,
-        cy=cam.cy,
-        width=480,
-        height=270,
-    )
+    pcam = proto_camera(cam)
     try:
         req = lambda i: pb.RenderRequest(scene="pose", camera=pcam, text=f"q{i % 64}", sequence=i)  # noqa: E731
         with grpc.insecure_channel(srv.address) as ch:
@@ -263,7 +261,7 @@ def _grpc_concurrent(address: str, req, clients: int, seconds: float) -> dict:
 
     import grpc
 
-    from fmgs_client._proto.fmgs.v1 import fmgs_pb2_grpc as pb_grpc
+    from fmgs_wire.proto.fmgs.v1 import fmgs_pb2_grpc as pb_grpc
 
     done, counts, errors = threading.Event(), [0] * clients, []
 
@@ -458,15 +456,9 @@ def _engine_agreement(work: Path, quick: bool) -> dict:
     from fmgs.query.engine import EngineConfig, SceneEngine
     from fmgs.query.index import IndexConfig
     from fmgs.query.pose import render_pose
-    from fmgs.scene.package import export_scene
 
     n = 20_000 if quick else 200_000
-    s = synthetic(n, seed=11)
-    g = gaussians_from(s)
-    emb = fieldlike(s.means)
-    canon = safe_normalize(torch.randn(4, emb.shape[1], generator=torch.Generator().manual_seed(9)))
-    queries = clip_like_queries(emb, 20)
-    export_scene(work / "models-agree" / "agree", g, torch.arange(n), emb, ENC, canon)
+    s, queries, _ = _exported_scene(work / "models-agree" / "agree", n, seed=11, n_queries=20)
     exact = IndexConfig(rank=0)
     cpu = SceneEngine.open(work / "models-agree" / "agree", EngineConfig(index=exact))
     gpu = SceneEngine.open(work / "models-agree" / "agree", EngineConfig(index=exact, device=DEVICE))

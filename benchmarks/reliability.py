@@ -25,10 +25,10 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from benchmarks.raster import machine  # noqa: E402
-from fmgs_client._proto.fmgs.v1 import fmgs_pb2 as pb  # noqa: E402
 from fmgs_client.load import LoadConfig, run_load  # noqa: E402
 from fmgs_server.config import ServerConfig  # noqa: E402
 from fmgs_server.server import start_server  # noqa: E402
+from fmgs_wire.proto.fmgs.v1 import fmgs_pb2 as pb  # noqa: E402
 
 
 def demo_camera(models: Path, w: int = 160, h: int = 120) -> pb.Camera:

@@ -78,6 +78,16 @@ def export(folder: Path, g: GaussianSet, emb: torch.Tensor, canon: torch.Tensor,
     return export_scene(folder, g, sel, emb, ENC, canon)
 
 
+def proto_camera(cam):
+    """The wire Camera of an fmgs Camera."""
+    from fmgs_wire.proto.fmgs.v1 import fmgs_pb2 as pb
+
+    v = cam.viewmat.reshape(-1).tolist()
+    return pb.Camera(
+        viewmat=v, fx=cam.fx, fy=cam.fy, cx=cam.cx, cy=cam.cy, width=cam.width, height=cam.height
+    )
+
+
 def gaussians_from(scene) -> GaussianSet:
     sh = ((scene.colors - 0.5) / SH_C0)[:, None, :]
     return GaussianSet.from_activated(scene.means, scene.quats, scene.scales, scene.opacities, sh=sh)
@@ -152,13 +162,14 @@ def bench_text(out: Path, n: int, n_queries: int, top_k: int = 100) -> dict:
     # End to end through gRPC on loopback (compact state, as served).
     import grpc
 
-    from fmgs_client._proto.fmgs.v1 import fmgs_pb2 as pb
-    from fmgs_client._proto.fmgs.v1 import fmgs_pb2_grpc as pb_grpc
     from fmgs_server.config import ServerConfig
     from fmgs_server.server import start_server
+    from fmgs_wire.proto.fmgs.v1 import fmgs_pb2 as pb
+    from fmgs_wire.proto.fmgs.v1 import fmgs_pb2_grpc as pb_grpc
 
     enc = TableEncoder(queries, canon)
-    srv = start_server(ServerConfig(models=out, port=0, exact_below=0), encoder_factory=lambda i: enc)
+    scfg = ServerConfig(models=out, port=0, index=IndexConfig(exact_below=0))
+    srv = start_server(scfg, encoder_factory=lambda i: enc)
     try:
         with grpc.insecure_channel(srv.address) as ch:
             stub = pb_grpc.FmgsStub(ch)
@@ -179,10 +190,10 @@ def bench_text(out: Path, n: int, n_queries: int, top_k: int = 100) -> dict:
 def bench_pose(out: Path, quick: bool, frames: int, streams: int, stream_s: float) -> dict:
     import grpc
 
-    from fmgs_client._proto.fmgs.v1 import fmgs_pb2 as pb
-    from fmgs_client._proto.fmgs.v1 import fmgs_pb2_grpc as pb_grpc
     from fmgs_server.config import ServerConfig
     from fmgs_server.server import start_server
+    from fmgs_wire.proto.fmgs.v1 import fmgs_pb2 as pb
+    from fmgs_wire.proto.fmgs.v1 import fmgs_pb2_grpc as pb_grpc
 
     s = synthetic(20_000, seed=4) if quick else garden()
     g = gaussians_from(s)
@@ -191,15 +202,7 @@ def bench_pose(out: Path, quick: bool, frames: int, streams: int, stream_s: floa
     queries = make_queries(emb, 4)
     export(out / "pose", g, emb, canon)
     cam = s.cameras[0].resized(480, 270)
-    pcam = pb.Camera(
-        viewmat=cam.viewmat.reshape(-1).tolist(),
-        fx=cam.fx,
-        fy=cam.fy,
-        cx=cam.cx,
-        cy=cam.cy,
-        width=480,
-        height=270,
-    )
+    pcam = proto_camera(cam)
     res = {"scene": s.name, "gaussians": g.num, "embedded": g.num, "size": "480x270"}
     eng = SceneEngine.open(out / "pose")
     from fmgs.query.pose import render_pose
@@ -236,7 +239,7 @@ def _streams(address: str, req, n: int, seconds: float) -> dict:
     """n clients each push poses as fast as they can for ``seconds``; half of them read slowly."""
     import grpc
 
-    from fmgs_client._proto.fmgs.v1 import fmgs_pb2_grpc as pb_grpc
+    from fmgs_wire.proto.fmgs.v1 import fmgs_pb2_grpc as pb_grpc
 
     done = threading.Event()
     frames, errors, sent = [0] * n, [], [0] * n

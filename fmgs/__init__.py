@@ -1,11 +1,21 @@
 """FMGS core library: Gaussian scene model, cameras, rasterisers.
 
-Importing this package is cheap: no compiled kernel is built or loaded until a backend is used.
+Importing this package is cheap: no torch, no compiled kernel is loaded until an export is used.
 """
 
-from fmgs.cameras import Camera
-from fmgs.errors import FmgsError, ValidationError
-from fmgs.gaussians import GaussianSet
+from importlib import import_module
 
-__all__ = ["Camera", "FmgsError", "GaussianSet", "ValidationError"]
+_EXPORTS = {
+    "Camera": "fmgs.cameras",
+    "FmgsError": "fmgs.errors",
+    "ValidationError": "fmgs.errors",
+    "GaussianSet": "fmgs.gaussians",
+}
+__all__ = sorted(_EXPORTS)
 __version__ = "0.1.0"
+
+
+def __getattr__(name: str):
+    if name in _EXPORTS:
+        return getattr(import_module(_EXPORTS[name]), name)
+    raise AttributeError(f"module 'fmgs' has no attribute {name!r}")

@@ -314,7 +314,7 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--steps", type=int, default=30_000, help="fewer steps compress the schedule to match")
     t.add_argument("--scale", type=float, default=1.0, help="train on images resized by this factor")
     t.add_argument("--backend", default="auto", choices=["auto", "cpu", "reference", "cuda"])
-    t.add_argument("--device", default="cuda" if _cuda() else "cpu")
+    t.add_argument("--device", default="auto", help="torch device (auto: cuda when available)")
     t.add_argument("--seed", type=int, default=0)
     t.add_argument("--checkpoint-every", type=int, default=0)
     t.add_argument("--grad-threshold", type=float, help="densification threshold (default 2e-4, graphdeco)")
@@ -331,7 +331,7 @@ def build_parser() -> argparse.ArgumentParser:
     fe.add_argument("data", help="posed dataset folder")
     fe.add_argument("--out", required=True, help="feature cache folder")
     _add_target_args(fe)
-    fe.add_argument("--device", default="cuda" if _cuda() else "cpu")
+    fe.add_argument("--device", default="auto", help="torch device (auto: cuda when available)")
     fe.set_defaults(func=cmd_features)
     tf = sub.add_parser("train-field", help="distil a feature cache into the feature field")
     tf.add_argument("data", help="posed dataset folder")
@@ -340,7 +340,7 @@ def build_parser() -> argparse.ArgumentParser:
     tf.add_argument("--out", required=True, help="folder for the checkpoint and field_train.json")
     tf.add_argument("--package", help="also write a scene package to this folder (e.g. models/NAME)")
     _add_field_args(tf)
-    tf.add_argument("--device", default="cuda" if _cuda() else "cpu")
+    tf.add_argument("--device", default="auto", help="torch device (auto: cuda when available)")
     tf.add_argument("--seed", type=int, default=0)
     tf.add_argument("--restart", action="store_true", help="ignore an existing checkpoint in --out")
     tf.set_defaults(func=cmd_train_field)
@@ -357,62 +357,33 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--extra", help="JSON file with an object merged into the manifest's extra")
     _add_target_args(b)
     _add_field_args(b)
-    b.add_argument("--device", default="cuda" if _cuda() else "cpu")
+    b.add_argument("--device", default="auto", help="torch device (auto: cuda when available)")
     b.add_argument("--seed", type=int, default=0)
     b.set_defaults(func=cmd_build)
 
-    sv = sub.add_parser("serve", help="serve the scene packages in MODELS over gRPC")
-    sv.add_argument("--models", default="models", help="scene repository (one folder per scene)")
-    sv.add_argument("--host", default="127.0.0.1", help="interface to bind (0.0.0.0 for all)")
-    sv.add_argument("--port", type=int, default=50051)
-    sv.add_argument("--workers", type=int, default=0, help="requests computing at once (0: CPU count)")
-    sv.add_argument("--max-streams", type=int, default=32)
-    sv.add_argument("--memory-budget-mb", type=float, default=0, help="unload LRU scenes beyond it (0: none)")
-    sv.add_argument("--preload", action="store_true", help="load every scene and its text encoder now")
-    sv.add_argument("--index-rank", type=int, default=64, help="compact query state rank (0: exact)")
-    sv.add_argument("--device", default="cpu")
-    sv.add_argument("--tls-cert", help="server certificate (PEM)")
-    sv.add_argument("--tls-key", help="server key (PEM)")
-    sv.add_argument("--client-ca", help="require client certificates from this CA (mutual TLS)")
-    sv.add_argument("--token-file", help="bearer tokens for queries, one per line")
-    sv.add_argument("--admin-token-file", help="bearer tokens for load/unload/reload")
-    sv.add_argument("--log-level", default="INFO")
-    sv.set_defaults(func=cmd_serve)
+    sub.add_parser(
+        "serve",
+        help="serve scene packages over gRPC: the fmgs-server command (needs fmgs[server]); "
+        "`fmgs serve --help` lists its flags",
+        add_help=False,
+    )
     return p
 
 
-def cmd_serve(a) -> int:
-    import logging
-    from pathlib import Path
+def serve(argv: list[str]) -> int:
+    """``fmgs serve ARGS`` execs ``fmgs-server ARGS`` (same process id): the core never imports the server."""
+    import importlib.util
+    import os
 
-    from fmgs_server.config import ServerConfig
-    from fmgs_server.server import serve
-
-    logging.basicConfig(level=a.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-    opt = lambda v: Path(v) if v else None  # noqa: E731
-    cfg = ServerConfig(
-        models=Path(a.models),
-        host=a.host,
-        port=a.port,
-        workers=a.workers,
-        max_streams=a.max_streams,
-        memory_budget_bytes=int(a.memory_budget_mb * (1 << 20)),
-        preload=a.preload,
-        index_rank=a.index_rank,
-        device=a.device,
-        tls_cert=opt(a.tls_cert),
-        tls_key=opt(a.tls_key),
-        client_ca=opt(a.client_ca),
-        token_file=opt(a.token_file),
-        admin_token_file=opt(a.admin_token_file),
-    )
-    try:
-        cfg.validate()
-    except ValueError as e:
-        print(f"fmgs serve: error: {e}", file=sys.stderr)
+    if importlib.util.find_spec("fmgs_server") is None or importlib.util.find_spec("grpc") is None:
+        print(
+            "fmgs serve: the server is not installed: pip install 'fmgs[server]' (then run fmgs-server)",
+            file=sys.stderr,
+        )
         return 2
-    serve(cfg)
-    return 0
+    sys.stdout.flush()
+    os.execv(sys.executable, [sys.executable, "-m", "fmgs_server.cli", *argv])
+    return 0  # pragma: no cover - exec does not return
 
 
 def _cuda() -> bool:
@@ -426,14 +397,32 @@ def _cuda() -> bool:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from fmgs.errors import FmgsError
-
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if argv[:1] == ["serve"]:
+        return serve(argv[1:])
     args = build_parser().parse_args(argv)
     try:
-        return args.func(args)
-    except FmgsError as e:
-        print(f"fmgs: error: {e}", file=sys.stderr)
+        from fmgs.errors import FmgsError
+
+        if getattr(args, "device", None) == "auto":
+            args.device = "cuda" if _cuda() else "cpu"
+        try:
+            return args.func(args)
+        except FmgsError as e:
+            print(f"fmgs: error: {e}", file=sys.stderr)
+            return 2
+    except ModuleNotFoundError as e:
+        if e.name not in _CORE_MODULES:
+            raise
+        print(
+            f"fmgs: `fmgs {args.command}` needs the core library ({e.name} is missing): "
+            "pip install 'fmgs[core]' (the client-only install has fmgs-client)",
+            file=sys.stderr,
+        )
         return 2
+
+
+_CORE_MODULES = ("torch", "numba", "safetensors", "plyfile", "scipy", "PIL", "tqdm")
 
 
 if __name__ == "__main__":  # pragma: no cover

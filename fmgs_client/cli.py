@@ -16,9 +16,9 @@ from pathlib import Path
 import numpy as np
 
 from fmgs_client.client import DEFAULT_ADDRESS, FmgsClient, FmgsError
-from fmgs_client.images import colorize, depth_to_uint16, label_colors, relevancy_png, to_uint8, write_png
 from fmgs_client.ply import write_ply
 from fmgs_client.types import CameraSpec, SceneInfo, TextAnswer
+from fmgs_wire.images import colorize, depth_to_uint16, label_colors, relevancy_png, to_uint8, write_png
 
 
 def _size(s: str) -> tuple[int, int]:

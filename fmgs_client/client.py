@@ -16,10 +16,6 @@ from typing import Any, TypeVar
 import grpc
 import numpy as np
 
-from fmgs_client._proto.fmgs.v1 import fmgs_pb2 as pb
-from fmgs_client._proto.fmgs.v1 import fmgs_pb2_grpc as pb_grpc
-from fmgs_client.images import decode_png
-from fmgs_client.tensors import TensorError, from_tensor, join, to_tensor
 from fmgs_client.types import (
     CameraSpec,
     Instance,
@@ -30,6 +26,10 @@ from fmgs_client.types import (
     SegmentResult,
     TextAnswer,
 )
+from fmgs_wire.images import PNG_SCALE, decode_png
+from fmgs_wire.proto.fmgs.v1 import fmgs_pb2 as pb
+from fmgs_wire.proto.fmgs.v1 import fmgs_pb2_grpc as pb_grpc
+from fmgs_wire.tensors import TensorError, from_tensor, join, to_tensor
 
 DEFAULT_ADDRESS = "127.0.0.1:50051"
 MiB = 1 << 20
@@ -59,7 +59,7 @@ ENCODINGS = {"float32": pb.IMAGE_ENCODING_FLOAT32, "png": pb.IMAGE_ENCODING_PNG}
 # Trailing shape of each rendered image after [H,W].
 _IMAGE_TAIL = {"relevancy": (), "rgb": (3,), "depth": (), "alpha": ()}
 # PNG encoding (see the proto): 8-bit value*255, depth 16-bit millimetres.
-_PNG_SCALE = {"relevancy": 255.0, "rgb": 255.0, "alpha": 255.0, "depth": 1000.0}
+_PNG_SCALE = PNG_SCALE
 HEALTH_STATUS = {0: "UNKNOWN", 1: "SERVING", 2: "NOT_SERVING", 3: "SERVICE_UNKNOWN"}
 
 T = TypeVar("T")

@@ -14,8 +14,8 @@ from dataclasses import dataclass, field
 
 import grpc
 
-from fmgs_client._proto.fmgs.v1 import fmgs_pb2 as pb
-from fmgs_client._proto.fmgs.v1 import fmgs_pb2_grpc as pb_grpc
+from fmgs_wire.proto.fmgs.v1 import fmgs_pb2 as pb
+from fmgs_wire.proto.fmgs.v1 import fmgs_pb2_grpc as pb_grpc
 
 
 @dataclass(frozen=True)

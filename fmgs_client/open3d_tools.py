@@ -21,9 +21,9 @@ from typing import Any
 
 import numpy as np
 
-from fmgs_client.images import colorize, write_png
 from fmgs_client.ply import write_ply
 from fmgs_client.types import Box, CameraSpec, TextAnswer
+from fmgs_wire.images import colorize, write_png
 
 # The 12 edges of a box as pairs of corner indices (corner bits: x=1, y=2, z=4; see Box.corners).
 BOX_EDGES = np.array(

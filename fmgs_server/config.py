@@ -3,15 +3,17 @@
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
+
+from fmgs.query.config import IndexConfig
 
 MiB = 1 << 20
 
 
 @dataclass(frozen=True)
 class ServerConfig:
-    """How ``fmgs serve`` runs."""
+    """How ``fmgs-server`` runs (every field is a flag and a key of the --config TOML file)."""
 
     models: Path = Path("models")
     """The scene repository: one folder per scene package."""
@@ -53,10 +55,8 @@ class ServerConfig:
     """How often a scene's files are checked for changes (on access)."""
     preload: bool = False
     """Load every scene (and its text encoder) at start instead of on first use."""
-    index_rank: int = 64
-    """Rank of the compact per-Gaussian query state (0: exact float32 embeddings)."""
-    exact_below: int = 200_000
-    """Scenes with fewer embedded Gaussians keep exact float32 embeddings."""
+    index: IndexConfig = field(default_factory=IndexConfig)
+    """Per-Gaussian query state of every scene (flags --index-rank, --index-exact-below, ...)."""
     device: str = "cpu"
     """Device for scenes and text encoders."""
     text_cache: int = 4096

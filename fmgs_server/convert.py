@@ -10,10 +10,10 @@ import torch
 from fmgs.cameras import Camera
 from fmgs.errors import ValidationError
 from fmgs.query.instances import Instance, InstanceConfig
-from fmgs_client._proto.fmgs.v1 import fmgs_pb2 as pb
-from fmgs_client.tensors import TensorError, from_tensor
 from fmgs_server.config import ServerConfig
 from fmgs_server.errors import InvalidArgument
+from fmgs_wire.proto.fmgs.v1 import fmgs_pb2 as pb
+from fmgs_wire.tensors import TensorError, from_tensor
 
 OUTPUT_NAMES = {
     pb.RENDER_OUTPUT_RELEVANCY: "relevancy",

@@ -14,14 +14,13 @@ from grpc_health.v1 import health, health_pb2, health_pb2_grpc
 from grpc_reflection.v1alpha import reflection
 
 from fmgs.query.engine import EngineConfig, SceneEngine
-from fmgs.query.index import IndexConfig
-from fmgs_client._proto.fmgs.v1 import fmgs_pb2 as pb
-from fmgs_client._proto.fmgs.v1 import fmgs_pb2_grpc as pb_grpc
 from fmgs_server.auth import TokenAuth, read_tokens
 from fmgs_server.config import ServerConfig
 from fmgs_server.encoders import EncoderCache
 from fmgs_server.repository import FAILED, SceneRepository
 from fmgs_server.service import FmgsService
+from fmgs_wire.proto.fmgs.v1 import fmgs_pb2 as pb
+from fmgs_wire.proto.fmgs.v1 import fmgs_pb2_grpc as pb_grpc
 
 log = logging.getLogger("fmgs_server")
 SERVICE = pb.DESCRIPTOR.services_by_name["Fmgs"].full_name  # "fmgs.v1.Fmgs"
@@ -79,7 +78,7 @@ def start_server(cfg: ServerConfig, encoder_factory=None) -> RunningServer:
         )
         health_servicer.set(scene_health_name(name), status)
 
-    ecfg = EngineConfig(IndexConfig(rank=cfg.index_rank, exact_below=cfg.exact_below), device=cfg.device)
+    ecfg = EngineConfig(cfg.index, device=cfg.device)
     repo = SceneRepository(
         cfg.models,
         lambda p: SceneEngine.open(p, ecfg),

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import functools
-import io
 import json
 import logging
 import threading
@@ -20,9 +19,6 @@ from fmgs.gaussians import SH_C0
 from fmgs.query.points import NoFieldError, query_points
 from fmgs.query.pose import render_pose
 from fmgs.query.segment import segment
-from fmgs_client._proto.fmgs.v1 import fmgs_pb2 as pb
-from fmgs_client._proto.fmgs.v1 import fmgs_pb2_grpc as pb_grpc
-from fmgs_client.tensors import row_chunks, to_tensor
 from fmgs_server import convert
 from fmgs_server.config import ServerConfig
 from fmgs_server.encoders import EncoderCache
@@ -34,6 +30,10 @@ from fmgs_server.errors import (
     ServiceError,
 )
 from fmgs_server.repository import FAILED, LOADING, READY, UNLOADED, SceneRepository
+from fmgs_wire.images import encode_output_png
+from fmgs_wire.proto.fmgs.v1 import fmgs_pb2 as pb
+from fmgs_wire.proto.fmgs.v1 import fmgs_pb2_grpc as pb_grpc
+from fmgs_wire.tensors import row_chunks, to_tensor
 
 log = logging.getLogger("fmgs_server")
 
@@ -318,7 +318,7 @@ class FmgsService(pb_grpc.FmgsServicer):
         }
         if encoding == pb.IMAGE_ENCODING_PNG:
             for k, v in imgs.items():
-                setattr(first, f"{k}_png", _png(k, v.numpy()))
+                setattr(first, f"{k}_png", encode_output_png(k, v.numpy()))
             first.last = True
             yield first
             return
@@ -434,18 +434,3 @@ class FmgsService(pb_grpc.FmgsServicer):
                 chunks.append(c)
         chunks[-1].last = True
         yield from chunks
-
-
-def _png(kind: str, a: np.ndarray) -> bytes:
-    """PNG bytes: relevancy/alpha 8-bit grey, rgb 8-bit RGB, depth 16-bit millimetres."""
-    from PIL import Image
-
-    if kind == "depth":
-        img = Image.fromarray(np.clip(np.round(a * 1000), 0, 65535).astype(np.uint16))
-    elif kind == "rgb":
-        img = Image.fromarray(np.clip(np.round(a * 255), 0, 255).astype(np.uint8), "RGB")
-    else:
-        img = Image.fromarray(np.clip(np.round(a * 255), 0, 255).astype(np.uint8), "L")
-    buf = io.BytesIO()
-    img.save(buf, format="PNG")
-    return buf.getvalue()

@@ -1,7 +1,7 @@
-"""Generate the Python gRPC modules from proto/ into fmgs_client/_proto (or check they are current).
+"""Generate the Python gRPC modules from proto/ into fmgs_wire/proto (or check they are current).
 
-The include path is mapped (``-Ifmgs_client/_proto=proto``) so the import lines protoc emits name the
-package the modules live in (``fmgs_client._proto.fmgs.v1``) and never the core ``fmgs`` package.
+The include path is mapped (``-Ifmgs_wire/proto=proto``) so the import lines protoc emits name the
+package the modules live in (``fmgs_wire.proto.fmgs.v1``) and never the core ``fmgs`` package.
 
     python scripts/gen_proto.py           # regenerate
     python scripts/gen_proto.py --check   # exit 1 if the checked-in modules are stale
@@ -17,7 +17,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 PROTO = ROOT / "proto"
-PREFIX = "fmgs_client/_proto"
+PREFIX = "fmgs_wire/proto"
 
 
 def generate(out: Path) -> list[Path]:

@@ -11,11 +11,11 @@ import pytest
 from fmgs.query.engine import SceneEngine
 from fmgs_client import cli
 from fmgs_client.client import FmgsClient, FmgsError
-from fmgs_client.images import decode_png
 from fmgs_client.ply import read_ply
 from fmgs_client.types import CameraSpec
 from fmgs_server.config import ServerConfig
 from fmgs_server.server import start_server
+from fmgs_wire.images import decode_png
 from tests.query_scenes import CENTRES, CLASS_NAMES, ENCODER_ID, FakeEncoder, blob_scene
 
 

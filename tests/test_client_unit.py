@@ -21,8 +21,6 @@ from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
 from fmgs_client import cli
-from fmgs_client._proto.fmgs.v1 import fmgs_pb2 as pb
-from fmgs_client._proto.fmgs.v1 import fmgs_pb2_grpc as pb_grpc
 from fmgs_client.client import (
     ChunkError,
     FmgsClient,
@@ -34,10 +32,12 @@ from fmgs_client.client import (
     decode_health_response,
     encode_health_request,
 )
-from fmgs_client.images import colorize, decode_png, encode_png, write_png
 from fmgs_client.ply import read_ply, write_ply
-from fmgs_client.tensors import TensorError, from_tensor, row_chunks, to_tensor
 from fmgs_client.types import Box, CameraSpec, Instance, TextAnswer
+from fmgs_wire.images import colorize, decode_png, encode_png, write_png
+from fmgs_wire.proto.fmgs.v1 import fmgs_pb2 as pb
+from fmgs_wire.proto.fmgs.v1 import fmgs_pb2_grpc as pb_grpc
+from fmgs_wire.tensors import TensorError, from_tensor, row_chunks, to_tensor
 
 ROOT = Path(__file__).resolve().parents[1]
 HAS_HEALTH = importlib.util.find_spec("grpc_health") is not None  # a server dependency, not the client's
@@ -588,7 +588,7 @@ def test_client_imports_without_torch():
     code = (
         "import sys; sys.modules['torch'] = None\n"
         "import fmgs_client, fmgs_client.client, fmgs_client.cli, fmgs_client.types\n"
-        "import fmgs_client.open3d_tools, fmgs_client.images, fmgs_client.ply\n"
+        "import fmgs_client.open3d_tools, fmgs_wire.images, fmgs_client.ply\n"
         "bad = [m for m in ('fmgs', 'torch', 'open3d', 'PIL', 'plyfile', 'rich') if sys.modules.get(m)]\n"
         "assert not bad, bad\n"
         "print('ok')\n"

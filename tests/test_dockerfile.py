@@ -44,18 +44,18 @@ def test_entrypoint_and_healthcheck_are_real_commands():
     ins = dict(_instructions())
     scripts = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["scripts"]
     entry = json.loads(ins["ENTRYPOINT"])
-    assert entry[0] in scripts and entry[1] == "serve"
-    from fmgs.cli import build_parser
+    assert entry[0] in scripts and scripts[entry[0]] == "fmgs_server.cli:main"
+    from fmgs_server.cli import build_parser, config_from_args
 
-    a = build_parser().parse_args(entry[1:])
-    assert a.models == "/models" and a.host == "0.0.0.0" and a.func.__name__ == "cmd_serve"
+    cfg = config_from_args(build_parser().parse_args(entry[1:]))
+    assert str(cfg.models) == "/models" and cfg.host == "0.0.0.0" and cfg.device == "cuda"
     health = json.loads(ins["HEALTHCHECK"].split("CMD", 1)[1].strip())
     assert health[0] in scripts
     from fmgs_client.cli import build_parser as client_parser
 
     c = client_parser().parse_args(health[1:])
     assert c.address == "127.0.0.1:50051"
-    assert str(entry[entry.index("--port") + 1]) == c.address.rsplit(":", 1)[1]
+    assert str(cfg.port) == c.address.rsplit(":", 1)[1]
 
 
 def test_image_is_multi_stage_with_a_runtime_base():

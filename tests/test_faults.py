@@ -16,11 +16,11 @@ import torch
 from safetensors.torch import load_file, save_file
 
 from fmgs.errors import ValidationError
-from fmgs_client._proto.fmgs.v1 import fmgs_pb2 as pb
-from fmgs_client._proto.fmgs.v1 import fmgs_pb2_grpc as pb_grpc
-from fmgs_client.tensors import from_tensor, join
 from fmgs_server.config import ServerConfig
 from fmgs_server.server import start_server
+from fmgs_wire.proto.fmgs.v1 import fmgs_pb2 as pb
+from fmgs_wire.proto.fmgs.v1 import fmgs_pb2_grpc as pb_grpc
+from fmgs_wire.tensors import from_tensor, join
 from tests.query_scenes import FakeEncoder, blob_scene, serve_process
 
 C = grpc.StatusCode
@@ -238,7 +238,7 @@ def test_loader_never_reads_a_half_written_package(models):
 
 
 def test_sigterm_drains_in_flight_and_restart_serves_the_same(tmp_path):
-    from fmgs_client.tensors import to_tensor
+    from fmgs_wire.tensors import to_tensor
 
     root = tmp_path / "m"
     root.mkdir()

@@ -13,11 +13,11 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from fmgs_client._proto.fmgs.v1 import fmgs_pb2 as pb
-from fmgs_client._proto.fmgs.v1 import fmgs_pb2_grpc as pb_grpc
 from fmgs_client.client import assemble_render
 from fmgs_server.config import ServerConfig
 from fmgs_server.server import start_server
+from fmgs_wire.proto.fmgs.v1 import fmgs_pb2 as pb
+from fmgs_wire.proto.fmgs.v1 import fmgs_pb2_grpc as pb_grpc
 from tests.query_scenes import CLASS_NAMES, ENCODER_ID, FakeEncoder, blob_scene
 
 C = grpc.StatusCode

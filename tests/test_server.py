@@ -5,6 +5,7 @@ from __future__ import annotations
 import shutil
 import threading
 import time
+from pathlib import Path
 
 import grpc
 import numpy as np
@@ -14,11 +15,11 @@ from grpc_health.v1 import health_pb2, health_pb2_grpc
 
 from fmgs.query.engine import SceneEngine
 from fmgs.query.pose import render_pose
-from fmgs_client._proto.fmgs.v1 import fmgs_pb2 as pb
-from fmgs_client._proto.fmgs.v1 import fmgs_pb2_grpc as pb_grpc
-from fmgs_client.tensors import from_tensor, join, to_tensor
 from fmgs_server.config import ServerConfig
 from fmgs_server.server import scene_health_name, start_server
+from fmgs_wire.proto.fmgs.v1 import fmgs_pb2 as pb
+from fmgs_wire.proto.fmgs.v1 import fmgs_pb2_grpc as pb_grpc
+from fmgs_wire.tensors import from_tensor, join, to_tensor
 from tests.query_scenes import CLASS_NAMES, ENCODER_ID, FakeEncoder, blob_scene, camera, serve_process
 
 C = grpc.StatusCode
@@ -324,10 +325,10 @@ def test_deadline_is_honoured(stub):
 
 
 def test_cli_serve_parser_defaults_bind_loopback():
-    from fmgs.cli import build_parser
+    from fmgs_server.cli import build_parser, config_from_args
 
-    a = build_parser().parse_args(["serve"])
-    assert a.host == "127.0.0.1" and a.models == "models"
+    cfg = config_from_args(build_parser().parse_args([]))
+    assert cfg.host == "127.0.0.1" and cfg.models == Path("models")
     assert torch.get_num_threads() >= 1
 
 

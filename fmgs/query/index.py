@@ -16,34 +16,13 @@ saturates.
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
 import torch
 
+from fmgs.query.config import IndexConfig
 from fmgs.query.relevancy import TEMPERATURE
-
-
-@dataclass(frozen=True)
-class IndexConfig:
-    """How a scene's embeddings are held for queries."""
-
-    rank: int = 64
-    """Basis size of the compact path (int8 coefficients: r bytes per Gaussian); 0 keeps exact float32."""
-    exact_below: int = 200_000
-    """Scenes with fewer embedded Gaussians use the exact path (4*D bytes per Gaussian)."""
-    rerank: int = 10
-    """The compact path rescores rerank * k candidates exactly (0: return the compact scores)."""
-    basis_sample: int = 100_000
-    """Rows used to estimate the basis (a seeded sample; all rows when fewer)."""
-    device: str = "cpu"
-    """Where the query state lives. A CUDA device always holds the exact float32 embeddings (4*D bytes
-    per Gaussian of device memory; the compact path is CPU-only); answers come back on the CPU."""
-
-    def __post_init__(self) -> None:
-        if self.rank < 0 or self.exact_below < 0 or self.rerank < 0 or self.basis_sample < 1:
-            raise ValueError("rank, exact_below and rerank must be >= 0, basis_sample >= 1")
 
 
 class Ranked(NamedTuple):

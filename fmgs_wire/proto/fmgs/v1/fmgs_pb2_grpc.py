@@ -3,7 +3,7 @@
 import grpc
 import warnings
 
-from fmgs_client._proto.fmgs.v1 import fmgs_pb2 as fmgs__client_dot___proto_dot_fmgs_dot_v1_dot_fmgs__pb2
+from fmgs_wire.proto.fmgs.v1 import fmgs_pb2 as fmgs__wire_dot_proto_dot_fmgs_dot_v1_dot_fmgs__pb2
 
 GRPC_GENERATED_VERSION = '1.85.1'
 GRPC_VERSION = grpc.__version__
@@ -18,7 +18,7 @@ except ImportError:
 if _version_not_supported:
     raise RuntimeError(
         f'The grpc package installed is at version {GRPC_VERSION},'
-        + ' but the generated code in fmgs_client/_proto/fmgs/v1/fmgs_pb2_grpc.py depends on'
+        + ' but the generated code in fmgs_wire/proto/fmgs/v1/fmgs_pb2_grpc.py depends on'
         + f' grpcio>={GRPC_GENERATED_VERSION}.'
         + f' Please upgrade your grpc module to grpcio>={GRPC_GENERATED_VERSION}'
         + f' or downgrade your generated code using grpcio-tools<={GRPC_VERSION}.'
@@ -38,53 +38,53 @@ class FmgsStub:
         """
         self.ListScenes = channel.unary_unary(
                 '/fmgs.v1.Fmgs/ListScenes',
-                request_serializer=fmgs__client_dot___proto_dot_fmgs_dot_v1_dot_fmgs__pb2.ListScenesRequest.SerializeToString,
-                response_deserializer=fmgs__client_dot___proto_dot_fmgs_dot_v1_dot_fmgs__pb2.ListScenesResponse.FromString,
+                request_serializer=fmgs__wire_dot_proto_dot_fmgs_dot_v1_dot_fmgs__pb2.ListScenesRequest.SerializeToString,
+                response_deserializer=fmgs__wire_dot_proto_dot_fmgs_dot_v1_dot_fmgs__pb2.ListScenesResponse.FromString,
                 _registered_method=True)
         self.GetScene = channel.unary_unary(
                 '/fmgs.v1.Fmgs/GetScene',
-                request_serializer=fmgs__client_dot___proto_dot_fmgs_dot_v1_dot_fmgs__pb2.SceneRequest.SerializeToString,
-                response_deserializer=fmgs__client_dot___proto_dot_fmgs_dot_v1_dot_fmgs__pb2.SceneInfo.FromString,
+                request_serializer=fmgs__wire_dot_proto_dot_fmgs_dot_v1_dot_fmgs__pb2.SceneRequest.SerializeToString,
+                response_deserializer=fmgs__wire_dot_proto_dot_fmgs_dot_v1_dot_fmgs__pb2.SceneInfo.FromString,
                 _registered_method=True)
         self.TextQuery = channel.unary_stream(
                 '/fmgs.v1.Fmgs/TextQuery',
-                request_serializer=fmgs__client_dot___proto_dot_fmgs_dot_v1_dot_fmgs__pb2.TextQueryRequest.SerializeToString,
-                response_deserializer=fmgs__client_dot___proto_dot_fmgs_dot_v1_dot_fmgs__pb2.TextQueryChunk.FromString,
+                request_serializer=fmgs__wire_dot_proto_dot_fmgs_dot_v1_dot_fmgs__pb2.TextQueryRequest.SerializeToString,
+                response_deserializer=fmgs__wire_dot_proto_dot_fmgs_dot_v1_dot_fmgs__pb2.TextQueryChunk.FromString,
                 _registered_method=True)
         self.Render = channel.unary_stream(
                 '/fmgs.v1.Fmgs/Render',
-                request_serializer=fmgs__client_dot___proto_dot_fmgs_dot_v1_dot_fmgs__pb2.RenderRequest.SerializeToString,
-                response_deserializer=fmgs__client_dot___proto_dot_fmgs_dot_v1_dot_fmgs__pb2.RenderChunk.FromString,
+                request_serializer=fmgs__wire_dot_proto_dot_fmgs_dot_v1_dot_fmgs__pb2.RenderRequest.SerializeToString,
+                response_deserializer=fmgs__wire_dot_proto_dot_fmgs_dot_v1_dot_fmgs__pb2.RenderChunk.FromString,
                 _registered_method=True)
         self.StreamRender = channel.stream_stream(
                 '/fmgs.v1.Fmgs/StreamRender',
-                request_serializer=fmgs__client_dot___proto_dot_fmgs_dot_v1_dot_fmgs__pb2.RenderRequest.SerializeToString,
-                response_deserializer=fmgs__client_dot___proto_dot_fmgs_dot_v1_dot_fmgs__pb2.RenderChunk.FromString,
+                request_serializer=fmgs__wire_dot_proto_dot_fmgs_dot_v1_dot_fmgs__pb2.RenderRequest.SerializeToString,
+                response_deserializer=fmgs__wire_dot_proto_dot_fmgs_dot_v1_dot_fmgs__pb2.RenderChunk.FromString,
                 _registered_method=True)
         self.PointQuery = channel.unary_unary(
                 '/fmgs.v1.Fmgs/PointQuery',
-                request_serializer=fmgs__client_dot___proto_dot_fmgs_dot_v1_dot_fmgs__pb2.PointQueryRequest.SerializeToString,
-                response_deserializer=fmgs__client_dot___proto_dot_fmgs_dot_v1_dot_fmgs__pb2.PointQueryResponse.FromString,
+                request_serializer=fmgs__wire_dot_proto_dot_fmgs_dot_v1_dot_fmgs__pb2.PointQueryRequest.SerializeToString,
+                response_deserializer=fmgs__wire_dot_proto_dot_fmgs_dot_v1_dot_fmgs__pb2.PointQueryResponse.FromString,
                 _registered_method=True)
         self.Segment = channel.unary_stream(
                 '/fmgs.v1.Fmgs/Segment',
-                request_serializer=fmgs__client_dot___proto_dot_fmgs_dot_v1_dot_fmgs__pb2.SegmentRequest.SerializeToString,
-                response_deserializer=fmgs__client_dot___proto_dot_fmgs_dot_v1_dot_fmgs__pb2.SegmentChunk.FromString,
+                request_serializer=fmgs__wire_dot_proto_dot_fmgs_dot_v1_dot_fmgs__pb2.SegmentRequest.SerializeToString,
+                response_deserializer=fmgs__wire_dot_proto_dot_fmgs_dot_v1_dot_fmgs__pb2.SegmentChunk.FromString,
                 _registered_method=True)
         self.LoadScene = channel.unary_unary(
                 '/fmgs.v1.Fmgs/LoadScene',
-                request_serializer=fmgs__client_dot___proto_dot_fmgs_dot_v1_dot_fmgs__pb2.SceneRequest.SerializeToString,
-                response_deserializer=fmgs__client_dot___proto_dot_fmgs_dot_v1_dot_fmgs__pb2.SceneInfo.FromString,
+                request_serializer=fmgs__wire_dot_proto_dot_fmgs_dot_v1_dot_fmgs__pb2.SceneRequest.SerializeToString,
+                response_deserializer=fmgs__wire_dot_proto_dot_fmgs_dot_v1_dot_fmgs__pb2.SceneInfo.FromString,
                 _registered_method=True)
         self.UnloadScene = channel.unary_unary(
                 '/fmgs.v1.Fmgs/UnloadScene',
-                request_serializer=fmgs__client_dot___proto_dot_fmgs_dot_v1_dot_fmgs__pb2.SceneRequest.SerializeToString,
-                response_deserializer=fmgs__client_dot___proto_dot_fmgs_dot_v1_dot_fmgs__pb2.SceneInfo.FromString,
+                request_serializer=fmgs__wire_dot_proto_dot_fmgs_dot_v1_dot_fmgs__pb2.SceneRequest.SerializeToString,
+                response_deserializer=fmgs__wire_dot_proto_dot_fmgs_dot_v1_dot_fmgs__pb2.SceneInfo.FromString,
                 _registered_method=True)
         self.ReloadScene = channel.unary_unary(
                 '/fmgs.v1.Fmgs/ReloadScene',
-                request_serializer=fmgs__client_dot___proto_dot_fmgs_dot_v1_dot_fmgs__pb2.SceneRequest.SerializeToString,
-                response_deserializer=fmgs__client_dot___proto_dot_fmgs_dot_v1_dot_fmgs__pb2.SceneInfo.FromString,
+                request_serializer=fmgs__wire_dot_proto_dot_fmgs_dot_v1_dot_fmgs__pb2.SceneRequest.SerializeToString,
+                response_deserializer=fmgs__wire_dot_proto_dot_fmgs_dot_v1_dot_fmgs__pb2.SceneInfo.FromString,
                 _registered_method=True)
 
 
@@ -164,53 +164,53 @@ def add_FmgsServicer_to_server(servicer, server):
     rpc_method_handlers = {
             'ListScenes': grpc.unary_unary_rpc_method_handler(
                     servicer.ListScenes,
-                    request_deserializer=fmgs__client_dot___proto_dot_fmgs_dot_v1_dot_fmgs__pb2.ListScenesRequest.FromString,
-                    response_serializer=fmgs__client_dot___proto_dot_fmgs_dot_v1_dot_fmgs__pb2.ListScenesResponse.SerializeToString,
+                    request_deserializer=fmgs__wire_dot_proto_dot_fmgs_dot_v1_dot_fmgs__pb2.ListScenesRequest.FromString,
+                    response_serializer=fmgs__wire_dot_proto_dot_fmgs_dot_v1_dot_fmgs__pb2.ListScenesResponse.SerializeToString,
             ),
             'GetScene': grpc.unary_unary_rpc_method_handler(
                     servicer.GetScene,
-                    request_deserializer=fmgs__client_dot___proto_dot_fmgs_dot_v1_dot_fmgs__pb2.SceneRequest.FromString,
-                    response_serializer=fmgs__client_dot___proto_dot_fmgs_dot_v1_dot_fmgs__pb2.SceneInfo.SerializeToString,
+                    request_deserializer=fmgs__wire_dot_proto_dot_fmgs_dot_v1_dot_fmgs__pb2.SceneRequest.FromString,
+                    response_serializer=fmgs__wire_dot_proto_dot_fmgs_dot_v1_dot_fmgs__pb2.SceneInfo.SerializeToString,
             ),
             'TextQuery': grpc.unary_stream_rpc_method_handler(
                     servicer.TextQuery,
-                    request_deserializer=fmgs__client_dot___proto_dot_fmgs_dot_v1_dot_fmgs__pb2.TextQueryRequest.FromString,
-                    response_serializer=fmgs__client_dot___proto_dot_fmgs_dot_v1_dot_fmgs__pb2.TextQueryChunk.SerializeToString,
+                    request_deserializer=fmgs__wire_dot_proto_dot_fmgs_dot_v1_dot_fmgs__pb2.TextQueryRequest.FromString,
+                    response_serializer=fmgs__wire_dot_proto_dot_fmgs_dot_v1_dot_fmgs__pb2.TextQueryChunk.SerializeToString,
             ),
             'Render': grpc.unary_stream_rpc_method_handler(
                     servicer.Render,
-                    request_deserializer=fmgs__client_dot___proto_dot_fmgs_dot_v1_dot_fmgs__pb2.RenderRequest.FromString,
-                    response_serializer=fmgs__client_dot___proto_dot_fmgs_dot_v1_dot_fmgs__pb2.RenderChunk.SerializeToString,
+                    request_deserializer=fmgs__wire_dot_proto_dot_fmgs_dot_v1_dot_fmgs__pb2.RenderRequest.FromString,
+                    response_serializer=fmgs__wire_dot_proto_dot_fmgs_dot_v1_dot_fmgs__pb2.RenderChunk.SerializeToString,
             ),
             'StreamRender': grpc.stream_stream_rpc_method_handler(
                     servicer.StreamRender,
-                    request_deserializer=fmgs__client_dot___proto_dot_fmgs_dot_v1_dot_fmgs__pb2.RenderRequest.FromString,
-                    response_serializer=fmgs__client_dot___proto_dot_fmgs_dot_v1_dot_fmgs__pb2.RenderChunk.SerializeToString,
+                    request_deserializer=fmgs__wire_dot_proto_dot_fmgs_dot_v1_dot_fmgs__pb2.RenderRequest.FromString,
+                    response_serializer=fmgs__wire_dot_proto_dot_fmgs_dot_v1_dot_fmgs__pb2.RenderChunk.SerializeToString,
             ),
             'PointQuery': grpc.unary_unary_rpc_method_handler(
                     servicer.PointQuery,
-                    request_deserializer=fmgs__client_dot___proto_dot_fmgs_dot_v1_dot_fmgs__pb2.PointQueryRequest.FromString,
-                    response_serializer=fmgs__client_dot___proto_dot_fmgs_dot_v1_dot_fmgs__pb2.PointQueryResponse.SerializeToString,
+                    request_deserializer=fmgs__wire_dot_proto_dot_fmgs_dot_v1_dot_fmgs__pb2.PointQueryRequest.FromString,
+                    response_serializer=fmgs__wire_dot_proto_dot_fmgs_dot_v1_dot_fmgs__pb2.PointQueryResponse.SerializeToString,
             ),
             'Segment': grpc.unary_stream_rpc_method_handler(
                     servicer.Segment,
-                    request_deserializer=fmgs__client_dot___proto_dot_fmgs_dot_v1_dot_fmgs__pb2.SegmentRequest.FromString,
-                    response_serializer=fmgs__client_dot___proto_dot_fmgs_dot_v1_dot_fmgs__pb2.SegmentChunk.SerializeToString,
+                    request_deserializer=fmgs__wire_dot_proto_dot_fmgs_dot_v1_dot_fmgs__pb2.SegmentRequest.FromString,
+                    response_serializer=fmgs__wire_dot_proto_dot_fmgs_dot_v1_dot_fmgs__pb2.SegmentChunk.SerializeToString,
             ),
             'LoadScene': grpc.unary_unary_rpc_method_handler(
                     servicer.LoadScene,
-                    request_deserializer=fmgs__client_dot___proto_dot_fmgs_dot_v1_dot_fmgs__pb2.SceneRequest.FromString,
-                    response_serializer=fmgs__client_dot___proto_dot_fmgs_dot_v1_dot_fmgs__pb2.SceneInfo.SerializeToString,
+                    request_deserializer=fmgs__wire_dot_proto_dot_fmgs_dot_v1_dot_fmgs__pb2.SceneRequest.FromString,
+                    response_serializer=fmgs__wire_dot_proto_dot_fmgs_dot_v1_dot_fmgs__pb2.SceneInfo.SerializeToString,
             ),
             'UnloadScene': grpc.unary_unary_rpc_method_handler(
                     servicer.UnloadScene,
-                    request_deserializer=fmgs__client_dot___proto_dot_fmgs_dot_v1_dot_fmgs__pb2.SceneRequest.FromString,
-                    response_serializer=fmgs__client_dot___proto_dot_fmgs_dot_v1_dot_fmgs__pb2.SceneInfo.SerializeToString,
+                    request_deserializer=fmgs__wire_dot_proto_dot_fmgs_dot_v1_dot_fmgs__pb2.SceneRequest.FromString,
+                    response_serializer=fmgs__wire_dot_proto_dot_fmgs_dot_v1_dot_fmgs__pb2.SceneInfo.SerializeToString,
             ),
             'ReloadScene': grpc.unary_unary_rpc_method_handler(
                     servicer.ReloadScene,
-                    request_deserializer=fmgs__client_dot___proto_dot_fmgs_dot_v1_dot_fmgs__pb2.SceneRequest.FromString,
-                    response_serializer=fmgs__client_dot___proto_dot_fmgs_dot_v1_dot_fmgs__pb2.SceneInfo.SerializeToString,
+                    request_deserializer=fmgs__wire_dot_proto_dot_fmgs_dot_v1_dot_fmgs__pb2.SceneRequest.FromString,
+                    response_serializer=fmgs__wire_dot_proto_dot_fmgs_dot_v1_dot_fmgs__pb2.SceneInfo.SerializeToString,
             ),
     }
     generic_handler = grpc.method_handlers_generic_handler(
@@ -240,8 +240,8 @@ class Fmgs:
             request,
             target,
             '/fmgs.v1.Fmgs/ListScenes',
-            fmgs__client_dot___proto_dot_fmgs_dot_v1_dot_fmgs__pb2.ListScenesRequest.SerializeToString,
-            fmgs__client_dot___proto_dot_fmgs_dot_v1_dot_fmgs__pb2.ListScenesResponse.FromString,
+            fmgs__wire_dot_proto_dot_fmgs_dot_v1_dot_fmgs__pb2.ListScenesRequest.SerializeToString,
+            fmgs__wire_dot_proto_dot_fmgs_dot_v1_dot_fmgs__pb2.ListScenesResponse.FromString,
             options,
             channel_credentials,
             insecure,
@@ -267,8 +267,8 @@ class Fmgs:
             request,
             target,
             '/fmgs.v1.Fmgs/GetScene',
-            fmgs__client_dot___proto_dot_fmgs_dot_v1_dot_fmgs__pb2.SceneRequest.SerializeToString,
-            fmgs__client_dot___proto_dot_fmgs_dot_v1_dot_fmgs__pb2.SceneInfo.FromString,
+            fmgs__wire_dot_proto_dot_fmgs_dot_v1_dot_fmgs__pb2.SceneRequest.SerializeToString,
+            fmgs__wire_dot_proto_dot_fmgs_dot_v1_dot_fmgs__pb2.SceneInfo.FromString,
             options,
             channel_credentials,
             insecure,
@@ -294,8 +294,8 @@ class Fmgs:
             request,
             target,
             '/fmgs.v1.Fmgs/TextQuery',
-            fmgs__client_dot___proto_dot_fmgs_dot_v1_dot_fmgs__pb2.TextQueryRequest.SerializeToString,
-            fmgs__client_dot___proto_dot_fmgs_dot_v1_dot_fmgs__pb2.TextQueryChunk.FromString,
+            fmgs__wire_dot_proto_dot_fmgs_dot_v1_dot_fmgs__pb2.TextQueryRequest.SerializeToString,
+            fmgs__wire_dot_proto_dot_fmgs_dot_v1_dot_fmgs__pb2.TextQueryChunk.FromString,
             options,
             channel_credentials,
             insecure,
@@ -321,8 +321,8 @@ class Fmgs:
             request,
             target,
             '/fmgs.v1.Fmgs/Render',
-            fmgs__client_dot___proto_dot_fmgs_dot_v1_dot_fmgs__pb2.RenderRequest.SerializeToString,
-            fmgs__client_dot___proto_dot_fmgs_dot_v1_dot_fmgs__pb2.RenderChunk.FromString,
+            fmgs__wire_dot_proto_dot_fmgs_dot_v1_dot_fmgs__pb2.RenderRequest.SerializeToString,
+            fmgs__wire_dot_proto_dot_fmgs_dot_v1_dot_fmgs__pb2.RenderChunk.FromString,
             options,
             channel_credentials,
             insecure,
@@ -348,8 +348,8 @@ class Fmgs:
             request_iterator,
             target,
             '/fmgs.v1.Fmgs/StreamRender',
-            fmgs__client_dot___proto_dot_fmgs_dot_v1_dot_fmgs__pb2.RenderRequest.SerializeToString,
-            fmgs__client_dot___proto_dot_fmgs_dot_v1_dot_fmgs__pb2.RenderChunk.FromString,
+            fmgs__wire_dot_proto_dot_fmgs_dot_v1_dot_fmgs__pb2.RenderRequest.SerializeToString,
+            fmgs__wire_dot_proto_dot_fmgs_dot_v1_dot_fmgs__pb2.RenderChunk.FromString,
             options,
             channel_credentials,
             insecure,
@@ -375,8 +375,8 @@ class Fmgs:
             request,
             target,
             '/fmgs.v1.Fmgs/PointQuery',
-            fmgs__client_dot___proto_dot_fmgs_dot_v1_dot_fmgs__pb2.PointQueryRequest.SerializeToString,
-            fmgs__client_dot___proto_dot_fmgs_dot_v1_dot_fmgs__pb2.PointQueryResponse.FromString,
+            fmgs__wire_dot_proto_dot_fmgs_dot_v1_dot_fmgs__pb2.PointQueryRequest.SerializeToString,
+            fmgs__wire_dot_proto_dot_fmgs_dot_v1_dot_fmgs__pb2.PointQueryResponse.FromString,
             options,
             channel_credentials,
             insecure,
@@ -402,8 +402,8 @@ class Fmgs:
             request,
             target,
             '/fmgs.v1.Fmgs/Segment',
-            fmgs__client_dot___proto_dot_fmgs_dot_v1_dot_fmgs__pb2.SegmentRequest.SerializeToString,
-            fmgs__client_dot___proto_dot_fmgs_dot_v1_dot_fmgs__pb2.SegmentChunk.FromString,
+            fmgs__wire_dot_proto_dot_fmgs_dot_v1_dot_fmgs__pb2.SegmentRequest.SerializeToString,
+            fmgs__wire_dot_proto_dot_fmgs_dot_v1_dot_fmgs__pb2.SegmentChunk.FromString,
             options,
             channel_credentials,
             insecure,
@@ -429,8 +429,8 @@ class Fmgs:
             request,
             target,
             '/fmgs.v1.Fmgs/LoadScene',
-            fmgs__client_dot___proto_dot_fmgs_dot_v1_dot_fmgs__pb2.SceneRequest.SerializeToString,
-            fmgs__client_dot___proto_dot_fmgs_dot_v1_dot_fmgs__pb2.SceneInfo.FromString,
+            fmgs__wire_dot_proto_dot_fmgs_dot_v1_dot_fmgs__pb2.SceneRequest.SerializeToString,
+            fmgs__wire_dot_proto_dot_fmgs_dot_v1_dot_fmgs__pb2.SceneInfo.FromString,
             options,
             channel_credentials,
             insecure,
@@ -456,8 +456,8 @@ class Fmgs:
             request,
             target,
             '/fmgs.v1.Fmgs/UnloadScene',
-            fmgs__client_dot___proto_dot_fmgs_dot_v1_dot_fmgs__pb2.SceneRequest.SerializeToString,
-            fmgs__client_dot___proto_dot_fmgs_dot_v1_dot_fmgs__pb2.SceneInfo.FromString,
+            fmgs__wire_dot_proto_dot_fmgs_dot_v1_dot_fmgs__pb2.SceneRequest.SerializeToString,
+            fmgs__wire_dot_proto_dot_fmgs_dot_v1_dot_fmgs__pb2.SceneInfo.FromString,
             options,
             channel_credentials,
             insecure,
@@ -483,8 +483,8 @@ class Fmgs:
             request,
             target,
             '/fmgs.v1.Fmgs/ReloadScene',
-            fmgs__client_dot___proto_dot_fmgs_dot_v1_dot_fmgs__pb2.SceneRequest.SerializeToString,
-            fmgs__client_dot___proto_dot_fmgs_dot_v1_dot_fmgs__pb2.SceneInfo.FromString,
+            fmgs__wire_dot_proto_dot_fmgs_dot_v1_dot_fmgs__pb2.SceneRequest.SerializeToString,
+            fmgs__wire_dot_proto_dot_fmgs_dot_v1_dot_fmgs__pb2.SceneInfo.FromString,
             options,
             channel_credentials,
             insecure,

@@ -1,0 +1,58 @@
+"""The ``fmgs-server`` command (also ``fmgs serve``): every ServerConfig field is a flag and a TOML key.
+
+fmgs-server --models models --port 50051 --index-rank 64 --index-rerank 10
+fmgs-server --config server.toml --port 0      # flags override the file, the file the defaults
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+from fmgs.flags import add_flags, config_from
+from fmgs_server.config import MiB, ServerConfig
+
+
+def build_parser(prog: str = "fmgs-server") -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog=prog,
+        description="Serve the scene packages of a model repository over gRPC until SIGTERM/SIGINT.",
+    )
+    p.add_argument("--config", help="TOML file of settings (keys are the flag names with _; [index] table)")
+    p.add_argument("--log-level", default="INFO", help="logging level (default: INFO)")
+    p.add_argument(
+        "--memory-budget-mb",
+        type=float,
+        help="the same as --memory-budget-bytes, in MiB",
+    )
+    add_flags(p, ServerConfig)
+    return p
+
+
+def config_from_args(a: argparse.Namespace) -> ServerConfig:
+    """The ServerConfig the parsed flags (and --config file) describe; ValueError names a bad setting."""
+    if a.memory_budget_mb is not None:
+        a.memory_budget_bytes = int(a.memory_budget_mb * MiB)
+    cfg = config_from(ServerConfig, a, a.config)
+    cfg.validate()
+    return cfg
+
+
+def main(argv: list[str] | None = None, prog: str = "fmgs-server") -> int:
+    a = build_parser(prog).parse_args(argv)
+    try:
+        cfg = config_from_args(a)
+    except ValueError as e:
+        print(f"{prog}: error: {e}", file=sys.stderr)
+        return 2
+    import logging
+
+    from fmgs_server.server import serve
+
+    logging.basicConfig(level=a.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    serve(cfg)
+    return 0
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

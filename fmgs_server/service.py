@@ -15,7 +15,6 @@ import numpy as np
 import torch
 
 from fmgs.errors import FmgsError, ValidationError
-from fmgs.gaussians import SH_C0
 from fmgs.query.points import NoFieldError, query_points
 from fmgs.query.pose import render_pose
 from fmgs.query.segment import segment
@@ -120,6 +119,16 @@ def rpc_stream(fn):
             )
 
     return wrapper
+
+
+_COLUMNS = {
+    pb.GAUSSIAN_FIELD_MEAN: "mean",
+    pb.GAUSSIAN_FIELD_OPACITY: "opacity",
+    pb.GAUSSIAN_FIELD_SCALE: "scale",
+    pb.GAUSSIAN_FIELD_ROTATION: "rotation",
+    pb.GAUSSIAN_FIELD_COLOR: "color",
+}
+"""Wire fields of a text answer that are per-Gaussian attributes (computed by the engine)."""
 
 
 class FmgsService(pb_grpc.FmgsServicer):
@@ -251,24 +260,11 @@ class FmgsService(pb_grpc.FmgsServicer):
             yield from self._text_chunks(engine, i, text, a, fields, ms)
 
     def _text_chunks(self, engine, i, text, a, fields, ms):
-        g = engine.gaussians
         idx = a.index
         cols: dict[str, np.ndarray] = {"index": idx.numpy(), "relevancy": a.relevancy.numpy()}
         if pb.GAUSSIAN_FIELD_SIMILARITY in fields:
             cols["similarity"] = a.similarity.numpy()
-        if pb.GAUSSIAN_FIELD_MEAN in fields:
-            cols["mean"] = g.means[idx].float().cpu().numpy()
-        if pb.GAUSSIAN_FIELD_OPACITY in fields:
-            cols["opacity"] = g.opacities[idx].float().cpu().numpy()
-        if pb.GAUSSIAN_FIELD_SCALE in fields:
-            cols["scale"] = g.scales[idx].float().cpu().numpy()
-        if pb.GAUSSIAN_FIELD_ROTATION in fields:
-            q = g.quats[idx].double()
-            n = q.norm(dim=1, keepdim=True)
-            q = torch.where(n > 0, q / n.clamp_min(1e-300), torch.tensor([1.0, 0, 0, 0], dtype=q.dtype))
-            cols["rotation"] = q.float().cpu().numpy()
-        if pb.GAUSSIAN_FIELD_COLOR in fields:
-            cols["color"] = (0.5 + SH_C0 * g.sh[idx, 0]).clamp(0, 1).float().cpu().numpy()
+        cols.update(engine.gaussian_columns(idx, [n for f, n in _COLUMNS.items() if f in fields]))
         if pb.GAUSSIAN_FIELD_INSTANCE in fields:
             ids = a.instance_ids if a.instance_ids is not None else np.full(len(idx), -1, np.int32)
             cols["instance"] = ids.astype(np.int32)

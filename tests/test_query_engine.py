@@ -235,3 +235,22 @@ def test_relevancy_channels_cache_is_exact_and_bounded(tmp_path):
     for i in range(20):
         eng.relevancy_channels(safe_normalize(torch.randn(D, generator=torch.Generator().manual_seed(i))))
     assert len(eng._chan_cache) == eng.CHANNEL_CACHE
+
+
+def test_gaussian_columns_are_activated_attributes(tmp_path):
+    p, _, _ = _scene(tmp_path)
+    e = SceneEngine(load_scene(p, mmap=False))
+    g = e.gaussians
+    g.quats[3] = 0.0  # a zero quaternion answers the identity rotation, never NaN
+    idx = torch.tensor([3, 0, 7])
+    cols = e.gaussian_columns(idx, ["mean", "opacity", "scale", "rotation", "color"])
+    assert all(c.dtype == np.float32 and len(c) == 3 for c in cols.values())
+    assert np.array_equal(cols["mean"], g.means[idx].float().numpy())
+    assert np.allclose(cols["opacity"], torch.sigmoid(g.opacity_logits[idx]).numpy())
+    assert np.allclose(cols["scale"], torch.exp(g.log_scales[idx]).numpy())
+    assert np.array_equal(cols["rotation"][0], [1.0, 0.0, 0.0, 0.0])
+    assert np.allclose(np.linalg.norm(cols["rotation"], axis=1), 1.0, atol=1e-6)
+    assert cols["color"].min() >= 0.0 and cols["color"].max() <= 1.0
+    assert e.gaussian_columns(idx, []) == {}
+    with pytest.raises(ValidationError, match="nope"):
+        e.gaussian_columns(idx, ["nope"])

@@ -15,6 +15,7 @@ import numpy as np
 import torch
 
 from fmgs.errors import ValidationError
+from fmgs.gaussians import SH_C0
 from fmgs.query.index import EmbeddingIndex, IndexConfig
 from fmgs.query.instances import Instance, InstanceConfig, default_eps, group_instances
 from fmgs.scene.package import ScenePackage, load_scene
@@ -31,6 +32,10 @@ class EngineConfig:
     """Rasteriser backend for pose queries ("auto", "cpu", "reference", "cuda")."""
     device: str = "cpu"
     """Device holding the render geometry; a CUDA device also holds the query state (exact float32)."""
+
+
+GAUSSIAN_COLUMNS = ("mean", "opacity", "scale", "rotation", "color")
+"""Per-Gaussian attributes a text answer can carry (SceneEngine.gaussian_columns)."""
 
 
 class TextAnswer(NamedTuple):
@@ -133,6 +138,31 @@ class SceneEngine:
             eps = instances.eps or self._eps_for(instances)
             inst, ids = group_instances(means, r.relevancy.numpy(), opac, instances, eps)
         return TextAnswer(idx, r.relevancy, r.similarity, inst, ids)
+
+    def gaussian_columns(self, index: torch.Tensor, names) -> dict[str, np.ndarray]:
+        """Attributes of the Gaussians at scene indices [K], float32, for each name asked (a subset of
+        GAUSSIAN_COLUMNS): mean [K,3]; opacity [K]; scale [K,3] (activated); rotation [K,4] unit wxyz
+        (identity for a zero quaternion); color [K,3] (degree-0 SH, clamped to [0,1])."""
+        bad = sorted(set(names) - set(GAUSSIAN_COLUMNS))
+        if bad:
+            raise ValidationError("fields", f"unknown Gaussian columns {bad}; choose from {GAUSSIAN_COLUMNS}")
+        g, out = self.gaussians, {}
+        f32 = lambda t: t.float().cpu().numpy()  # noqa: E731
+        for name in names:
+            if name == "mean":
+                out[name] = f32(g.means[index])
+            elif name == "opacity":
+                out[name] = f32(g.opacities[index])
+            elif name == "scale":
+                out[name] = f32(g.scales[index])
+            elif name == "rotation":
+                q = g.quats[index].double()
+                n = q.norm(dim=1, keepdim=True)
+                unit = torch.tensor([1.0, 0, 0, 0], dtype=q.dtype, device=q.device)
+                out[name] = f32(torch.where(n > 0, q / n.clamp_min(1e-300), unit))
+            else:
+                out[name] = f32((0.5 + SH_C0 * g.sh[index, 0]).clamp(0, 1))
+        return out
 
     def _eps_for(self, cfg: InstanceConfig) -> float:
         if cfg.eps_fraction == InstanceConfig().eps_fraction:

@@ -61,7 +61,7 @@ def part_env() -> dict[str, str]:
     return env
 
 
-def run_part(name: str, out: Path, work: Path, limit: float, quick: bool, log) -> dict:
+def run_part(name: str, work: Path, limit: float, quick: bool, log) -> dict:
     """Run one part in a subprocess; its JSON figures, or a record of how it failed."""
     res_file = work / f"part-{name}.json"
     res_file.unlink(missing_ok=True)
@@ -119,7 +119,7 @@ def main() -> int:
                 results["parts"][name] = {"skipped": f"no time left in the {args.budget:.0f} s budget"}
                 continue
             print(f"[gpu] {name} (up to {min(PARTS[name], left):.0f} s)", flush=True)
-            res = run_part(name, args.out, args.work, min(PARTS[name], left), args.quick, log)
+            res = run_part(name, args.work, min(PARTS[name], left), args.quick, log)
             results["parts"][name] = res
             failed |= res["_part"]["rc"] != 0
             print(f"[gpu] {name}: {json.dumps(_brief(res))}", flush=True)

@@ -23,7 +23,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from benchmarks.scenes import DATA, garden, synthetic  # noqa: E402
-from benchmarks.server import ENC, TableEncoder, fieldlike, gaussians_from, proto_camera  # noqa: E402
+from benchmarks.server import ENC, TableEncoder, fieldlike, gaussians_from, med_ms, proto_camera  # noqa: E402
 from fmgs.vecmath import safe_normalize  # noqa: E402
 
 DEVICE = os.environ.get("FMGS_BENCH_DEVICE", "cuda")
@@ -64,10 +64,6 @@ def timed(fn, runs: int, warm: int = 3) -> list[float]:
         sync()
         out.append(time.perf_counter() - t0)
     return out
-
-
-def med_ms(ts: list[float]) -> float:
-    return statistics.median(ts) * 1e3
 
 
 def rel_max(a: torch.Tensor, b: torch.Tensor) -> float:
@@ -498,8 +494,9 @@ def part_text10m(work: Path, quick: bool) -> dict:
     emb = torch.empty(n, D, dtype=torch.float16)
     step = 1 << 20
     ref_means = means[torch.randperm(n, generator=gen)[:100_000]]
+    box = torch.stack([ref_means.min(0).values, ref_means.max(0).values])
     for i in range(0, n, step):  # fieldlike embeddings, computed on the GPU, stored float16 like a package
-        emb[i : i + step] = _fieldlike_gpu(means[i : i + step], ref_means, D, dev).half().cpu()
+        emb[i : i + step] = fieldlike(means[i : i + step], D, device=dev, box=box).half().cpu()
     canon = safe_normalize(torch.randn(4, D, generator=torch.Generator().manual_seed(9)))
     canon_dots = torch.empty(n, 4)
     for i in range(0, n, step):
@@ -555,18 +552,6 @@ def part_text10m(work: Path, quick: bool) -> dict:
     res["speedup_cuda_vs_cpu_compact"] = res["cpu_compact_ms_median"] / res["cuda_ms_median"]
     res["speedup_cuda_vs_cpu_exact"] = res["cpu_exact_ms_median"] / res["cuda_ms_median"]
     return res
-
-
-def _fieldlike_gpu(means: torch.Tensor, ref: torch.Tensor, dim: int, dev: torch.device) -> torch.Tensor:
-    """fieldlike() (benchmarks/server.py) on the GPU; ``ref`` fixes the normalisation box across chunks."""
-    g = torch.Generator().manual_seed(0)
-    lo, hi = ref.min(0).values, ref.max(0).values
-    B = torch.randn(3, 32, generator=g) * torch.linspace(1, 12, 32)
-    W1, b1 = torch.randn(64, 256, generator=g) / 8, torch.randn(256, generator=g) * 0.1
-    W2, b2 = torch.randn(256, dim, generator=g) / 16, torch.randn(dim, generator=g) * 0.3
-    x = ((means - lo) / (hi - lo).clamp_min(1e-9)).to(dev) @ B.to(dev)
-    h = torch.relu(torch.cat([x.sin(), x.cos()], 1) @ W1.to(dev) + b1.to(dev))
-    return safe_normalize(h @ W2.to(dev) + b2.to(dev))
 
 
 # ---------------------------------------------------------------- training

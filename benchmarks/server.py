@@ -38,16 +38,27 @@ D = 512
 ENC = "bench/fixed-table"
 
 
-def fieldlike(means: torch.Tensor, dim: int = D, seed: int = 0) -> torch.Tensor:
-    """[N,dim] unit embeddings that vary smoothly with position, of rank <= 257 like the real head."""
+def fieldlike(
+    means: torch.Tensor,
+    dim: int = D,
+    seed: int = 0,
+    device: str | torch.device = "cpu",
+    box: torch.Tensor | None = None,
+) -> torch.Tensor:
+    """[N,dim] unit embeddings that vary smoothly with position, of rank <= 257 like the real head.
+
+    Computed on ``device`` in chunks, returned there. ``box`` [2,3] (min, max) fixes the normalisation
+    box (default: the means' own), so a scene made chunk by chunk gets the embeddings of one call.
+    """
     g = torch.Generator().manual_seed(seed)
-    lo, hi = means.min(0).values, means.max(0).values
+    lo, hi = (means.min(0).values, means.max(0).values) if box is None else (box[0], box[1])
     B = torch.randn(3, 32, generator=g) * torch.linspace(1, 12, 32)
     W1, b1 = torch.randn(64, 256, generator=g) / 8, torch.randn(256, generator=g) * 0.1
     W2, b2 = torch.randn(256, dim, generator=g) / 16, torch.randn(dim, generator=g) * 0.3
-    out = torch.empty(len(means), dim)
+    lo, hi, B, W1, b1, W2, b2 = (t.to(device) for t in (lo, hi, B, W1, b1, W2, b2))
+    out = torch.empty(len(means), dim, device=device)
     for s in range(0, len(means), 65536):
-        x = (means[s : s + 65536] - lo) / (hi - lo).clamp_min(1e-9) @ B
+        x = (means[s : s + 65536].to(device) - lo) / (hi - lo).clamp_min(1e-9) @ B
         h = torch.relu(torch.cat([x.sin(), x.cos()], 1) @ W1 + b1)
         out[s : s + 65536] = safe_normalize(h @ W2 + b2)
     return out
@@ -93,7 +104,8 @@ def gaussians_from(scene) -> GaussianSet:
     return GaussianSet.from_activated(scene.means, scene.quats, scene.scales, scene.opacities, sh=sh)
 
 
-def _med(ts):
+def med_ms(ts) -> float:
+    """Median of times in seconds, in milliseconds."""
     return statistics.median(ts) * 1e3
 
 
@@ -151,7 +163,7 @@ def bench_text(out: Path, n: int, n_queries: int, top_k: int = 100) -> dict:
             else:
                 overlap_nr.append(len(set(a.index.tolist()) & set(ref.index.tolist())) / top_k)
     for k, v in times.items():
-        res[f"{k}_ms_median"] = _med(v)
+        res[f"{k}_ms_median"] = med_ms(v)
         res[f"{k}_ms_p90"] = float(np.percentile(v, 90) * 1e3)
     res["compact_top_k_identical"] = same_order / n_queries
     res["compact_top_k_same_set"] = same_set / n_queries
@@ -180,7 +192,7 @@ def bench_text(out: Path, n: int, n_queries: int, top_k: int = 100) -> dict:
                 t0 = time.perf_counter()
                 list(stub.TextQuery(pb.TextQueryRequest(scene="text", texts=[f"q{i}"], top_k=top_k)))
                 ts.append(time.perf_counter() - t0)
-            res["grpc_ms_median"] = _med(ts)
+            res["grpc_ms_median"] = med_ms(ts)
             res["grpc_ms_p90"] = float(np.percentile(ts, 90) * 1e3)
     finally:
         srv.stop(0)
@@ -212,7 +224,7 @@ def bench_pose(out: Path, quick: bool, frames: int, streams: int, stream_s: floa
         t0 = time.perf_counter()
         render_pose(eng, cam, queries[i % 4])
         ts.append(time.perf_counter() - t0)
-    res["engine_ms_median"] = _med(ts)
+    res["engine_ms_median"] = med_ms(ts)
     del eng
     enc = TableEncoder(queries, canon)
     srv = start_server(ServerConfig(models=out, port=0), encoder_factory=lambda i: enc)
@@ -227,7 +239,7 @@ def bench_pose(out: Path, quick: bool, frames: int, streams: int, stream_s: floa
                 t0 = time.perf_counter()
                 list(stub.Render(req(i)))
                 ts.append(time.perf_counter() - t0)
-            res["grpc_ms_median"] = _med(ts)
+            res["grpc_ms_median"] = med_ms(ts)
             res["grpc_fps"] = 1e3 / res["grpc_ms_median"]
             res.update(_streams(srv.address, req, streams, stream_s))
     finally:

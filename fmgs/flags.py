@@ -72,18 +72,14 @@ def _fields(cls: type) -> list[tuple[dataclasses.Field, Any]]:
     return [(f, hints[f.name]) for f in dataclasses.fields(cls) if f.init]
 
 
-def add_flags(
-    parser: argparse.ArgumentParser, cls: type, prefix: str = "", skip: frozenset = frozenset()
-) -> None:
+def add_flags(parser: argparse.ArgumentParser, cls: type, prefix: str = "") -> None:
     """Add ``--<prefix><field-name>`` for every field of ``cls`` (recursing into dataclass fields)."""
     docs = field_docs(cls)
     for f, tp in _fields(cls):
         name = prefix + f.name
-        if name in skip:
-            continue
         flag = "--" + name.replace("_", "-").replace(".", "-")
         if dataclasses.is_dataclass(tp):
-            add_flags(parser, tp, name + ".", skip)
+            add_flags(parser, tp, name + ".")
             continue
         default = f.default if f.default is not dataclasses.MISSING else f.default_factory()
         doc = docs.get(f.name, "")

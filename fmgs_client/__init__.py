@@ -1,4 +1,4 @@
-"""Thin client for the FMGS query server: grpcio, protobuf and numpy only (no torch).
+"""Thin client for the FMGS query server: grpcio, grpcio-health-checking, protobuf and numpy (no torch).
 
 from fmgs_client import FmgsClient, CameraSpec
 

@@ -1,4 +1,4 @@
-"""``FmgsClient``: the gRPC client of the FMGS query service (grpcio + protobuf + numpy only).
+"""``FmgsClient``: the gRPC client of the FMGS query service (grpcio + health stubs, protobuf, numpy).
 
 Streamed answers are reassembled by plain functions (``assemble_text_answers``, ``assemble_render``,
 ``assemble_render_stream``, ``assemble_segment``) that take an iterable of wire chunks, so they can be
@@ -15,6 +15,7 @@ from typing import Any, TypeVar
 
 import grpc
 import numpy as np
+from grpc_health.v1 import health_pb2, health_pb2_grpc
 
 from fmgs_client.types import (
     CameraSpec,
@@ -26,12 +27,13 @@ from fmgs_client.types import (
     SegmentResult,
     TextAnswer,
 )
+from fmgs_wire import DEFAULT_PORT
 from fmgs_wire.images import PNG_SCALE, decode_png
 from fmgs_wire.proto.fmgs.v1 import fmgs_pb2 as pb
 from fmgs_wire.proto.fmgs.v1 import fmgs_pb2_grpc as pb_grpc
 from fmgs_wire.tensors import TensorError, from_tensor, join, to_tensor
 
-DEFAULT_ADDRESS = "127.0.0.1:50051"
+DEFAULT_ADDRESS = f"127.0.0.1:{DEFAULT_PORT}"
 MiB = 1 << 20
 
 # Per-Gaussian fields of a text answer: name -> (wire enum, trailing shape, dtype).
@@ -60,7 +62,6 @@ ENCODINGS = {"float32": pb.IMAGE_ENCODING_FLOAT32, "png": pb.IMAGE_ENCODING_PNG}
 _IMAGE_TAIL = {"relevancy": (), "rgb": (3,), "depth": (), "alpha": ()}
 # PNG encoding (see the proto): 8-bit value*255, depth 16-bit millimetres.
 _PNG_SCALE = PNG_SCALE
-HEALTH_STATUS = {0: "UNKNOWN", 1: "SERVING", 2: "NOT_SERVING", 3: "SERVICE_UNKNOWN"}
 
 T = TypeVar("T")
 
@@ -303,61 +304,15 @@ def point_result(resp: pb.PointQueryResponse, n_texts: int, n_points: int) -> Po
     return PointResult(out["relevancy"], out["similarity"], float(resp.elapsed_ms))
 
 
-# ---------------------------------------------------------------- grpc.health.v1 by hand
-# grpcio-health-checking is a server dependency only; the two messages are tiny, so encode them here:
-# HealthCheckRequest{string service = 1}, HealthCheckResponse{ServingStatus status = 1}.
+# ---------------------------------------------------------------- grpc.health.v1
 
 
-def _varint(n: int) -> bytes:
-    out = bytearray()
-    while True:
-        b, n = n & 0x7F, n >> 7
-        out.append(b | (0x80 if n else 0))
-        if not n:
-            return bytes(out)
-
-
-def _read_varint(data: bytes, pos: int) -> tuple[int, int]:
-    n = shift = 0
-    while True:
-        if pos >= len(data) or shift > 63:
-            raise ValueError("truncated or overlong varint")
-        b = data[pos]
-        pos += 1
-        n |= (b & 0x7F) << shift
-        shift += 7
-        if not b & 0x80:
-            return n, pos
-
-
-def encode_health_request(service: str) -> bytes:
-    """Wire bytes of ``HealthCheckRequest{service}`` (empty for the whole server)."""
-    s = service.encode()
-    return b"\x0a" + _varint(len(s)) + s if s else b""
-
-
-def decode_health_response(data: bytes) -> str:
-    """Status name (``"SERVING"``, ...) from ``HealthCheckResponse`` wire bytes; unknown fields skipped."""
-    status, pos = 0, 0
-    while pos < len(data):
-        key, pos = _read_varint(data, pos)
-        num, wire = key >> 3, key & 7
-        if wire == 0:
-            val, pos = _read_varint(data, pos)
-            if num == 1:
-                status = val
-        elif wire == 1:
-            pos += 8
-        elif wire == 2:
-            ln, pos = _read_varint(data, pos)
-            pos += ln
-        elif wire == 5:
-            pos += 4
-        else:
-            raise ValueError(f"unsupported wire type {wire}")
-        if pos > len(data):
-            raise ValueError("truncated message")
-    return HEALTH_STATUS.get(status, f"UNKNOWN({status})")
+def health_status_name(status: int) -> str:
+    """Name of a ``HealthCheckResponse.ServingStatus`` value (``"SERVING"``, ...; ``"UNKNOWN(7)"`` if new)."""
+    try:
+        return health_pb2.HealthCheckResponse.ServingStatus.Name(status)
+    except ValueError:
+        return f"UNKNOWN({status})"
 
 
 # ---------------------------------------------------------------- the client
@@ -429,11 +384,7 @@ class FmgsClient:
             self._channel = grpc.secure_channel(address, creds, options=options)
         self._metadata: tuple[tuple[str, str], ...] = (("authorization", f"Bearer {token}"),) if token else ()
         self._stub = pb_grpc.FmgsStub(self._channel)
-        self._health = self._channel.unary_unary(
-            "/grpc.health.v1.Health/Check",
-            request_serializer=encode_health_request,
-            response_deserializer=decode_health_response,
-        )
+        self._health = health_pb2_grpc.HealthStub(self._channel)
 
     # -- plumbing
 
@@ -498,8 +449,9 @@ class FmgsClient:
 
         A server without the health service raises FmgsError("UNIMPLEMENTED", ...).
         """
+        req = health_pb2.HealthCheckRequest(service=service)
         try:
-            return self._unary(self._health, service)
+            return health_status_name(self._unary(self._health.Check, req).status)
         except FmgsError as e:
             if e.code == "INTERNAL" and "deserializ" in e.details.lower():
                 raise FmgsError("DATA_LOSS", f"malformed health answer: {e.details}") from None

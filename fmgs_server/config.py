@@ -7,6 +7,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from fmgs.query.config import IndexConfig
+from fmgs_wire import DEFAULT_PORT
 
 MiB = 1 << 20
 
@@ -19,7 +20,7 @@ class ServerConfig:
     """The scene repository: one folder per scene package."""
     host: str = "127.0.0.1"
     """Interface to bind (loopback unless told otherwise)."""
-    port: int = 50051
+    port: int = DEFAULT_PORT
     """Port to bind; 0 picks a free one (tests)."""
     workers: int = 0
     """Requests computing at once (renders, ranking); 0 = the machine's CPU count."""

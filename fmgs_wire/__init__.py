@@ -4,3 +4,6 @@ scale constants (``fmgs_wire.images``). Needs only protobuf, grpcio and numpy: n
 """
 
 __version__ = "0.1.0"
+
+DEFAULT_PORT = 50051
+"""The port a server binds and a client dials when told none (fmgs-server --port, fmgs-client --address)."""

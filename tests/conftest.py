@@ -1,16 +1,13 @@
-"""Shared fixtures: data location, hypothesis profiles, the brute-force renderer on sys.path."""
+"""Shared fixtures: data location, hypothesis profiles, seeding (helpers live in ``tests.helpers``)."""
 
 from __future__ import annotations
 
 import os
-import sys
 from pathlib import Path
 
 import pytest
 import torch
 from hypothesis import HealthCheck, settings
-
-sys.path.insert(0, str(Path(__file__).parent))
 
 settings.register_profile(
     "default", max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow]

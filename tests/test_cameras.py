@@ -7,10 +7,10 @@ import json
 import numpy as np
 import pytest
 import torch
-from scenes import look_at
 
 from fmgs.cameras import Camera, quat_wxyz_to_rotmat
 from fmgs.errors import ValidationError
+from tests.helpers.scenes import look_at
 
 
 def test_colmap_and_transforms_json_give_the_same_cameras(data_dir):

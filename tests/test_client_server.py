@@ -16,7 +16,7 @@ from fmgs_client.types import CameraSpec
 from fmgs_server.config import ServerConfig
 from fmgs_server.server import start_server
 from fmgs_wire.images import decode_png
-from tests.query_scenes import CENTRES, CLASS_NAMES, ENCODER_ID, FakeEncoder, blob_scene
+from tests.helpers.query_scenes import CENTRES, CLASS_NAMES, ENCODER_ID, FakeEncoder, blob_scene
 
 
 @pytest.fixture(scope="module")

@@ -6,8 +6,6 @@ import math
 
 import pytest
 import torch
-from scenes import random_scene
-from tolerances import assert_close
 
 from fmgs.field.bounds import SceneBounds
 from fmgs.field.hashgrid import HashGrid, HashGridConfig, corners
@@ -17,6 +15,8 @@ from fmgs.gaussians import GaussianSet
 from fmgs.query.relevancy import relevancy, relevancy_reference
 from fmgs.render import rasterize
 from fmgs.render.weights import view_weights
+from tests.helpers.scenes import random_scene
+from tests.helpers.tolerances import assert_close
 
 SMALL = HashGridConfig(levels=4, min_res=2, max_res=24, log2_table=8, features=2)
 
@@ -158,9 +158,8 @@ def test_selection_applies_opacity_and_radius():
     gs = GaussianSet(
         means, torch.tensor([[1.0, 0, 0, 0]] * n), log_scales, torch.logit(opac), torch.zeros(n, 1, 3)
     )
-    from scenes import look_at
-
     from fmgs.cameras import Camera
+    from tests.helpers.scenes import look_at
 
     cam = Camera(
         Camera.intrinsics(50, 50, 32, 24), look_at(torch.tensor([0.0, 0.0, -4.0]), torch.zeros(3)), 64, 48

@@ -18,7 +18,7 @@ from fmgs_server.config import ServerConfig
 from fmgs_server.server import start_server
 from fmgs_wire.proto.fmgs.v1 import fmgs_pb2 as pb
 from fmgs_wire.proto.fmgs.v1 import fmgs_pb2_grpc as pb_grpc
-from tests.query_scenes import CLASS_NAMES, ENCODER_ID, FakeEncoder, blob_scene
+from tests.helpers.query_scenes import CLASS_NAMES, ENCODER_ID, FakeEncoder, blob_scene
 
 C = grpc.StatusCode
 # The documented outcomes of a request (README "Errors"); INTERNAL and UNKNOWN are bugs.

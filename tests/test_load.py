@@ -12,7 +12,7 @@ from fmgs_client.load import LoadConfig, run_load
 from fmgs_server.config import ServerConfig
 from fmgs_server.server import start_server
 from fmgs_wire.proto.fmgs.v1 import fmgs_pb2 as pb
-from tests.query_scenes import CLASS_NAMES, FakeEncoder, blob_scene
+from tests.helpers.query_scenes import CLASS_NAMES, FakeEncoder, blob_scene
 
 CAM = pb.Camera(viewmat=np.eye(4).ravel().tolist(), fx=40, fy=40, cx=32, cy=24, width=64, height=48)
 

@@ -15,7 +15,7 @@ from fmgs.query.pose import render_pose, render_pose_reference
 from fmgs.query.segment import segment
 from fmgs.scene.package import load_scene
 from fmgs.vecmath import safe_normalize
-from tests.query_scenes import CENTRES, D, blob_scene, camera
+from tests.helpers.query_scenes import CENTRES, D, blob_scene, camera
 
 
 def _scene(tmp_path, with_field=False, name="s"):

@@ -5,15 +5,15 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
-from brute_force import brute_force_render
 from hypothesis import given
 from hypothesis import strategies as st
-from scenes import random_scene
-from tolerances import assert_close
 
 from fmgs.render import RasterConfig, rasterize
 from fmgs.render.cpu_fast import project_cpu
 from fmgs.render.projection import project
+from tests.helpers.brute_force import brute_force_render
+from tests.helpers.scenes import random_scene
+from tests.helpers.tolerances import assert_close
 
 scene_params = st.fixed_dictionaries(
     {

@@ -7,10 +7,10 @@ import sys
 
 import pytest
 import torch
-from scenes import random_scene
 
 from fmgs.errors import BackendUnavailableError, ValidationError
 from fmgs.render import rasterize
+from tests.helpers.scenes import random_scene
 
 
 def _run(code: str) -> str:

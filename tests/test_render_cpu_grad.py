@@ -6,9 +6,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
-from scenes import random_scene
 
 from fmgs.render import RasterConfig, rasterize
+from tests.helpers.scenes import random_scene
 
 NAMES = ("means", "quats", "scales", "opacities", "features", "background")
 

@@ -6,10 +6,10 @@ import importlib.util
 
 import pytest
 import torch
-from brute_force import brute_force_render
-from scenes import random_scene
 
 from fmgs.render import rasterize
+from tests.helpers.brute_force import brute_force_render
+from tests.helpers.scenes import random_scene
 
 pytestmark = [
     pytest.mark.cuda,

@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import pytest
 import torch
-from scenes import random_scene
 
 from fmgs.render import rasterize
+from tests.helpers.scenes import random_scene
 
 
 def _scene(seed: int):

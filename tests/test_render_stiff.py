@@ -7,13 +7,13 @@ import math
 import numpy as np
 import pytest
 import torch
-from brute_force import brute_force_render
-from scenes import RandomScene, look_at, random_scene
-from tolerances import assert_close
 
 from fmgs.cameras import Camera
 from fmgs.errors import ValidationError
 from fmgs.render import rasterize
+from tests.helpers.brute_force import brute_force_render
+from tests.helpers.scenes import RandomScene, look_at, random_scene
+from tests.helpers.tolerances import assert_close
 
 BACKENDS = ["reference", "cpu"]
 

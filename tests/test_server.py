@@ -20,7 +20,14 @@ from fmgs_server.server import scene_health_name, start_server
 from fmgs_wire.proto.fmgs.v1 import fmgs_pb2 as pb
 from fmgs_wire.proto.fmgs.v1 import fmgs_pb2_grpc as pb_grpc
 from fmgs_wire.tensors import from_tensor, join, to_tensor
-from tests.query_scenes import CLASS_NAMES, ENCODER_ID, FakeEncoder, blob_scene, camera, serve_process
+from tests.helpers.query_scenes import (
+    CLASS_NAMES,
+    ENCODER_ID,
+    FakeEncoder,
+    blob_scene,
+    camera,
+    serve_process,
+)
 
 C = grpc.StatusCode
 

@@ -43,13 +43,13 @@ def make_quick_scene(out: Path) -> tuple[Path, Path]:
 
 def run_variant(name: str, ds, cache, gaussians, cfg, out: Path, encoder, scene_json: Path) -> dict:
     from fmgs.build import package_from_field
-    from fmgs.scene.package import load_scene
+    from fmgs.query.engine import SceneEngine
     from fmgs.train.evaluate_field import evaluate_field
     from fmgs.train.field import train_field
 
     res = train_field(gaussians, ds, cache, out / name, cfg, progress=False, resume=False)
     pkg = package_from_field(out / "models" / name, gaussians, res, encoder)
-    scene = load_scene(pkg)
+    scene = SceneEngine.open(pkg)  # the server's engine and configuration
     _, test = ds.split(cfg.holdout_every)
     t0 = time.perf_counter()
     q = evaluate_field(scene, ds, encoder, test, scene_json)
@@ -72,11 +72,13 @@ def run_variant(name: str, ds, cache, gaussians, cfg, out: Path, encoder, scene_
 def rescore(package: Path, data: Path) -> dict:
     from fmgs.data.dataset import load_dataset
     from fmgs.features.text import MiniLMTextEncoder
-    from fmgs.scene.package import load_scene
+    from fmgs.query.engine import SceneEngine
     from fmgs.train.evaluate_field import evaluate_field
 
     ds = load_dataset(data)
-    q = evaluate_field(load_scene(package), ds, MiniLMTextEncoder(), ds.split(8)[1], data / "scene.json")
+    q = evaluate_field(
+        SceneEngine.open(package), ds, MiniLMTextEncoder(), ds.split(8)[1], data / "scene.json"
+    )
     return q.to_dict()
 
 

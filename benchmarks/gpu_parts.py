@@ -484,6 +484,7 @@ def part_text10m(work: Path, quick: bool) -> dict:
     from fmgs.gaussians import GaussianSet
     from fmgs.query.engine import EngineConfig, SceneEngine
     from fmgs.query.index import IndexConfig
+    from fmgs.scene.manifest import CANONICAL_PHRASES, Manifest
     from fmgs.scene.package import ScenePackage
 
     n = 200_000 if quick else 10_000_000
@@ -505,7 +506,7 @@ def part_text10m(work: Path, quick: bool) -> dict:
     g = GaussianSet.from_activated(
         means, torch.tensor([[1.0, 0, 0, 0]]).expand(n, 4), torch.full((n, 3), 0.01), torch.full((n,), 0.5)
     )
-    manifest = {"encoder": {"id": ENC, "dim": D}, "canonical": ["object", "stuff", "things", "texture"]}
+    manifest = Manifest("text10m", ENC, D, CANONICAL_PHRASES, num_gaussians=n, num_selected=n)
     pkg = ScenePackage("text10m", manifest, g, torch.arange(n), emb, canon_dots, None)
     res: dict = {"gaussians": n, "dim": D, "top_k": 100}
     best = []

@@ -23,6 +23,22 @@ OUTPUT_NAMES = {
 }
 
 
+def outputs(values) -> tuple[str, ...]:
+    """Render outputs by name, once each in the order asked; relevancy when none are named."""
+    names = tuple(dict.fromkeys(OUTPUT_NAMES.get(o, "?") for o in values)) or ("relevancy",)
+    if "?" in names:
+        raise InvalidArgument(f"outputs: unknown value in {list(values)}")
+    return names
+
+
+def encoding(value: int) -> int:
+    """The image encoding (float32 when left unset)."""
+    value = value or pb.IMAGE_ENCODING_FLOAT32
+    if value not in (pb.IMAGE_ENCODING_FLOAT32, pb.IMAGE_ENCODING_PNG):
+        raise InvalidArgument(f"encoding: unknown value {value}")
+    return value
+
+
 def texts(values, cfg: ServerConfig, field: str = "texts", allow_empty: bool = False) -> list[str]:
     """Non-empty, bounded texts."""
     out = list(values)

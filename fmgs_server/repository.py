@@ -16,13 +16,14 @@ from pathlib import Path
 
 from fmgs.errors import FmgsError
 from fmgs.query.engine import SceneEngine
+from fmgs.scene.manifest import FILENAME as MANIFEST
 from fmgs.scene.package import check_scene_name
 from fmgs_server.errors import FailedPrecondition, NotFound, ResourceExhausted
 
 log = logging.getLogger("fmgs_server")
 
 UNLOADED, LOADING, READY, FAILED = "unloaded", "loading", "ready", "failed"
-_FILES = ("manifest.json", "gaussians.safetensors", "embeddings.safetensors", "field.safetensors")
+_FILES = (MANIFEST, "gaussians.safetensors", "embeddings.safetensors", "field.safetensors")
 
 
 def scene_version(folder: Path) -> str:
@@ -32,7 +33,7 @@ def scene_version(folder: Path) -> str:
         try:
             st = (folder / name).stat()
         except OSError:
-            if name == "manifest.json":
+            if name == MANIFEST:
                 return ""
             continue
         parts.append(f"{name}:{st.st_size}:{st.st_mtime_ns}:{st.st_ino}")
@@ -80,7 +81,7 @@ class SceneRepository:
         found = {}
         if self.root.is_dir():
             for p in sorted(self.root.iterdir()):
-                if p.name.startswith(".") or not p.is_dir() or not (p / "manifest.json").is_file():
+                if p.name.startswith(".") or not p.is_dir() or not (p / MANIFEST).is_file():
                     continue
                 try:
                     check_scene_name(p.name)
@@ -106,7 +107,7 @@ class SceneRepository:
         except FmgsError as e:
             raise NotFound(f"scene {name!r} not found (invalid name)") from e
         folder = self.root / name
-        if not (folder / "manifest.json").is_file():
+        if not (folder / MANIFEST).is_file():
             with self._lock:
                 if name in self._slots:
                     self._drop(name)

@@ -65,22 +65,23 @@ def _surface_ply(scene, out) -> None:
 def test_build_writes_a_package_that_answers_queries(built):
     from fmgs.data.dataset import load_dataset
     from fmgs.features.text import load_text_encoder
-    from fmgs.query.text import rank_gaussians
+    from fmgs.query.engine import SceneEngine
     from fmgs.scene.package import load_scene
     from fmgs.train.evaluate_field import evaluate_field
 
     tmp, _ = built
     scene = load_scene(tmp / "models" / "toy")
+    engine = SceneEngine.open(tmp / "models" / "toy")  # as the server opens it
     assert scene.encoder_id == "sentence-transformers/all-MiniLM-L6-v2" and scene.dim == 384
     enc = load_text_encoder(scene.encoder_id)
-    r = rank_gaussians(scene, enc.encode_text(["blue ball"])[0], top_k=10)
+    r = engine.text_query(enc.encode_text(["blue ball"])[0], top_k=10)
     assert len(r.index) == 10 and float(r.relevancy[0]) > 0.5
-    extra = scene.manifest["extra"]
+    extra = scene.manifest.extra
     assert extra["label_names"][:4] == ["background", "floor", "red cube", "blue ball"]
     assert extra["description"] == "toy scene" and extra["source"] == "test"  # --extra wins
-    assert scene.manifest["field"]["dtype"] == "float16" and scene.field.grid.table.dtype == torch.float32
+    assert scene.manifest.field.dtype == "float16" and scene.field.grid.table.dtype == torch.float32
     ds = load_dataset(tmp / "scene")
-    q = evaluate_field(scene, ds, enc, ds.split(8)[1], tmp / "scene" / "scene.json")
+    q = evaluate_field(engine, ds, enc, ds.split(8)[1], tmp / "scene" / "scene.json")
     # A tiny, briefly trained scene: far from the benchmark's thresholds, far above chance (1/6).
     assert q.localisation_3d >= 0.5 and q.localisation_2d >= 0.5 and q.miou > 0.3, q
 

@@ -26,7 +26,7 @@ def demo():
 def test_demo_is_a_small_minilm_scene(demo):
     scene, _ = demo
     assert scene.name == "demo" and scene.encoder_id == MINILM_ID and scene.dim == 384
-    assert scene.field is not None and scene.manifest["field"]["dtype"] == "float16"
+    assert scene.field is not None and scene.manifest.field.dtype == "float16"
     assert sum(f.stat().st_size for f in DEMO.rglob("*") if f.is_file()) < MAX_BYTES
     assert sorted(f.name for f in DEMO.iterdir()) == [
         "embeddings.safetensors",
@@ -37,16 +37,17 @@ def test_demo_is_a_small_minilm_scene(demo):
 
 
 def test_each_object_name_ranks_a_gaussian_in_its_box_first(demo):
-    from fmgs.query.text import rank_gaussians
+    from fmgs.query.engine import SceneEngine
 
     scene, enc = demo
-    extra = scene.manifest["extra"]
+    engine = SceneEngine.open(DEMO)  # as the server opens it
+    extra = scene.manifest.extra
     objects = [o for o in extra["objects"] if o["label"] >= 2]  # label 1 is the floor
     assert len(objects) == 6 and all(o["name"] in extra["label_names"] for o in objects)
     q = enc.encode_text([o["name"] for o in objects])
     tops = []
     for o, e in zip(objects, q, strict=True):
-        top = int(rank_gaussians(scene, e, top_k=1).index[0])
+        top = int(engine.text_query(e, top_k=1).index[0])
         tops.append(top)
         p = scene.gaussians.means[top].double()
         lo, hi = torch.tensor(o["aabb_min"]).double(), torch.tensor(o["aabb_max"]).double()

@@ -21,7 +21,7 @@ from fmgs_server.server import start_server
 from fmgs_wire.proto.fmgs.v1 import fmgs_pb2 as pb
 from fmgs_wire.proto.fmgs.v1 import fmgs_pb2_grpc as pb_grpc
 from fmgs_wire.tensors import from_tensor, join
-from tests.query_scenes import FakeEncoder, blob_scene, serve_process
+from tests.helpers.query_scenes import FakeEncoder, blob_scene, serve_process
 
 C = grpc.StatusCode
 
@@ -318,9 +318,9 @@ def test_disconnected_stream_frees_its_slot(models):
                 it.cancel()  # the client goes away mid-stream
                 gate.set()
                 deadline = time.monotonic() + 10
-                while srv.service._streams._value == 0 and time.monotonic() < deadline:
+                while srv.service.slots.free_streams() == 0 and time.monotonic() < deadline:
                     time.sleep(0.02)
-                assert srv.service._streams._value == 1
+                assert srv.service.slots.free_streams() == 1
     finally:
         srv.stop(0)
 

@@ -8,8 +8,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from scenes import look_at
-from tolerances import assert_close
 
 from fmgs.cameras import Camera
 from fmgs.data.dataset import Frame, PosedDataset
@@ -22,6 +20,8 @@ from fmgs.render import rasterize
 from fmgs.train import field as field_mod
 from fmgs.train.field import FieldTrainConfig, dotsim_loss, train_field
 from fmgs.vecmath import safe_normalize
+from tests.helpers.scenes import look_at
+from tests.helpers.tolerances import assert_close
 
 SMALL_FIELD = FieldConfig(
     grid=HashGridConfig(levels=6, min_res=4, max_res=64, log2_table=12, features=2),
@@ -176,7 +176,10 @@ def test_missing_targets_are_named(setup, tmp_path):
 
 def test_package_round_trip_and_queries(setup, tmp_path):
     from fmgs.build import package_from_field
-    from fmgs.query.text import rank_gaussians, relevancy_image, relevancy_image_reference
+    from fmgs.query.engine import EngineConfig, SceneEngine
+    from fmgs.query.pose import render_pose
+    from fmgs.query.relevancy import TEMPERATURE, relevancy
+    from fmgs.render import rasterize
     from fmgs.scene.package import load_scene
 
     _, ds, gs, cache = setup
@@ -206,16 +209,18 @@ def test_package_round_trip_and_queries(setup, tmp_path):
     with torch.no_grad():
         dec = scene.field(g.means).clip
     assert (dec - scene.embeddings).abs().max() < 2e-3
-    # Text query: ranking is by relevancy, descending, indices into all Gaussians.
+    # Text query through the served engine: ranking is by relevancy, descending, indices into all Gaussians.
+    engine = SceneEngine(scene, EngineConfig(backend="reference"))
     q = safe_normalize(torch.randn(8))
-    r = rank_gaussians(scene, q, top_k=25)
+    r = engine.text_query(q, top_k=25)
     assert len(r.index) == 25 and bool((r.relevancy[:-1] >= r.relevancy[1:]).all())
     assert set(r.index.tolist()) <= set(scene.selected.tolist())
-    # Dot-then-render equals render-then-dot.
+    # Dot-then-render (with the canonical dots stored at export) equals render-then-dot with the
+    # encoder's canonical embeddings.
     cam = ds.frames[1].camera
-    fast, a1 = relevancy_image(scene, cam, q, backend="reference")
-    ref, a2 = relevancy_image_reference(
-        scene, cam, q, enc.encode_text(["object", "stuff", "things", "texture"])
-    )
-    assert_close(fast, ref, torch.float32)
-    assert torch.isfinite(fast).all() and torch.equal(a1, a2)
+    fast = render_pose(engine, cam, q, ("relevancy", "alpha"))
+    out = rasterize(*engine.geometry, scene.embeddings, cam, backend="reference")
+    canon = enc.encode_text(["object", "stuff", "things", "texture"])
+    ref = relevancy(out.image @ q, out.image @ canon.T, TEMPERATURE)
+    assert_close(fast.relevancy, ref, torch.float32)
+    assert torch.isfinite(fast.relevancy).all() and torch.equal(fast.alpha, out.alpha)

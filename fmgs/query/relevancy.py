@@ -9,7 +9,10 @@ from __future__ import annotations
 
 import torch
 
-CANONICAL_PHRASES = ("object", "stuff", "things", "texture")
+from fmgs.scene.manifest import CANONICAL_PHRASES
+
+__all__ = ["CANONICAL_PHRASES", "TEMPERATURE", "relevancy", "relevancy_reference"]
+
 TEMPERATURE = 10.0
 
 

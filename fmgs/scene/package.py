@@ -2,6 +2,7 @@
 
 Layout:
   manifest.json            format, version, name, encoder {id, dim}, canonical phrases, counts, field config
+                           (fmgs.scene.manifest: the one reader and writer)
   gaussians.safetensors    the frozen 3DGS geometry and SH of every Gaussian (fmgs.io.tensors format)
   embeddings.safetensors   selected [M] int64 (indices into the Gaussians), embeddings [M,D] float16
                            (decoded once, unit norm before rounding), canonical [M,C] float32 (the
@@ -15,7 +16,6 @@ No optimiser state, no training images, no targets.
 
 from __future__ import annotations
 
-import json
 import re
 from dataclasses import dataclass
 from pathlib import Path
@@ -30,10 +30,8 @@ from fmgs.field.model import FeatureField, FieldConfig
 from fmgs.gaussians import GaussianSet
 from fmgs.io.atomic import atomic_dir
 from fmgs.io.tensors import load_gaussians, save_gaussians
-from fmgs.query.relevancy import CANONICAL_PHRASES
+from fmgs.scene.manifest import CANONICAL_PHRASES, FieldInfo, Manifest
 
-FORMAT = "fmgs.scene"
-VERSION = 1
 FIELD_DTYPES = {"float32": torch.float32, "float16": torch.float16}
 """Storage dtypes of the field's floating-point tensors (a manifest without field.dtype means float32)."""
 _NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,127}$")
@@ -45,8 +43,8 @@ class ScenePackage:
 
     name: str
     """Scene name (the folder name)."""
-    manifest: dict
-    """The manifest as read."""
+    manifest: Manifest
+    """The manifest as read (validated)."""
     gaussians: GaussianSet
     """All Gaussians (geometry for rendering)."""
     selected: torch.Tensor
@@ -60,15 +58,15 @@ class ScenePackage:
 
     @property
     def encoder_id(self) -> str:
-        return self.manifest["encoder"]["id"]
+        return self.manifest.encoder_id
 
     @property
     def dim(self) -> int:
-        return int(self.manifest["encoder"]["dim"])
+        return self.manifest.dim
 
     @property
     def canonical_phrases(self) -> list[str]:
-        return list(self.manifest["canonical"])
+        return list(self.manifest.canonical)
 
 
 def check_scene_name(name: str) -> str:
@@ -115,19 +113,7 @@ def export_scene(
     canon = emb @ canonical_embeddings.detach().float().cpu().T
     from safetensors.torch import save_file
 
-    manifest = {
-        "format": FORMAT,
-        "version": VERSION,
-        "name": out.name,
-        "encoder": {"id": encoder_id, "dim": D},
-        "canonical": list(canonical_phrases),
-        "sh_degree": gaussians.sh_degree,
-        "counts": {"gaussians": gaussians.num, "selected": M},
-        "bounds": _bounds(gaussians.means),
-        "embedding_dtype": "float16",
-        "field": None,
-        "extra": extra or {},
-    }
+    field_info = None
     with atomic_dir(out) as tmp:
         save_gaussians(gaussians, tmp / "gaussians.safetensors")
         save_file(
@@ -149,13 +135,24 @@ def export_scene(
                 if v.is_floating_point():
                     check_finite(f"field {k} as {field_dtype}", v)  # float16 overflows beyond 65504
             save_file(state, str(tmp / "field.safetensors"))
-            manifest["field"] = {
-                "config": field.cfg.to_dict(),
-                "bounds": field.bounds.to_dict(),
-                "dino_head": include_dino and field.dino_head is not None,
-                "dtype": field_dtype,
-            }
-        (tmp / "manifest.json").write_text(json.dumps(manifest, indent=1))
+            field_info = FieldInfo(
+                field.cfg.to_dict(),
+                field.bounds.to_dict(),
+                include_dino and field.dino_head is not None,
+                field_dtype,
+            )
+        Manifest(
+            name=out.name,
+            encoder_id=encoder_id,
+            dim=D,
+            canonical=tuple(canonical_phrases),
+            num_gaussians=gaussians.num,
+            num_selected=M,
+            sh_degree=gaussians.sh_degree,
+            bounds=tuple(_bounds(gaussians.means)),
+            field=field_info,
+            extra=dict(extra or {}),
+        ).write(tmp)
     return out
 
 
@@ -177,26 +174,8 @@ def load_scene(path: str | Path, device: str | torch.device = "cpu", mmap: bool 
     if mmap and torch.device(device).type != "cpu":
         raise ValidationError("device", "memory-mapped embeddings live on the CPU")
     path = Path(path)
-    mpath = path / "manifest.json"
-    if not mpath.is_file():
-        raise ValidationError(str(path), "not a scene package (no manifest.json)")
-    try:
-        manifest = json.loads(mpath.read_text())
-    except (OSError, json.JSONDecodeError) as e:
-        raise ValidationError(str(mpath), f"unreadable manifest ({e})") from e
-    if not isinstance(manifest, dict) or manifest.get("format") != FORMAT:
-        raise ValidationError(str(mpath), f"not an {FORMAT} manifest")
-    if manifest.get("version") != VERSION:
-        raise ValidationError(
-            str(mpath), f"unsupported version {manifest.get('version')!r} (this reads {VERSION})"
-        )
-    for key in ("name", "encoder", "canonical", "counts"):
-        if key not in manifest:
-            raise ValidationError(str(mpath), f"missing key {key!r}")
-    enc = manifest["encoder"]
-    if not isinstance(enc, dict) or not isinstance(enc.get("id"), str) or not isinstance(enc.get("dim"), int):
-        raise ValidationError(str(mpath), "encoder must be {id: str, dim: int}")
-    D, C = enc["dim"], len(manifest["canonical"])
+    manifest = Manifest.read(path)
+    D, C = manifest.dim, len(manifest.canonical)
 
     gaussians = load_gaussians(path / "gaussians.safetensors", device)
     gaussians.validate()
@@ -205,7 +184,7 @@ def load_scene(path: str | Path, device: str | torch.device = "cpu", mmap: bool 
     )
     sel, canon = t["selected"], t["canonical"].float()
     emb = _mmap_embeddings(path / "embeddings.safetensors") if mmap else t["embeddings"].float()
-    M = manifest["counts"].get("selected")
+    M = manifest.num_selected
     where = str(path / "embeddings.safetensors")
     if sel.dtype != torch.int64 or sel.shape != (M,):
         raise ValidationError(where, f"selected must be int64 [{M}], got {sel.dtype} {list(sel.shape)}")
@@ -220,13 +199,14 @@ def load_scene(path: str | Path, device: str | torch.device = "cpu", mmap: bool 
     check_finite(f"{where}: canonical", canon)
 
     field = None
-    if manifest.get("field"):
-        field = _load_field(path / "field.safetensors", manifest["field"], device)
+    if manifest.field is not None:
+        field = _load_field(path / "field.safetensors", manifest.field, device)
         if field.cfg.clip_dim != D:
             raise ValidationError(
-                str(mpath), f"field clip_dim {field.cfg.clip_dim} differs from encoder dim {D}"
+                str(path / "manifest.json"),
+                f"field clip_dim {field.cfg.clip_dim} differs from encoder dim {D}",
             )
-    return ScenePackage(manifest["name"], manifest, gaussians, sel, emb, canon, field)
+    return ScenePackage(manifest.name, manifest, gaussians, sel, emb, canon, field)
 
 
 def _read_tensors(fpath: Path, keys: tuple[str, ...], device) -> dict[str, torch.Tensor]:
@@ -258,22 +238,18 @@ def _mmap_embeddings(fpath: Path) -> torch.Tensor:
     return torch.from_numpy(a)
 
 
-def _load_field(fpath: Path, meta: dict, device) -> FeatureField:
+def _load_field(fpath: Path, meta: FieldInfo, device) -> FeatureField:
     from safetensors import SafetensorError
     from safetensors.torch import load_file
 
     try:
-        cfg = FieldConfig.from_dict(meta["config"])
-        bounds = SceneBounds.from_dict(meta["bounds"])
+        cfg = FieldConfig.from_dict(meta.config)
+        bounds = SceneBounds.from_dict(meta.bounds)
     except (KeyError, TypeError, ValueError) as e:
         raise ValidationError(str(fpath), f"bad field description in the manifest ({e})") from e
-    if not meta.get("dino_head"):
+    if not meta.dino_head:
         cfg = FieldConfig(**{**cfg.__dict__, "dino_dim": 0})
-    dtype = meta.get("dtype", "float32")
-    if dtype not in FIELD_DTYPES:
-        raise ValidationError(
-            str(fpath), f"field dtype {dtype!r} in the manifest is not one of {sorted(FIELD_DTYPES)}"
-        )
+    dtype = meta.dtype
     try:
         state = load_file(str(fpath), device=str(device))
     except (SafetensorError, OSError) as e:

@@ -1,12 +1,14 @@
 """Open-vocabulary quality of a scene package on a labelled scene (the synthetic generator's output).
 
-Three measures, on held-out views:
+Scored through the query engine the server runs (fmgs.query.engine.SceneEngine), so the figures are
+those of the served answers. Three measures, on held-out views:
 - LERF localisation: a query (an object's name) is correct when the highest-relevancy pixel of its
   relevancy image lies inside the object's 2D box;
 - 3D localisation: the top-ranked Gaussian of the query lies inside the object's 3D box;
-- segmentation: each pixel takes the label name whose embedding has the highest cosine with the rendered
-  feature; mean IoU over the labelled classes (pixels of the "background" label, with no geometry, are
-  left out).
+- segmentation: the served pixel labels (fmgs.query.segment: the label name whose embedding has the
+  highest dot with the rendered feature, unlabelled where the embedded Gaussians barely cover the pixel);
+  mean IoU over the labelled classes (pixels of the "background" label, with no geometry, are left out;
+  an unlabelled pixel counts as a miss).
 """
 
 from __future__ import annotations
@@ -19,9 +21,9 @@ import numpy as np
 import torch
 
 from fmgs.data.dataset import PosedDataset
-from fmgs.query.text import rank_gaussians, relevancy_image
-from fmgs.render import rasterize
-from fmgs.vecmath import safe_normalize
+from fmgs.query.engine import SceneEngine
+from fmgs.query.pose import render_pose
+from fmgs.query.segment import segment
 
 
 @dataclass
@@ -51,9 +53,10 @@ class FieldQuality:
 
 @torch.no_grad()
 def evaluate_field(
-    scene, ds: PosedDataset, encoder, views: list[int], scene_json: str | Path
+    engine: SceneEngine, ds: PosedDataset, encoder, views: list[int], scene_json: str | Path
 ) -> FieldQuality:
-    """Score ``scene`` (a ScenePackage) on frames ``views`` of a labelled dataset (``scene.json`` beside)."""
+    """Score ``engine`` (open it as the server does: ``SceneEngine.open(package)``) on frames ``views`` of
+    a labelled dataset (``scene.json`` beside)."""
     from PIL import Image
 
     meta = json.loads(Path(scene_json).read_text())
@@ -67,14 +70,11 @@ def evaluate_field(
     hit2d = n2d = 0
     inter = np.zeros(len(names))
     union = np.zeros(len(names))
-    g = scene.gaussians.subset(scene.selected)
     for i in views:
         fr = ds.frames[i]
         cam = fr.camera
         for name, (x0, y0, x1, y1) in boxes.get(fr.name, {}).items():
-            r, _ = relevancy_image(scene, cam, emb[names.index(name)])
-            flat = int(torch.argmax(r))
-            y, x = divmod(flat, cam.width)
+            x, y, _ = render_pose(engine, cam, emb[names.index(name)]).argmax
             ok = x0 <= x <= x1 and y0 <= y <= y1
             hit2d += ok
             n2d += 1
@@ -82,9 +82,8 @@ def evaluate_field(
                 failures.append(f"2d {fr.name} {name!r}: peak at ({x},{y}) outside {[x0, y0, x1, y1]}")
         label_path = ds.root / "labels" / Path(fr.name).name
         gt = np.asarray(Image.open(label_path)).astype(np.int64)
-        feat = rasterize(g.means, g.quats, g.scales, g.opacities, scene.embeddings, cam).image
-        sim = safe_normalize(feat) @ emb[classes].T  # [H,W,K-1]
-        pred = (sim.argmax(-1) + 1).numpy()
+        lab = segment(engine, emb[classes], cam, per_gaussian=False).pixel_labels.numpy()  # [H,W]
+        pred = np.where(lab >= 0, lab + 1, -1)  # label ids; -1 (no geometry) matches no class
         valid = gt > 0
         for c in classes:
             p, t = (pred == c) & valid, (gt == c) & valid
@@ -95,11 +94,11 @@ def evaluate_field(
     for name, o in objects.items():
         if o["label"] < 2:
             continue  # the floor is a label, not an object to localise
-        top = int(rank_gaussians(scene, emb[names.index(name)], top_k=1).index[0])
-        p = scene.gaussians.means[top].double().numpy()
+        top = int(engine.text_query(emb[names.index(name)], top_k=1).index[0])
+        p = engine.gaussians.means[top].double().cpu().numpy()
         lo, hi = np.array(o["aabb_min"]), np.array(o["aabb_max"])
         dist = float(np.linalg.norm(np.maximum(lo - p, 0) + np.maximum(p - hi, 0)))
-        reach = float(scene.gaussians.scales[top].max())
+        reach = float(engine.gaussians.scales[top].max())
         hit3d += dist == 0
         near3d += dist <= reach
         if dist > 0:

@@ -1,0 +1,61 @@
+"""Compute slots and stream slots: how many requests work at once, and how long a request waits for one."""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
+
+from fmgs_server.errors import DeadlineExceeded, ResourceExhausted
+
+
+class Slots:
+    """``compute`` slots (renders, ranking, loading) and ``streams`` (open StreamRender calls)."""
+
+    def __init__(self, compute: int, streams: int, queue_timeout_s: float) -> None:
+        self._compute = threading.BoundedSemaphore(compute)
+        self._streams = threading.BoundedSemaphore(streams)
+        self._limit_streams = streams
+        self.queue_timeout_s = queue_timeout_s
+
+    @contextmanager
+    def compute(self, context, patient: bool = False) -> Iterator[None]:
+        """A compute slot, waited for at most queue_timeout_s (and never past the deadline).
+
+        ``patient`` (pose streams): wait as long as the client is there; a stream's next frame simply
+        comes later, and its newest pose replaces any it could not render meanwhile.
+        """
+        if patient:
+            while not self._compute.acquire(timeout=0.25):
+                if not context.is_active():
+                    raise ResourceExhausted("the client went away while waiting for a compute slot")
+        else:
+            wait = self.queue_timeout_s
+            left = context.time_remaining()
+            if left is not None:
+                if left <= 0:
+                    raise DeadlineExceeded("the deadline passed before the work could start")
+                wait = min(wait, left)
+            if not self._compute.acquire(timeout=wait):
+                left = context.time_remaining()
+                if left is not None and left <= 0:
+                    raise DeadlineExceeded("the deadline passed while waiting for a compute slot")
+                raise ResourceExhausted("server busy: no compute slot free; retry later")
+        try:
+            yield
+        finally:
+            self._compute.release()
+
+    @contextmanager
+    def stream(self) -> Iterator[None]:
+        """A stream slot, or RESOURCE_EXHAUSTED at once when all are taken."""
+        if not self._streams.acquire(blocking=False):
+            raise ResourceExhausted(f"too many pose streams (limit {self._limit_streams})")
+        try:
+            yield
+        finally:
+            self._streams.release()
+
+    def free_streams(self) -> int:
+        """Stream slots free now."""
+        return self._streams._value

@@ -1,4 +1,5 @@
-"""The work-precision script's helpers: error measures, the exact-point check, floors and growth fits."""
+"""The work-precision report's helpers (benchmarks/workprec/measure.py): error measures, the exact-point
+check, floors and growth fits."""
 
 from __future__ import annotations
 
@@ -11,7 +12,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks.run import (
+from benchmarks.workprec.measure import (
     Cost,
     Rates,
     exact_failures,

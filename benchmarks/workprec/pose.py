@@ -1,0 +1,302 @@
+"""Pose query section: the relevancy image of a camera, every speed knob (channel path, backend,
+resolution, tile size, compact dots) against the full-channel render on the reference backend, and the
+default measured through the product path (render_pose on a SceneEngine opened from an exported package)."""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from benchmarks.server import D, med_ms
+from benchmarks.workprec.engine import canonical_vectors, product_engine
+from benchmarks.workprec.measure import GPU_NOTE, Point, e, image_error, interleaved, pct
+from benchmarks.workprec.plots import plot_work_precision
+from benchmarks.workprec.sizes import PoseSizes
+
+
+def render_scene(name: str, width: int, height: int):
+    """(means, quats, scales, opacities, camera) as benchmarks/raster.py renders them."""
+    from benchmarks.raster import Config, make_scene
+
+    return make_scene(Config(name, width, height, 5, "cpu", 1))
+
+
+def upsample(img: torch.Tensor, height: int, width: int) -> torch.Tensor:
+    """[h,w,C] -> [height,width,C] bilinear (pixel centres aligned, as a resized camera's are)."""
+    x = img.permute(2, 0, 1)[None]
+    return torch.nn.functional.interpolate(x, (height, width), mode="bilinear", align_corners=False)[
+        0
+    ].permute(1, 2, 0)
+
+
+@dataclass(frozen=True)
+class PoseSetting:
+    """One way to produce a relevancy image."""
+
+    backend: str = "cpu"
+    """Rasteriser backend."""
+    full_channels: bool = False
+    """Render all D embedding channels and score the rendered feature (else dot-then-render, 5 channels)."""
+    scale: float = 1.0
+    """Render at this fraction of the size, then upsample the channels bilinearly."""
+    tile: int = 16
+    """Tile edge of the rasteriser."""
+    compact: bool = False
+    """Dots from the compact index (int8, rank 64) instead of the exact float32 embeddings."""
+
+
+def relevancy_image(
+    setting: PoseSetting, geom: tuple, cam, emb: torch.Tensor, canon: torch.Tensor, cd: torch.Tensor, index, q
+) -> torch.Tensor:
+    """[H,W] relevancy of query q for ``setting`` (geom: means, quats, scales, opacities)."""
+    from fmgs.query.relevancy import TEMPERATURE, relevancy
+    from fmgs.render import RasterConfig, rasterize
+
+    rc = RasterConfig(tile_size=setting.tile)
+    c = cam if setting.scale == 1 else cam.scaled(setting.scale)
+    if setting.full_channels:
+        F = rasterize(*geom, emb, c, config=rc, backend=setting.backend).image
+        img = torch.cat([(F @ q)[..., None], F @ canon.T], -1)
+    else:
+        dots = index.dots(q[None]) if setting.compact else (emb @ q)[:, None]
+        img = rasterize(*geom, torch.cat([dots, cd], 1), c, config=rc, backend=setting.backend).image
+    if setting.scale != 1:
+        img = upsample(img, cam.height, cam.width)
+    return relevancy(img[..., 0], img[..., 1:], TEMPERATURE)
+
+
+POSE_SETTINGS: dict[str, tuple[PoseSetting, tuple[str, ...]]] = {
+    # name: (setting, curves it belongs to); the knobs vary "dtr/cpu": dot-then-render, cpu, full size,
+    # tile 16, exact float32 dots (the engine's path, from the bare arrays)
+    "full/reference": (
+        PoseSetting("reference", True),
+        ("channel path (reference)", "backend (full channels)"),
+    ),
+    "full/cpu": (PoseSetting("cpu", True), ("channel path (cpu)", "backend (full channels)")),
+    "dtr/reference": (PoseSetting("reference"), ("channel path (reference)", "backend (dot-then-render)")),
+    "dtr/cpu": (
+        PoseSetting(),
+        ("channel path (cpu)", "backend (dot-then-render)", "resolution scale", "tile size", "index dots"),
+    ),
+    "scale 0.5": (PoseSetting(scale=0.5), ("resolution scale",)),
+    "scale 0.25": (PoseSetting(scale=0.25), ("resolution scale",)),
+    "tile 8": (PoseSetting(tile=8), ("tile size",)),
+    "tile 32": (PoseSetting(tile=32), ("tile size",)),
+    "compact dots": (PoseSetting(compact=True), ("index dots",)),
+}
+POSE_LABELS = {
+    "full/reference": "full channels, reference backend (exact)",
+    "full/cpu": "full channels, cpu",
+    "dtr/reference": "dot-then-render, reference",
+    "dtr/cpu": "dot-then-render, cpu, x1, tile 16, exact dots",
+    "scale 0.5": "x0.5 + bilinear",
+    "scale 0.25": "x0.25 + bilinear",
+    "tile 8": "tile 8",
+    "tile 32": "tile 32",
+    "compact dots": "int8 rank-64 dots",
+}
+
+
+ENGINE = "engine"
+"""The default setting: the product path."""
+ENGINE_CURVE = "product path"
+
+
+def engine_image(engine, cam, q: torch.Tensor) -> torch.Tensor:
+    """[H,W] relevancy of query q through the product path."""
+    from fmgs.query.pose import render_pose
+
+    return render_pose(engine, cam, q, ("relevancy",)).relevancy
+
+
+def image_errors(outs: list[torch.Tensor], refs: list[torch.Tensor]) -> dict[str, float]:
+    """The section's error measures of images against the reference images, over the queries."""
+    errs = [image_error(o, r) for o, r in zip(outs, refs, strict=True)]
+    return {
+        "max": max(x.max_abs for x in errs),
+        "mean": float(np.mean([x.mean_abs for x in errs])),
+        "argmax_disagree": 1.0 - float(np.mean([x.argmax_same for x in errs])),
+        "argmax_px": float(np.mean([x.argmax_px for x in errs])),
+    }
+
+
+@torch.no_grad()
+def section(sz: PoseSizes, work: Path) -> dict:
+    from benchmarks.server import fieldlike, make_queries
+    from fmgs.gaussians import GaussianSet
+    from fmgs.query.index import EmbeddingIndex, IndexConfig
+    from fmgs.query.relevancy import TEMPERATURE, relevancy
+    from fmgs.render import rasterize
+
+    means, quats, scales, opac, cam = render_scene(sz.scene, sz.width, sz.height)
+    geom = (means, quats, scales, opac)
+    emb = fieldlike(means)
+    canon = canonical_vectors()
+    cd = emb @ canon.T
+    queries = make_queries(emb, sz.queries)
+    index = EmbeddingIndex.build(emb, cd, IndexConfig(rank=64, exact_below=0))
+    # The product path: this geometry and these embeddings exported as a package, opened as the server
+    # does. Its channel cache is off, so every image pays for its dots as a new text does.
+    engine = product_engine(work / "pose-package", GaussianSet.from_activated(*geom), emb, canon)
+    engine.CHANNEL_CACHE = 0
+    # The reference: the full D-channel render on the reference backend, then scored per pixel.
+    F = rasterize(*geom, emb, cam, backend="reference").image
+    refs = [relevancy(F @ q, F @ canon.T, TEMPERATURE) for q in queries]
+    spread = float(np.mean([float(r.max() - r.min()) for r in refs]))
+    del F
+    fns = {
+        name: (lambda i, s=s: relevancy_image(s, geom, cam, emb, canon, cd, index, queries[i]))
+        for name, (s, _) in POSE_SETTINGS.items()
+    }
+    fns[ENGINE] = lambda i: engine_image(engine, cam, queries[i])
+    times, outs = interleaved(fns, len(queries), sz.reps)
+    points = []
+    for name, (s, curves) in POSE_SETTINGS.items():
+        errs = image_errors(outs[name], refs)
+        for curve in curves:
+            points.append(
+                Point(
+                    curve,
+                    POSE_LABELS[name],
+                    med_ms(times[name]),
+                    errs,
+                    exact=name == "full/reference",
+                    info={
+                        "setting": name,
+                        **asdict(s),
+                        "p90_ms": float(np.percentile(times[name], 90) * 1e3),
+                    },
+                )
+            )
+    dots = "exact" if engine.index.exact else f"int8 rank-{engine.index.cfg.rank}"
+    points.append(
+        Point(
+            ENGINE_CURVE,
+            f"SceneEngine render_pose ({dots} dots of the float16 package)",
+            med_ms(times[ENGINE]),
+            image_errors(outs[ENGINE], refs),
+            default=True,
+            info={
+                "setting": ENGINE,
+                "backend": engine.cfg.backend,
+                "compact": not engine.index.exact,
+                "p90_ms": float(np.percentile(times[ENGINE], 90) * 1e3),
+            },
+        )
+    )
+    return {
+        "config": asdict(sz),
+        "gaussians": int(means.shape[0]),
+        "reference_spread": spread,
+        "points": [asdict(p) for p in points],
+    }
+
+
+def by_setting(points: list[dict]) -> dict[str, dict]:
+    """One point per setting (a setting can lie on several curves)."""
+    out: dict[str, dict] = {}
+    for p in points:
+        key = p["info"].get("setting", f"{p['curve']}/{p['label']}")
+        out.setdefault(key, {**p, "curves": []})["curves"].append(p["curve"])
+    return out
+
+
+def markdown(sec: dict, img: str) -> list[str]:
+    """The section's text and table in REPORT.md."""
+    cfg = sec["config"]
+    L = [
+        "## 2. Pose query (relevancy image)",
+        "",
+        f"Scene: {cfg['scene']} ({sec['gaussians']:,} Gaussians, all embedded, field-like D = {D} "
+        f"embeddings), {cfg['width']}x{cfg['height']}, {cfg['queries']} queries x {cfg['reps']} passes. "
+        f"Reference: the full {D}-channel feature image rendered on the reference backend, then f.q and "
+        "f.c_n per pixel and the relevancy (render_pose_reference-style). Errors over all pixels at full "
+        "size: max and mean |relevancy difference|, and the share of queries whose most relevant pixel "
+        "moved. Lower resolutions render the 5 channels at x0.5 / x0.25 and upsample them bilinearly "
+        "before scoring. The reference images' relevancy spans "
+        f"{sec.get('reference_spread', float('nan')):.3f} (max - min, mean over queries)."
+        + (
+            ' The default point is the product path: `render_pose(engine, camera, q, ("relevancy",))` '
+            "on a SceneEngine opened with the query server's `EngineConfig` from a package exported with "
+            "this geometry and these embeddings (float16 values, canonical dots from them), its channel "
+            "cache off so every image pays for its dots; every other setting is an alternative computed "
+            "from the bare float32 arrays."
+            if any(p["info"].get("setting") == ENGINE for p in sec["points"])
+            else ""
+        ),
+        "",
+        f"![pose query work-precision]({img})",
+        "",
+        "| setting | on curves | median ms | max error | mean error | argmax moved (queries / mean px) | "
+        "GPU |",
+        "|---|---|---:|---:|---:|---:|---|",
+    ]
+    for p in by_setting(sec["points"]).values():
+        flags = (" **(exact reference)**" if p["exact"] else "") + (" **(default)**" if p["default"] else "")
+        L.append(
+            f"| {p['label']}{flags} | {', '.join(p['curves'])} | {p['time_ms']:.1f} | "
+            f"{e(p['errors']['max'])} | {e(p['errors']['mean'])} | {pct(p['errors']['argmax_disagree'])} / "
+            f"{p['errors'].get('argmax_px', float('nan')):.1f} | {GPU_NOTE} |"
+        )
+    return L
+
+
+def reading(sec: dict) -> list[str]:
+    """The pose query's part of the reading: the default and why."""
+    s = {p["info"]["setting"]: p for p in sec["points"]}
+    ref, dc, dr, fc = s["full/reference"], s["dtr/cpu"], s["dtr/reference"], s["full/cpu"]
+    t8, t32, h, q = s["tile 8"], s["tile 32"], s["scale 0.5"], s["compact dots"]
+
+    def rel(p: dict) -> str:
+        x = 100 * (p["time_ms"] / dc["time_ms"] - 1)
+        return f"{abs(x):.0f}% {'less' if x < 0 else 'more'} time"
+
+    px = lambda p: p["errors"].get("argmax_px", float("nan"))  # noqa: E731
+    eng = s.get(ENGINE)
+    via = (
+        f"Through the product path (SceneEngine.render_pose, the server's EngineConfig; the default point) "
+        f"an image takes {eng['time_ms']:.0f} ms ({rel(eng)} than the same path from the bare float32 "
+        f"arrays) with max error {e(eng['errors']['max'])} and the argmax moved in "
+        f"{pct(eng['errors']['argmax_disagree'])} of the "
+        "queries: the package's float16 embeddings and its stored geometry (log scales, opacity logits). "
+        if eng
+        else ""
+    )
+    return [
+        "- **Pose query: dot-then-render on the cpu backend, full size, tile 16.** "
+        + via
+        + "With float32 dots, dot-then-render equals "
+        f"the full {D}-channel render up to float32 rounding (max error {e(dc['errors']['max'])}, against a "
+        f"relevancy spread of {sec['reference_spread']:.3f} per image) and takes {dc['time_ms']:.0f} ms, "
+        f"against {fc['time_ms']:.0f} ms for all channels on the same backend and {ref['time_ms']:.0f} ms "
+        f"for the reference; the reference backend with 5 channels takes {dr['time_ms']:.0f} ms. Tiles of 8 "
+        f"and 32 give the same image (max error {e(t8['errors']['max'])} / {e(t32['errors']['max'])}) in "
+        f"{rel(t8)} / {rel(t32)} than tile 16 (the tile size changes the binning, never the image; 16 stays, "
+        "one run of a few repetitions on a shared machine does not separate 16 from 32). Half resolution "
+        f"takes {rel(h)} but moves the most relevant pixel in {pct(h['errors']['argmax_disagree'])} of the "
+        f"queries, by {px(h):.1f} px on average (max error {e(h['errors']['max'])}): a client that can live "
+        "with that asks for a smaller image. The int8 rank-64 dots (the engine's dots for scenes of 200K+ "
+        f"embedded Gaussians) change the relevancy by up to {e(q['errors']['max'])} and move the argmax in "
+        f"{pct(q['errors']['argmax_disagree'])} of the queries, for {rel(q)} (the render dominates); below "
+        "200K the dots are exact."
+    ]
+
+
+def plot(sec: dict, path: Path, stamp: str) -> None:
+    c = sec["config"]
+    plot_work_precision(
+        sec["points"],
+        [
+            ("max", "max relevancy error"),
+            ("mean", "mean relevancy error"),
+            ("argmax_disagree", "argmax moved"),
+        ],
+        path,
+        f"Pose query: error against time ({c['scene']}, {c['width']}x{c['height']})",
+        stamp,
+        xlabel="median time per relevancy image (ms)",
+        by_time=True,
+    )

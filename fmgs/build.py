@@ -12,71 +12,15 @@ from __future__ import annotations
 
 import json
 import time
-from dataclasses import asdict, dataclass, replace
-from dataclasses import field as dc_field
+from dataclasses import asdict, replace
 from pathlib import Path
 
 import torch
 
+from fmgs.build_config import BuildConfig, TargetSpec
 from fmgs.errors import ValidationError
 from fmgs.gaussians import GaussianSet
-from fmgs.train.field import FieldTrainConfig, FieldTrainResult
-
-
-@dataclass(frozen=True)
-class TargetSpec:
-    """Which targets to distil."""
-
-    kind: str = "clip"
-    """"clip" (hybrid CLIP + DINO from pretrained models) or "labels" (label masks + a text encoder)."""
-    clip_model: str = "laion/CLIP-ViT-B-16-laion2B-s34B-b88K"
-    """CLIP model id or local folder (hub cache only, never downloaded)."""
-    dino_model: str | None = "facebook/dino-vits8"
-    """DINO model id or local folder; None for no DINO target."""
-    single_scale: bool = False
-    """Ablation: one crop scale instead of the 7-scale pyramid."""
-    labels: str | None = None
-    """Label image folder (kind "labels"); default DATA/labels."""
-    names: str | None = None
-    """scene.json (or a folder holding it) with label_names (kind "labels"); default DATA/scene.json."""
-    text_encoder: str = "sentence-transformers/all-MiniLM-L6-v2"
-    """Text encoder id for label names (kind "labels")."""
-    feature_scale: float = 0.25
-    """Feature maps at this fraction of the image resolution."""
-
-
-@dataclass(frozen=True)
-class BuildConfig:
-    """What ``build_scene`` runs."""
-
-    name: str
-    """Scene name (folder under the model repository)."""
-    models: str = "models"
-    """The model repository."""
-    work: str | None = None
-    """Work folder for intermediate outputs (default: WORK = <models>/.work/<name>)."""
-    ply: str | None = None
-    """An existing 3DGS .ply (skip geometry training)."""
-    gs_steps: int = 30_000
-    """3DGS steps (fewer compresses the schedule)."""
-    gs_scale: float = 1.0
-    """3DGS training image scale."""
-    gs_sh_degree: int = 3
-    """Final SH degree of the 3DGS stage (0 suits view-independent, diffuse scenes and is 4x smaller)."""
-    gs_grad_threshold: float | None = None
-    """3DGS densification threshold (None: graphdeco's 2e-4; larger grows fewer Gaussians)."""
-    targets: TargetSpec = dc_field(default_factory=TargetSpec)
-    """Feature targets."""
-    field: FieldTrainConfig = dc_field(default_factory=FieldTrainConfig)
-    """Distillation settings."""
-    include_dino: bool = False
-    """Keep the DINO head in the package."""
-    field_dtype: str = "float32"
-    """Storage of the field's table and heads in the package: "float32" or "float16" (half the size)."""
-    extra: dict = dc_field(default_factory=dict)
-    """Merged into the manifest's ``extra`` (e.g. a description); label targets add ``label_names``."""
-    device: str = "cpu"
-    """Torch device for every stage."""
+from fmgs.train.field import FieldTrainResult
 
 
 def package_from_field(
@@ -186,19 +130,16 @@ def build_scene(source: str | Path, cfg: BuildConfig, progress: bool = True) -> 
         _stage(2, "geometry", f"given {cfg.ply}")
         ply = Path(cfg.ply)
     else:
-        from fmgs.train.gaussians import GSTrainConfig, train_gaussians
+        from fmgs.train.gaussians import train_gaussians
 
-        kw = dict(image_scale=cfg.gs_scale, sh_degree=cfg.gs_sh_degree, device=cfg.device)
-        gcfg = GSTrainConfig(**kw) if cfg.gs_steps == 30_000 else GSTrainConfig.reduced(cfg.gs_steps, **kw)
-        if cfg.gs_grad_threshold is not None:
-            gcfg = replace(gcfg, densify=replace(gcfg.densify, grad_threshold=cfg.gs_grad_threshold))
+        gcfg = replace(cfg.gs, device=cfg.device)
         ply = work / "gs" / "point_cloud.ply"
         done = work / "gs" / "train.json"
         record = json.loads(done.read_text()) if ply.is_file() and done.is_file() else {}
         if record.get("config") == json.loads(json.dumps(asdict(gcfg))):  # same steps and settings
             _stage(2, "geometry", f"complete ({ply})")
         else:
-            _stage(2, "geometry", f"3DGS, {cfg.gs_steps} steps")
+            _stage(2, "geometry", f"3DGS, {gcfg.steps} steps")
             # A finished run with other settings starts over; an interrupted one (no train.json) resumes.
             train_gaussians(ds, work / "gs", gcfg, progress=progress, resume=not record)
     gaussians = read_ply(ply)

@@ -104,23 +104,10 @@ def cmd_sfm(args: argparse.Namespace) -> int:
 def cmd_train_gs(args: argparse.Namespace) -> int:
     """Train 3D Gaussian Splatting on a posed dataset and write point_cloud.ply."""
     from fmgs.data.dataset import load_dataset
-    from fmgs.train.gaussians import GSTrainConfig, train_gaussians
+    from fmgs.train.gaussians import train_gaussians
 
+    cfg = _gs_config(args)
     ds = load_dataset(args.data, undistort_dir=args.undistort_dir)
-    kw = dict(
-        image_scale=args.scale,
-        backend=args.backend,
-        device=args.device,
-        seed=args.seed,
-        checkpoint_every=args.checkpoint_every,
-    )
-    cfg = (
-        GSTrainConfig(steps=args.steps, **kw)
-        if args.steps == 30_000
-        else GSTrainConfig.reduced(args.steps, **kw)
-    )
-    if args.grad_threshold is not None:
-        cfg = replace(cfg, densify=replace(cfg.densify, grad_threshold=args.grad_threshold))
     res = train_gaussians(ds, args.out, cfg, resume=not args.restart)
     print(
         f"trained {res.steps} steps in {res.seconds:.0f} s: {res.gaussians.num} Gaussians, "
@@ -146,34 +133,80 @@ def cmd_eval_gs(args: argparse.Namespace) -> int:
     return 0
 
 
-def _target_spec(args: argparse.Namespace):
-    from fmgs.build import TargetSpec
+# Settings of each stage come from its config dataclass: every field is a flag (fmgs/flags.py) and a key
+# of the --config TOML file; the aliases keep the short names the commands have always had.
+GS_ALIASES = {"image_scale": "--scale", "densify.grad_threshold": "--grad-threshold"}
+TARGET_ALIASES = {"kind": "--targets"}
+FIELD_ALIASES = {"steps": "--field-steps"}
+BUILD_ALIASES = {
+    "gs.image_scale": "--gs-scale",
+    "gs.sh_degree": "--sh-degree",
+    "gs.densify.grad_threshold": "--grad-threshold",
+    "targets.kind": "--targets",
+    **{
+        f"targets.{k}": "--" + k.replace("_", "-")
+        for k in (
+            "clip_model",
+            "dino_model",
+            "single_scale",
+            "labels",
+            "names",
+            "text_encoder",
+            "feature_scale",
+        )
+    },
+    "field.per_gaussian": "--per-gaussian",
+    "field.adaptive_resolution": "--adaptive-resolution",
+    "field.seed": "--seed",
+}
+AUTO_DEVICE = {"device": "auto"}
+_BUILD_STAGE_OWNED = ("gs.device", "field.device")
+"""Set from the build's own ``device`` for every stage."""
+"""The commands pick the GPU when there is one (the library's configs default to the CPU)."""
 
-    return TargetSpec(
-        kind=args.targets,
-        clip_model=args.clip_model,
-        dino_model=None if args.dino_model in (None, "none") else args.dino_model,
-        single_scale=args.single_scale,
-        labels=args.labels,
-        names=args.names,
-        text_encoder=args.text_encoder,
-        feature_scale=args.feature_scale,
-    )
+
+def _settings(args, cls, defaults=None, base=None):
+    from fmgs import flags
+    from fmgs.errors import ValidationError
+
+    try:
+        values = flags.values_from(cls, args, args.config, defaults)
+        where = str(args.config or "flags")
+        cfg = flags.build(cls, values, where)  # validates every value
+        if base is not None:  # then the same settings over a base derived from them
+            cfg = flags.build(cls, values, where, base(cfg))
+    except ValueError as e:
+        raise ValidationError("settings", str(e)) from e
+    if getattr(cfg, "device", None) == "auto":
+        cfg = replace(cfg, device="cuda" if _cuda() else "cpu")
+    return values, cfg
+
+
+def _gs_config(args: argparse.Namespace):
+    from fmgs.train.config import GSTrainConfig
+
+    def base(c):  # fewer steps compress the SH and densification schedule
+        return GSTrainConfig() if c.steps == GSTrainConfig.steps else GSTrainConfig.reduced(c.steps)
+
+    return _settings(args, GSTrainConfig, AUTO_DEVICE, base)[1]
+
+
+def _target_spec(args: argparse.Namespace):
+    from fmgs.build_config import TargetSpec
+
+    return _settings(args, TargetSpec)[1]
 
 
 def _field_config(args: argparse.Namespace):
-    from fmgs.train.field import FieldTrainConfig
+    from fmgs.train.config import FieldTrainConfig
 
-    base = FieldTrainConfig(
-        device=args.device,
-        seed=args.seed,
-        per_gaussian=args.per_gaussian,
-        adaptive_resolution=args.adaptive_resolution,
-    )
-    cfg = base if args.field_steps == base.steps else base.reduced(args.field_steps)
-    if args.no_dotsim:
-        cfg = replace(cfg, dotsim_weight=0.0)
-    return cfg
+    def base(c):  # fewer steps compress the schedule (dotsim starts at the same fraction)
+        return (
+            FieldTrainConfig() if c.steps == FieldTrainConfig.steps else FieldTrainConfig().reduced(c.steps)
+        )
+
+    cfg = _settings(args, FieldTrainConfig, AUTO_DEVICE, base)[1]
+    return replace(cfg, dotsim_weight=0.0) if args.no_dotsim else cfg
 
 
 def cmd_features(args: argparse.Namespace) -> int:
@@ -214,67 +247,59 @@ def cmd_train_field(args: argparse.Namespace) -> int:
     return 0
 
 
-def cmd_build(args: argparse.Namespace) -> int:
-    """Photos (or a posed dataset, or a .ply with its posed images) to a scene package in models/."""
-    from fmgs.build import BuildConfig, build_scene
+def _build_config(args: argparse.Namespace):
+    """BuildConfig from the flags, the --config file and --extra (fewer steps compress a stage)."""
+    from fmgs.build_config import BuildConfig
     from fmgs.errors import ValidationError
 
-    extra = {}
-    if args.extra:
+    def base(c):  # fewer steps compress each stage's schedule
+        return BuildConfig.scheduled(c.name, c.gs.steps, c.field.steps)
+
+    _, cfg = _settings(args, BuildConfig, AUTO_DEVICE, base)
+    if args.no_dotsim:
+        cfg = replace(cfg, field=replace(cfg.field, dotsim_weight=0.0))
+    if args.extra_file:
         try:
-            extra = json.loads(Path(args.extra).read_text())
+            extra = json.loads(Path(args.extra_file).read_text())
         except (OSError, json.JSONDecodeError) as e:
-            raise ValidationError("--extra", f"cannot read {args.extra} ({e})") from e
+            raise ValidationError("--extra", f"cannot read {args.extra_file} ({e})") from e
         if not isinstance(extra, dict):
-            raise ValidationError("--extra", f"{args.extra} must hold a JSON object")
-    cfg = BuildConfig(
-        name=args.name,
-        models=args.models,
-        work=args.work,
-        ply=args.ply,
-        gs_steps=args.gs_steps,
-        gs_scale=args.gs_scale,
-        gs_sh_degree=args.sh_degree,
-        gs_grad_threshold=args.grad_threshold,
-        targets=_target_spec(args),
-        field=_field_config(args),
-        include_dino=args.include_dino,
-        field_dtype=args.field_dtype,
-        extra=extra,
-        device=args.device,
-    )
+            raise ValidationError("--extra", f"{args.extra_file} must hold a JSON object")
+        cfg = replace(cfg, extra={**cfg.extra, **extra})
+    return cfg
+
+
+def cmd_build(args: argparse.Namespace) -> int:
+    """Photos (or a posed dataset, or a .ply with its posed images) to a scene package in models/."""
+    from fmgs.build import build_scene
+
+    cfg = _build_config(args)
     out = build_scene(args.source, cfg)
     print(f"wrote scene package {out}")
     return 0
 
 
-def _add_target_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--targets", default="clip", choices=["clip", "labels"], help="what to distil")
-    p.add_argument("--clip-model", default="laion/CLIP-ViT-B-16-laion2B-s34B-b88K", help="id or folder")
-    p.add_argument("--dino-model", default="facebook/dino-vits8", help="id, folder, or 'none'")
-    p.add_argument("--single-scale", action="store_true", help="ablation: one CLIP crop scale")
-    p.add_argument("--labels", help="label image folder (--targets labels; default DATA/labels)")
-    p.add_argument("--names", help="scene.json with label_names (default DATA/scene.json)")
-    p.add_argument("--text-encoder", default="sentence-transformers/all-MiniLM-L6-v2")
-    p.add_argument("--feature-scale", type=float, default=0.25, help="map size / image size")
-
-
-def _add_field_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--field-steps", type=int, default=4200, help="fewer steps compress the schedule")
-    p.add_argument("--per-gaussian", action="store_true", help="ablation: per-Gaussian features")
-    p.add_argument("--no-dotsim", action="store_true", help="ablation: no dot-product-similarity loss")
-    p.add_argument("--include-dino", action="store_true", help="keep the DINO head in the package")
+def _config_flag(p: argparse.ArgumentParser, what: str) -> None:
     p.add_argument(
-        "--adaptive-resolution",
-        action="store_true",
-        help="finest hash level at the Gaussians' median spacing (fewer table rows, smaller package)",
+        "--config",
+        metavar="TOML",
+        help=f"{what} settings from a TOML file (keys: the long flag names with _ for -, tables for the "
+        "nested groups); flags given on the command line win",
     )
+
+
+def _add_package_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--include-dino", action="store_true", help="keep the DINO head in the package")
     p.add_argument(
         "--field-dtype",
         default="float32",
         choices=["float32", "float16"],
         help="storage of the field's table and heads in the package (float16: half the size)",
     )
+
+
+def _no_dotsim(p) -> None:
+    p.add_argument("--no-dotsim", action="store_true", help="ablation: no dot-product-similarity loss")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -308,18 +333,18 @@ def build_parser() -> argparse.ArgumentParser:
     sf.add_argument("--camera-model", default="SIMPLE_RADIAL")
     sf.add_argument("--per-image-camera", action="store_true", help="one camera per photo (mixed devices)")
     sf.set_defaults(func=cmd_sfm)
+    from fmgs import flags
+    from fmgs.build_config import BuildConfig, TargetSpec
+    from fmgs.train.config import FieldTrainConfig, GSTrainConfig
+
     t = sub.add_parser("train-gs", help="train 3D Gaussian Splatting on a posed dataset")
     t.add_argument("data", help="dataset folder (transforms.json or COLMAP sparse/0 + images/)")
     t.add_argument("--out", required=True)
-    t.add_argument("--steps", type=int, default=30_000, help="fewer steps compress the schedule to match")
-    t.add_argument("--scale", type=float, default=1.0, help="train on images resized by this factor")
-    t.add_argument("--backend", default="auto", choices=["auto", "cpu", "reference", "cuda"])
-    t.add_argument("--device", default="auto", help="torch device (auto: cuda when available)")
-    t.add_argument("--seed", type=int, default=0)
-    t.add_argument("--checkpoint-every", type=int, default=0)
-    t.add_argument("--grad-threshold", type=float, help="densification threshold (default 2e-4, graphdeco)")
     t.add_argument("--undistort-dir", help="where to undistort a distorted COLMAP model first")
     t.add_argument("--restart", action="store_true", help="ignore an existing checkpoint in --out")
+    _config_flag(t, "training")
+    g = t.add_argument_group("training (GSTrainConfig; fewer --steps compress the SH and densify schedule)")
+    flags.add_flags(g, GSTrainConfig, aliases=GS_ALIASES, defaults=AUTO_DEVICE)
     t.set_defaults(func=cmd_train_gs)
     e = sub.add_parser("eval-gs", help="PSNR/SSIM on the held-out views (every 8th image)")
     e.add_argument("data")
@@ -330,8 +355,9 @@ def build_parser() -> argparse.ArgumentParser:
     fe = sub.add_parser("features", help="extract feature targets of a posed dataset into a cache")
     fe.add_argument("data", help="posed dataset folder")
     fe.add_argument("--out", required=True, help="feature cache folder")
-    _add_target_args(fe)
     fe.add_argument("--device", default="auto", help="torch device (auto: cuda when available)")
+    _config_flag(fe, "target")
+    flags.add_flags(fe.add_argument_group("targets (TargetSpec)"), TargetSpec, aliases=TARGET_ALIASES)
     fe.set_defaults(func=cmd_features)
     tf = sub.add_parser("train-field", help="distil a feature cache into the feature field")
     tf.add_argument("data", help="posed dataset folder")
@@ -339,26 +365,25 @@ def build_parser() -> argparse.ArgumentParser:
     tf.add_argument("--features", required=True, help="feature cache folder")
     tf.add_argument("--out", required=True, help="folder for the checkpoint and field_train.json")
     tf.add_argument("--package", help="also write a scene package to this folder (e.g. models/NAME)")
-    _add_field_args(tf)
-    tf.add_argument("--device", default="auto", help="torch device (auto: cuda when available)")
-    tf.add_argument("--seed", type=int, default=0)
+    _add_package_args(tf)
     tf.add_argument("--restart", action="store_true", help="ignore an existing checkpoint in --out")
+    _config_flag(tf, "distillation")
+    g = tf.add_argument_group("distillation (FieldTrainConfig; fewer --field-steps compress the schedule)")
+    flags.add_flags(g, FieldTrainConfig, aliases=FIELD_ALIASES, defaults=AUTO_DEVICE)
+    _no_dotsim(g)
     tf.set_defaults(func=cmd_train_field)
     b = sub.add_parser("build", help="photos or a posed dataset -> scene package in models/")
     b.add_argument("source", help="photo folder, or posed dataset folder")
-    b.add_argument("--name", required=True, help="scene name")
-    b.add_argument("--models", default="models", help="model repository")
-    b.add_argument("--work", help="work folder (default MODELS/.work/NAME)")
-    b.add_argument("--ply", help="existing 3DGS .ply: skip geometry training")
-    b.add_argument("--gs-steps", type=int, default=30_000)
-    b.add_argument("--gs-scale", type=float, default=1.0)
-    b.add_argument("--sh-degree", type=int, default=3, help="final SH degree of the 3DGS stage")
-    b.add_argument("--grad-threshold", type=float, help="3DGS densification threshold (default 2e-4)")
-    b.add_argument("--extra", help="JSON file with an object merged into the manifest's extra")
-    _add_target_args(b)
-    _add_field_args(b)
-    b.add_argument("--device", default="auto", help="torch device (auto: cuda when available)")
-    b.add_argument("--seed", type=int, default=0)
+    b.add_argument(
+        "--extra", dest="extra_file", help="JSON file with an object merged into the manifest's extra"
+    )
+    _config_flag(b, "build")
+    g = b.add_argument_group(
+        "build (BuildConfig: the gs-, targets- and field- groups are the stages' settings; fewer "
+        "--gs-steps or --field-steps compress that stage's schedule)"
+    )
+    flags.add_flags(g, BuildConfig, aliases=BUILD_ALIASES, defaults=AUTO_DEVICE, skip=_BUILD_STAGE_OWNED)
+    _no_dotsim(g)
     b.set_defaults(func=cmd_build)
 
     sub.add_parser(

@@ -2,8 +2,11 @@
 
 Each default is written once, in the dataclass; each flag's help is the field's docstring. Nested
 dataclass fields become prefixed flags (``index: IndexConfig`` gives ``--index-rank``) and TOML tables
-(``[index]``). Precedence: command line, then the config file, then the dataclass default. Imports
-nothing heavy, so ``--help`` stays fast.
+(``[index]``); a field may also answer to a shorter alias (``--grad-threshold``). Precedence: command
+line, then the config file, then a command's own defaults, then the dataclass default (or a ``base``
+instance, e.g. a schedule compressed to fewer steps). Imports nothing heavy, so ``--help`` stays fast.
+Field types: bool, int, float, str, Path, tuples of numbers ("0,0,0" on the command line), their
+Optional forms ("none" on the command line), nested dataclasses; dict fields are TOML-only tables.
 """
 
 from __future__ import annotations
@@ -51,11 +54,29 @@ def _base(tp: Any) -> tuple[Any, bool]:
     return tp, False
 
 
+def _tuple_parser(tp: Any):
+    items = typing.get_args(tp)
+    conv = items[0] if items and items[0] in (int, float) else float
+
+    def parse(s: str) -> tuple:
+        try:
+            vals = tuple(conv(v) for v in s.split(","))
+        except ValueError as e:
+            raise argparse.ArgumentTypeError(f"expected comma-separated numbers, got {s!r}") from e
+        if items and Ellipsis not in items and len(vals) != len(items):
+            raise argparse.ArgumentTypeError(f"expected {len(items)} comma-separated numbers, got {s!r}")
+        return vals
+
+    return parse
+
+
 def _parser_for(tp: Any, optional: bool):
     if tp is Path:
         conv = Path
     elif tp in (int, float, str):
         conv = tp
+    elif typing.get_origin(tp) is tuple:
+        conv = _tuple_parser(tp)
     else:
         raise TypeError(f"no flag for fields of type {tp!r}")
     if not optional:
@@ -72,30 +93,55 @@ def _fields(cls: type) -> list[tuple[dataclasses.Field, Any]]:
     return [(f, hints[f.name]) for f in dataclasses.fields(cls) if f.init]
 
 
-def add_flags(parser: argparse.ArgumentParser, cls: type, prefix: str = "") -> None:
-    """Add ``--<prefix><field-name>`` for every field of ``cls`` (recursing into dataclass fields)."""
+def add_flags(
+    parser: argparse.ArgumentParser | argparse._ArgumentGroup,
+    cls: type,
+    prefix: str = "",
+    aliases: dict[str, str] | None = None,
+    defaults: dict[str, Any] | None = None,
+    skip: tuple[str, ...] = (),
+) -> None:
+    """Add ``--<prefix><field-name>`` for every field of ``cls`` (recursing into dataclass fields).
+
+    aliases: dotted field name -> another option string for it (``{"densify.grad_threshold":
+    "--grad-threshold"}``); defaults: dotted field name -> the command's own default (shown in the help;
+    pass the same mapping to ``config_from``); skip: dotted names left to the config file or the command.
+    """
+    aliases, defaults = aliases or {}, defaults or {}
     docs = field_docs(cls)
     for f, tp in _fields(cls):
         name = prefix + f.name
+        if name in skip:
+            continue
         flag = "--" + name.replace("_", "-").replace(".", "-")
         if dataclasses.is_dataclass(tp):
-            add_flags(parser, tp, name + ".")
+            add_flags(parser, tp, name + ".", aliases, defaults, skip)
             continue
-        default = f.default if f.default is not dataclasses.MISSING else f.default_factory()
+        base, optional = _base(tp)
+        if base is dict or typing.get_origin(base) is dict:
+            continue  # free-form tables: config files only
+        if name in defaults:
+            default = defaults[name]
+        elif f.default is not dataclasses.MISSING:
+            default = f.default
+        elif f.default_factory is not dataclasses.MISSING:
+            default = f.default_factory()
+        else:
+            default = "required"
         doc = docs.get(f.name, "")
         help_ = f"{doc} (default: {default})" if doc else f"default: {default}"
-        base, optional = _base(tp)
+        names = [flag, *([aliases[name]] if name in aliases else [])]
         if base is bool:
             parser.add_argument(
-                flag, dest=name, action=argparse.BooleanOptionalAction, default=_UNSET, help=help_
+                *names, dest=name, action=argparse.BooleanOptionalAction, default=_UNSET, help=help_
             )
         else:
             conv = _parser_for(base, optional)
-            meta = base.__name__.upper()
-            parser.add_argument(flag, dest=name, type=conv, default=_UNSET, metavar=meta, help=help_)
+            meta = getattr(base, "__name__", "VALUES").upper()
+            parser.add_argument(*names, dest=name, type=conv, default=_UNSET, metavar=meta, help=help_)
 
 
-def _build(cls: type, values: dict[str, Any], where: str) -> Any:
+def _build(cls: type, values: dict[str, Any], where: str, base: Any = None) -> Any:
     kw: dict[str, Any] = {}
     known = {f.name: tp for f, tp in _fields(cls)}
     for key, val in values.items():
@@ -105,25 +151,52 @@ def _build(cls: type, values: dict[str, Any], where: str) -> Any:
         if dataclasses.is_dataclass(tp):
             if not isinstance(val, dict):
                 raise ValueError(f"{where}: {key} must be a table")
-            kw[key] = _build(tp, val, f"{where}.{key}")
+            inner = getattr(base, key) if base is not None else None
+            kw[key] = _build(tp, val, f"{where}.{key}", inner)
             continue
-        base, optional = _base(tp)
-        if val is None and optional:
-            kw[key] = None
-        elif base is bool:
-            if not isinstance(val, bool):
-                raise ValueError(f"{where}: {key} must be true or false, got {val!r}")
-            kw[key] = val
-        elif base in (int, float):
-            ok = isinstance(val, int | float) and not isinstance(val, bool)
-            if not ok or (base is int and isinstance(val, float) and not val.is_integer()):
-                raise ValueError(f"{where}: {key} must be {base.__name__}, got {val!r}")
-            kw[key] = base(val)
-        else:  # str or Path
-            if not isinstance(val, str | Path):
-                raise ValueError(f"{where}: {key} must be a string, got {val!r}")
-            kw[key] = base(val)
-    return cls(**kw)
+        kw[key] = _value(tp, val, f"{where}: {key}")
+    try:
+        return dataclasses.replace(base, **kw) if base is not None else cls(**kw)
+    except TypeError as e:  # a required setting is missing
+        raise ValueError(f"{where}: {e}") from e
+
+
+def _value(tp: Any, val: Any, what: str) -> Any:
+    base, optional = _base(tp)
+    if val is None and optional:
+        return None
+    if base is bool:
+        if not isinstance(val, bool):
+            raise ValueError(f"{what} must be true or false, got {val!r}")
+        return val
+    if base in (int, float):
+        ok = isinstance(val, int | float) and not isinstance(val, bool)
+        if not ok or (base is int and isinstance(val, float) and not val.is_integer()):
+            raise ValueError(f"{what} must be {base.__name__}, got {val!r}")
+        return base(val)
+    if typing.get_origin(base) is tuple:
+        if isinstance(val, str):
+            try:
+                return _tuple_parser(base)(val)
+            except argparse.ArgumentTypeError as e:
+                raise ValueError(f"{what}: {e}") from e
+        if not isinstance(val, list | tuple) or not all(_is_num(v) for v in val):
+            raise ValueError(f"{what} must be a list of numbers, got {val!r}")
+        items = typing.get_args(base)
+        if items and Ellipsis not in items and len(val) != len(items):
+            raise ValueError(f"{what} must hold {len(items)} numbers, got {len(val)}")
+        return tuple(val)
+    if base is dict or typing.get_origin(base) is dict:
+        if not isinstance(val, dict):
+            raise ValueError(f"{what} must be a table, got {val!r}")
+        return dict(val)
+    if not isinstance(val, str | Path):  # str or Path
+        raise ValueError(f"{what} must be a string, got {val!r}")
+    return base(val)
+
+
+def _is_num(v: Any) -> bool:
+    return isinstance(v, int | float) and not isinstance(v, bool)
 
 
 def _nest(flat: dict[str, Any]) -> dict[str, Any]:
@@ -144,16 +217,39 @@ def _merge(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
-def config_from(cls: type, args: argparse.Namespace, config_file: str | Path | None = None) -> Any:
-    """An instance of ``cls``: flags given on the command line over the TOML file over the defaults."""
+def values_from(
+    cls: type,
+    args: argparse.Namespace,
+    config_file: str | Path | None = None,
+    defaults: dict[str, Any] | None = None,
+) -> dict[str, Any]:
+    """The settings given for ``cls`` (nested dicts): flags over the TOML file over ``defaults``."""
     file_values: dict[str, Any] = {}
     if config_file is not None:
         try:
             file_values = tomllib.loads(Path(config_file).read_text())
-        except (OSError, tomllib.TOMLDecodeError) as e:
+        except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as e:
             raise ValueError(f"cannot read config file {config_file}: {e}") from e
     given = {k: v for k, v in vars(args).items() if v is not _UNSET and _is_field(cls, k)}
-    return _build(cls, _merge(file_values, _nest(given)), str(config_file or "flags"))
+    return _merge(_merge(_nest(defaults or {}), file_values), _nest(given))
+
+
+def config_from(
+    cls: type,
+    args: argparse.Namespace,
+    config_file: str | Path | None = None,
+    defaults: dict[str, Any] | None = None,
+    base: Any = None,
+) -> Any:
+    """An instance of ``cls``: flags given on the command line over the TOML file over ``defaults`` over
+    ``base`` (an instance; default: the dataclass defaults)."""
+    values = values_from(cls, args, config_file, defaults)
+    return build(cls, values, str(config_file or "flags"), base)
+
+
+def build(cls: type, values: dict[str, Any], where: str = "settings", base: Any = None) -> Any:
+    """An instance of ``cls`` from nested ``values`` (unknown keys and wrong types named) over ``base``."""
+    return _build(cls, values, where, base)
 
 
 def _is_field(cls: type, dotted: str) -> bool:

@@ -1,67 +1,49 @@
 """Foundation-model targets for the feature field: CLIP/DINO/text encoders, label targets, the feature cache.
 
-Importing this package loads no model and does not import ``transformers``; encoders load it lazily.
+Importing this package loads no model and imports neither torch nor ``transformers``: exports resolve
+on first use, and encoders load their models lazily.
 """
 
-from fmgs.features.cache import FeatureCache, FeatureCacheWriter, FeatureMaps, TargetInfo
-from fmgs.features.clip import ClipEncoders, ClipImageEncoder, ImageEncoder, load_clip
-from fmgs.features.dino import DinoEncoder
-from fmgs.features.extract import (
-    ExtractConfig,
-    extract_labels,
-    extract_targets,
-    feature_size,
-    read_label_map,
-    read_label_names,
-)
-from fmgs.features.labels import LabelTargets, label_embedding_map, label_map_targets
-from fmgs.features.models import (
-    DEFAULT_CLIP_ID,
-    DEFAULT_DINO_ID,
-    MINILM_ID,
-    ModelNotFoundError,
-    resolve_model_dir,
-)
-from fmgs.features.pyramid import CropGrid, PyramidConfig, crop_grid, hybrid_map
-from fmgs.features.text import (
-    ClipTextEncoder,
-    MiniLMTextEncoder,
-    TextEncoder,
-    clip_tokenizer_from_bpe_files,
-    load_text_encoder,
-)
+from importlib import import_module
 
-__all__ = [
-    "DEFAULT_CLIP_ID",
-    "DEFAULT_DINO_ID",
-    "MINILM_ID",
-    "ClipEncoders",
-    "ClipImageEncoder",
-    "ClipTextEncoder",
-    "CropGrid",
-    "DinoEncoder",
-    "ExtractConfig",
-    "FeatureCache",
-    "FeatureCacheWriter",
-    "FeatureMaps",
-    "ImageEncoder",
-    "LabelTargets",
-    "MiniLMTextEncoder",
-    "ModelNotFoundError",
-    "PyramidConfig",
-    "TargetInfo",
-    "TextEncoder",
-    "clip_tokenizer_from_bpe_files",
-    "crop_grid",
-    "extract_labels",
-    "extract_targets",
-    "feature_size",
-    "hybrid_map",
-    "label_embedding_map",
-    "label_map_targets",
-    "load_clip",
-    "load_text_encoder",
-    "read_label_map",
-    "read_label_names",
-    "resolve_model_dir",
-]
+_EXPORTS = {
+    "ClipEncoders": "fmgs.features.clip",
+    "ClipImageEncoder": "fmgs.features.clip",
+    "ClipTextEncoder": "fmgs.features.text",
+    "CropGrid": "fmgs.features.pyramid",
+    "DEFAULT_CLIP_ID": "fmgs.features.models",
+    "DEFAULT_DINO_ID": "fmgs.features.models",
+    "DinoEncoder": "fmgs.features.dino",
+    "ExtractConfig": "fmgs.features.extract",
+    "FeatureCache": "fmgs.features.cache",
+    "FeatureCacheWriter": "fmgs.features.cache",
+    "FeatureMaps": "fmgs.features.cache",
+    "ImageEncoder": "fmgs.features.clip",
+    "LabelTargets": "fmgs.features.labels",
+    "MINILM_ID": "fmgs.features.models",
+    "MiniLMTextEncoder": "fmgs.features.text",
+    "ModelNotFoundError": "fmgs.features.models",
+    "PyramidConfig": "fmgs.features.pyramid",
+    "TargetInfo": "fmgs.features.cache",
+    "TextEncoder": "fmgs.features.text",
+    "clip_tokenizer_from_bpe_files": "fmgs.features.text",
+    "crop_grid": "fmgs.features.pyramid",
+    "extract_labels": "fmgs.features.extract",
+    "extract_targets": "fmgs.features.extract",
+    "feature_size": "fmgs.features.extract",
+    "hybrid_map": "fmgs.features.pyramid",
+    "label_embedding_map": "fmgs.features.labels",
+    "label_map_targets": "fmgs.features.labels",
+    "load_clip": "fmgs.features.clip",
+    "load_text_encoder": "fmgs.features.text",
+    "read_label_map": "fmgs.features.extract",
+    "read_label_names": "fmgs.features.extract",
+    "resolve_model_dir": "fmgs.features.models",
+}
+__all__ = sorted(_EXPORTS)
+
+
+def __getattr__(name: str):
+    if name in _EXPORTS:
+        return getattr(import_module(_EXPORTS[name]), name)
+    raise AttributeError(f"module 'fmgs.features' has no attribute {name!r}")

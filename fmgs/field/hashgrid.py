@@ -20,61 +20,17 @@ materialising the [N, L, 8, F] corner features); for fixed points ``interpolatio
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass
 from typing import NamedTuple
 
 import torch
 from torch import nn
 
+from fmgs.field.config import HashGridConfig
 from fmgs.sparse import SparseMatrix
 
 _PRIMES = (1, 2654435761, 805459861)
 # The 8 cell corners as (dx, dy, dz) bits.
 _CORNERS = torch.tensor([[(c >> 0) & 1, (c >> 1) & 1, (c >> 2) & 1] for c in range(8)], dtype=torch.int64)
-
-
-@dataclass(frozen=True)
-class HashGridConfig:
-    """Shape of the encoding (defaults: the FMGS paper)."""
-
-    levels: int = 24
-    """Number of resolution levels."""
-    min_res: int = 16
-    """Resolution of the coarsest level (cells per unit)."""
-    max_res: int = 512
-    """Resolution of the finest level."""
-    log2_table: int = 20
-    """log2 of the hash table size per level (T)."""
-    features: int = 8
-    """Features per table entry (F); the encoding has levels * features dims."""
-    init_scale: float = 1e-4
-    """Table entries start uniform in [-init_scale, init_scale]."""
-
-    def __post_init__(self) -> None:
-        if self.levels < 1 or self.features < 1 or not 1 <= self.min_res <= self.max_res:
-            raise ValueError("need levels >= 1, features >= 1 and 1 <= min_res <= max_res")
-        if not 4 <= self.log2_table <= 30:
-            raise ValueError("log2_table must lie in [4, 30]")
-
-    @property
-    def out_dim(self) -> int:
-        return self.levels * self.features
-
-    def resolutions(self) -> list[int]:
-        """Cells per unit at each level."""
-        if self.levels == 1:
-            return [self.min_res]
-        b = math.exp((math.log(self.max_res) - math.log(self.min_res)) / (self.levels - 1))
-        # The small epsilon keeps floor(min_res * b^(L-1)) == max_res despite rounding of b.
-        return [math.floor(self.min_res * b**level + 1e-6) for level in range(self.levels)]
-
-    def level_sizes(self) -> list[int]:
-        """Rows per level: the dense vertex count when it fits T, else T."""
-        T = 1 << self.log2_table
-        return [min((r + 1) ** 3, T) for r in self.resolutions()]
-
-    def to_dict(self) -> dict:
-        return asdict(self)
 
 
 def scene_max_res(points: torch.Tensor, cfg: HashGridConfig) -> int:

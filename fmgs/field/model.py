@@ -6,44 +6,15 @@ not. ``PerGaussianFeatures`` is the ablation that replaces the field by free per
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field
 from typing import NamedTuple
 
 import torch
 from torch import nn
 
 from fmgs.field.bounds import SceneBounds
-from fmgs.field.hashgrid import Corners, HashGrid, HashGridConfig
+from fmgs.field.config import FieldConfig
+from fmgs.field.hashgrid import Corners, HashGrid
 from fmgs.vecmath import safe_normalize
-
-
-@dataclass(frozen=True)
-class FieldConfig:
-    """Encoding and head sizes (defaults: the FMGS paper and its reference code)."""
-
-    grid: HashGridConfig = field(default_factory=HashGridConfig)
-    """The hash encoding."""
-    clip_dim: int = 512
-    """Language embedding size (the text encoder's dim)."""
-    clip_hidden: int = 256
-    """Width of the language head's hidden layers."""
-    clip_layers: int = 4
-    """Hidden layers in the language head."""
-    dino_dim: int = 384
-    """DINO feature size; 0 means no DINO head."""
-    dino_hidden: int = 256
-    """Width of the DINO head's hidden layer(s)."""
-    dino_layers: int = 1
-    """Hidden layers in the DINO head."""
-
-    def to_dict(self) -> dict:
-        return asdict(self)
-
-    @classmethod
-    def from_dict(cls, d: dict) -> FieldConfig:
-        d = dict(d)
-        d["grid"] = HashGridConfig(**d["grid"])
-        return cls(**d)
 
 
 class FieldOutput(NamedTuple):

@@ -2,25 +2,15 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from typing import NamedTuple
 
 import torch
 
 from fmgs.cameras import Camera
+from fmgs.field.config import SelectConfig
 from fmgs.gaussians import GaussianSet
 from fmgs.render.projection import project
 from fmgs.render.types import RasterConfig
-
-
-@dataclass(frozen=True)
-class SelectConfig:
-    """Selection thresholds (defaults: the FMGS reference code)."""
-
-    opacity_min: float = 0.25
-    """Keep Gaussians with opacity above this."""
-    radius_min: float = 2.0
-    """... whose projected 3-sigma radius exceeds this many pixels in at least one training view."""
 
 
 class Selection(NamedTuple):

@@ -12,8 +12,7 @@ from __future__ import annotations
 
 import json
 import time
-from dataclasses import asdict, dataclass, replace
-from dataclasses import field as dc_field
+from dataclasses import replace
 from pathlib import Path
 from typing import NamedTuple
 
@@ -24,72 +23,18 @@ from fmgs.data.dataset import PosedDataset
 from fmgs.errors import ValidationError
 from fmgs.field.bounds import SceneBounds
 from fmgs.field.hashgrid import scene_max_res
-from fmgs.field.model import FeatureField, FieldConfig, FieldOutput, PerGaussianFeatures
-from fmgs.field.select import SelectConfig, Selection, select_gaussians
+from fmgs.field.model import FeatureField, FieldOutput, PerGaussianFeatures
+from fmgs.field.select import Selection, select_gaussians
 from fmgs.gaussians import GaussianSet
 from fmgs.io.atomic import atomic_path
 from fmgs.io.checkpoint import load_training_state, save_training_state
 from fmgs.render.types import RasterConfig
 from fmgs.render.weights import ViewWeights, view_weights
 from fmgs.sparse import SparseMatrix
+from fmgs.train.config import FieldTrainConfig
 from fmgs.vecmath import safe_normalize
 
 CHECKPOINT_FORMAT = "fmgs.field_checkpoint"
-
-
-@dataclass(frozen=True)
-class FieldTrainConfig:
-    """Distillation settings (defaults: the FMGS paper)."""
-
-    steps: int = 4200
-    """Optimiser steps (one training view per step)."""
-    lam: float = 0.2
-    """Weight of the language (Huber) loss; the DINO (MSE) loss gets 1 - lam."""
-    huber_delta: float = 1.25
-    """Huber threshold of the language loss."""
-    dotsim_weight: float = 0.01
-    """gamma: weight of the dot-product-similarity loss (0 switches it off)."""
-    dotsim_start: int = 2500
-    """Step at which dotsim switches on."""
-    dotsim_kernel: int = 3
-    """Neighbourhood edge K (odd) of dotsim."""
-    lr: float = 5e-3
-    """Initial learning rate (RAdam)."""
-    lr_final: float = 4e-3
-    """Learning rate at the last step (exponential decay)."""
-    weight_decay: float = 1e-9
-    """RAdam weight decay."""
-    adam_eps: float = 1e-15
-    """RAdam epsilon. The per-element losses are means over h*w*D values, so gradients are tiny; the
-    usual 1e-8 would swamp them (Instant-NGP uses 1e-15 for the same reason)."""
-    seed: int = 0
-    """Seeds initialisation and view order."""
-    device: str = "cpu"
-    """Torch device."""
-    holdout_every: int = 8
-    """Every n-th frame is held out (as in the geometry stage); 0 or 1 trains on all."""
-    field: FieldConfig = dc_field(default_factory=FieldConfig)
-    """Encoding and heads (clip_dim and dino_dim are taken from the feature cache)."""
-    select: SelectConfig = dc_field(default_factory=SelectConfig)
-    """Which Gaussians carry features."""
-    per_gaussian: bool = False
-    """Ablation: free per-Gaussian vectors instead of the hash-grid field."""
-    adaptive_resolution: bool = False
-    """Scene-adaptive: lower the finest level to the Gaussians' median spacing (``scene_max_res``)."""
-    checkpoint_every: int = 500
-    """Steps between checkpoints (0: only at the end)."""
-
-    def __post_init__(self) -> None:
-        if self.steps < 1 or not 0 <= self.lam <= 1 or self.dotsim_kernel < 3 or self.dotsim_kernel % 2 == 0:
-            raise ValueError("need steps >= 1, 0 <= lam <= 1 and an odd dotsim_kernel >= 3")
-
-    def reduced(self, steps: int, **kw) -> FieldTrainConfig:
-        """The same schedule compressed to ``steps`` (dotsim starts at the same fraction)."""
-        start = round(self.dotsim_start * steps / self.steps)
-        return replace(self, steps=steps, dotsim_start=start, **kw)
-
-    def to_dict(self) -> dict:
-        return asdict(self)
 
 
 class FieldTrainResult(NamedTuple):

@@ -10,7 +10,7 @@ from __future__ import annotations
 import json
 import math
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
@@ -23,67 +23,10 @@ from fmgs.io.ply import write_ply
 from fmgs.metrics import ssim
 from fmgs.render import RasterConfig, rasterize
 from fmgs.sh import sh_to_rgb
-from fmgs.train.strategy import DensifyConfig, DensifyState, accumulate, refine, reset_opacity
+from fmgs.train.config import GSTrainConfig
+from fmgs.train.strategy import DensifyState, accumulate, refine, reset_opacity
 
 PARAM_NAMES = ("means", "quats", "log_scales", "opacity_logits", "sh_dc", "sh_rest")
-
-
-@dataclass(frozen=True)
-class GSTrainConfig:
-    """3DGS training settings (defaults: graphdeco's 30K-step recipe)."""
-
-    steps: int = 30_000
-    """Optimisation steps (one training view each)."""
-    image_scale: float = 1.0
-    """Train on images resized by this factor."""
-    sh_degree: int = 3
-    """Final spherical-harmonics degree."""
-    sh_every: int = 1_000
-    """Raise the active SH degree by one every this many steps."""
-    ssim_weight: float = 0.2
-    """Loss = (1 - w) L1 + w (1 - SSIM)."""
-    lr_means: float = 1.6e-4
-    """Initial learning rate of the means, times the scene extent."""
-    lr_means_final: float = 1.6e-6
-    """Final learning rate of the means (exponential decay), times the scene extent."""
-    lr_sh_dc: float = 2.5e-3
-    """Learning rate of the DC colour coefficients (the higher orders get 1/20 of it)."""
-    lr_opacity: float = 0.05
-    """Learning rate of the opacity logits."""
-    lr_scales: float = 5e-3
-    """Learning rate of the log scales."""
-    lr_quats: float = 1e-3
-    """Learning rate of the quaternions."""
-    densify: DensifyConfig = field(default_factory=DensifyConfig)
-    """Adaptive density control schedule."""
-    init_opacity: float = 0.1
-    """Opacity of the initial Gaussians."""
-    random_init: int = 50_000
-    """Random initial Gaussians in the scene bounds when the dataset has no sparse points."""
-    max_init_points: int = 200_000
-    """Subsample the sparse points to at most this many."""
-    backend: str = "auto"
-    """Rasteriser backend: auto picks cuda on a GPU, else cpu (numba blending with gradients, about 10x
-    the reference's speed at 128x96, tests/test_render_cpu_grad.py holds it to the reference)."""
-    reference_tile: int = 4
-    """Tile edge for the reference backend: small tiles waste less dense work per Gaussian (measured on
-    snowmiku at 124x93: 0.80 s per step with 16, 0.44 with 8, 0.31 with 4)."""
-    background: tuple[float, float, float] | None = None
-    """Background colour; None uses the dataset's (scene.json) or black."""
-    holdout_every: int = 8
-    """Every n-th frame is held out (not trained on)."""
-    checkpoint_every: int = 0
-    """Write a resumable checkpoint every this many steps (0: only at the end)."""
-    seed: int = 0
-    """Seeds initialisation, view order and splitting."""
-    device: str = "cpu"
-    """Torch device for parameters and images."""
-
-    @classmethod
-    def reduced(cls, steps: int, **kw) -> GSTrainConfig:
-        """A shorter run whose SH and densification schedule are compressed by steps / 30,000."""
-        f = steps / 30_000
-        return cls(steps=steps, sh_every=max(1, round(1_000 * f)), densify=DensifyConfig().scaled(f), **kw)
 
 
 @dataclass

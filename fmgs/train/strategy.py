@@ -7,57 +7,12 @@ Gradients are measured in NDC units (pixels x W/2, H/2), so thresholds do not de
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import torch
 
 from fmgs.cameras import quat_wxyz_to_rotmat
-
-
-@dataclass(frozen=True)
-class DensifyConfig:
-    """When and how to grow and prune (defaults: graphdeco 3DGS for 30K steps)."""
-
-    refine_start: int = 500
-    """First step that grows or prunes."""
-    refine_stop: int = 15_000
-    """No growing after this step (pruning of transparent Gaussians too)."""
-    refine_every: int = 100
-    """Steps between two refinements."""
-    reset_every: int = 3_000
-    """Steps between opacity resets."""
-    grad_threshold: float = 0.0002
-    """Grow a Gaussian whose mean view-space gradient (NDC units) exceeds this."""
-    dense_percent: float = 0.01
-    """Clone when the largest scale is below this fraction of the scene extent, else split."""
-    prune_opacity: float = 0.005
-    """Prune Gaussians more transparent than this."""
-    prune_screen_px: float = 20.0
-    """After the first reset, prune Gaussians whose projected radius exceeded this (pixels)."""
-    prune_world: float = 0.1
-    """After the first reset, prune Gaussians larger than this fraction of the scene extent."""
-    reset_opacity: float = 0.01
-    """Opacities are clamped to at most this at each reset."""
-    max_gaussians: int = 3_000_000
-    """Growth stops at this count (memory guard)."""
-
-    def scaled(self, factor: float) -> DensifyConfig:
-        """The same schedule compressed to ``factor`` times as many steps (for reduced runs).
-
-        Refinements stay at least 10 steps apart (gradient statistics need several views) and opacity
-        resets at least 100 (the scene needs time to recover from one).
-        """
-
-        def s(v: int, floor: int = 1) -> int:
-            return max(floor, round(v * factor))
-
-        return replace(
-            self,
-            refine_start=s(self.refine_start),
-            refine_stop=s(self.refine_stop),
-            refine_every=s(self.refine_every, 10),
-            reset_every=s(self.reset_every, 100),
-        )
+from fmgs.train.config import DensifyConfig
 
 
 @dataclass

@@ -1,0 +1,84 @@
+"""What ``fmgs build`` runs: targets, the 3DGS and field stages, the package. Torch-free (flags and
+config files are built from these fields)."""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+from fmgs.features.models import DEFAULT_CLIP_ID, DEFAULT_DINO_ID, MINILM_ID
+from fmgs.scene.manifest import FIELD_DTYPES
+from fmgs.train.config import FieldTrainConfig, GSTrainConfig
+
+TARGET_KINDS = ("clip", "labels")
+
+
+@dataclass(frozen=True)
+class TargetSpec:
+    """Which targets to distil."""
+
+    kind: str = "clip"
+    """"clip" (hybrid CLIP + DINO from pretrained models) or "labels" (label masks + a text encoder)."""
+    clip_model: str = DEFAULT_CLIP_ID
+    """CLIP model id or local folder (hub cache only, never downloaded)."""
+    dino_model: str | None = DEFAULT_DINO_ID
+    """DINO model id or local folder; None for no DINO target."""
+    single_scale: bool = False
+    """Ablation: one crop scale instead of the 7-scale pyramid."""
+    labels: str | None = None
+    """Label image folder (kind "labels"); default DATA/labels."""
+    names: str | None = None
+    """scene.json (or a folder holding it) with label_names (kind "labels"); default DATA/scene.json."""
+    text_encoder: str = MINILM_ID
+    """Text encoder id for label names (kind "labels")."""
+    feature_scale: float = 0.25
+    """Feature maps at this fraction of the image resolution."""
+
+    def __post_init__(self) -> None:
+        if self.kind not in TARGET_KINDS:
+            raise ValueError(f"targets kind must be one of {TARGET_KINDS}, got {self.kind!r}")
+        if not 0 < self.feature_scale <= 1:
+            raise ValueError(f"feature_scale must lie in (0, 1], got {self.feature_scale}")
+
+
+@dataclass(frozen=True)
+class BuildConfig:
+    """What ``build_scene`` runs."""
+
+    name: str
+    """Scene name (folder under the model repository)."""
+    models: str = "models"
+    """The model repository."""
+    work: str | None = None
+    """Work folder for intermediate outputs (default: WORK = <models>/.work/<name>)."""
+    ply: str | None = None
+    """An existing 3DGS .ply (skip geometry training)."""
+    gs: GSTrainConfig = dataclasses.field(default_factory=GSTrainConfig)
+    """The 3DGS stage (its device is ``device``; fewer steps compress its schedule, see ``scheduled``)."""
+    targets: TargetSpec = dataclasses.field(default_factory=TargetSpec)
+    """Feature targets."""
+    field: FieldTrainConfig = dataclasses.field(default_factory=FieldTrainConfig)
+    """Distillation settings."""
+    include_dino: bool = False
+    """Keep the DINO head in the package."""
+    field_dtype: str = "float32"
+    """Storage of the field's table and heads in the package: "float32" or "float16" (half the size)."""
+    extra: dict = dataclasses.field(default_factory=dict)
+    """Merged into the manifest's ``extra`` (e.g. a description); label targets add ``label_names``."""
+    device: str = "cpu"
+    """Torch device for every stage."""
+
+    def __post_init__(self) -> None:
+        if self.field_dtype not in FIELD_DTYPES:
+            raise ValueError(f"field_dtype must be one of {FIELD_DTYPES}, got {self.field_dtype!r}")
+
+    @classmethod
+    def scheduled(cls, name: str, gs_steps: int | None = None, field_steps: int | None = None) -> BuildConfig:
+        """Defaults with the 3DGS and field schedules compressed to the given step counts (the base that
+        ``fmgs build`` applies its other settings to)."""
+        gs, fd = GSTrainConfig(), FieldTrainConfig()
+        if gs_steps is not None and gs_steps != gs.steps:
+            gs = GSTrainConfig.reduced(gs_steps)
+        if field_steps is not None and field_steps != fd.steps:
+            fd = fd.reduced(field_steps)
+        return cls(name=name, gs=gs, field=fd)

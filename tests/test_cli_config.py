@@ -1,0 +1,116 @@
+"""Every setting of the build and training configs is a flag and a TOML key (fmgs/flags.py via fmgs.cli);
+fewer steps compress a stage's schedule before the other settings apply; bad settings exit 2 naming them."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from dataclasses import replace
+
+import pytest
+
+from fmgs import cli
+from fmgs.build_config import BuildConfig, TargetSpec
+from fmgs.train.config import FieldTrainConfig, GSTrainConfig
+
+
+def _args(*argv: str):
+    return cli.build_parser().parse_args(list(argv))
+
+
+def test_build_flags_reach_every_stage_with_compressed_schedules():
+    a = _args(
+        *("build", "DATA", "--name", "toy", "--gs-steps", "1200", "--sh-degree", "0", "--grad-threshold"),
+        *("0.001", "--gs-densify-reset-every", "333", "--targets", "labels", "--feature-scale", "0.5"),
+        *("--field-steps", "600", "--field-select-opacity-min", "0.4", "--field-field-grid-levels", "8"),
+        *("--seed", "3", "--device", "cpu"),
+    )
+    cfg = cli._build_config(a)
+    gs = GSTrainConfig.reduced(1200)
+    assert cfg.gs == replace(
+        gs, sh_degree=0, densify=replace(gs.densify, grad_threshold=0.001, reset_every=333)
+    )
+    assert cfg.targets == TargetSpec(kind="labels", feature_scale=0.5)
+    fd = FieldTrainConfig().reduced(600)
+    assert (
+        cfg.field.steps == 600
+        and cfg.field.dotsim_start == fd.dotsim_start != FieldTrainConfig().dotsim_start
+    )
+    assert cfg.field.select.opacity_min == 0.4 and cfg.field.field.grid.levels == 8 and cfg.field.seed == 3
+    assert cfg.device == "cpu" and cfg.name == "toy"
+
+
+def test_build_config_file_under_flags(tmp_path):
+    f = tmp_path / "build.toml"
+    f.write_text(
+        'name = "fromfile"\nfield_dtype = "float16"\n[gs]\nsteps = 3000\nbackground = [0, 0, 0]\n'
+        "[field]\nsteps = 2100\n[field.select]\nradius_min = 3.5\n[extra]\ndescription = 'x'\n"
+    )
+    cfg = cli._build_config(
+        _args("build", "DATA", "--config", str(f), "--field-steps", "1000", "--device", "cpu")
+    )
+    assert cfg.name == "fromfile" and cfg.field_dtype == "float16" and cfg.extra == {"description": "x"}
+    assert cfg.gs == replace(GSTrainConfig.reduced(3000), background=(0.0, 0.0, 0.0))
+    assert cfg.field.steps == 1000 and cfg.field.select.radius_min == 3.5  # the flag wins over the file
+    assert cfg.field.dotsim_start == FieldTrainConfig().reduced(1000).dotsim_start
+
+
+def test_defaults_are_the_dataclasses():
+    cfg = cli._build_config(_args("build", "DATA", "--name", "n", "--device", "cpu"))
+    assert cfg == BuildConfig(name="n")
+    assert cli._gs_config(_args("train-gs", "D", "--out", "O", "--device", "cpu")) == GSTrainConfig()
+    tf = _args("train-field", "D", "--gaussians", "g", "--features", "f", "--out", "o", "--device", "cpu")
+    assert cli._field_config(tf) == FieldTrainConfig()
+    assert cli._target_spec(_args("features", "D", "--out", "O")) == TargetSpec()
+
+
+def test_train_gs_short_flags_and_tuples():
+    cfg = cli._gs_config(
+        _args(
+            "train-gs",
+            "D",
+            "--out",
+            "O",
+            "--steps",
+            "500",
+            "--scale",
+            "0.5",
+            "--background",
+            "1,1,1",
+            "--device",
+            "cpu",
+        )
+    )
+    assert cfg == replace(GSTrainConfig.reduced(500), image_scale=0.5, background=(1.0, 1.0, 1.0))
+    with pytest.raises(SystemExit):
+        _args("train-gs", "D", "--out", "O", "--background", "1,1")
+
+
+@pytest.mark.parametrize(
+    "toml, message",
+    [
+        ("[gs]\nstepz = 3\n", "unknown setting 'stepz'"),
+        ("[gs]\nsteps = 'many'\n", "steps must be int"),
+        ('name = "n"\n[targets]\nkind = "pixels"\n', "targets kind must be one of"),
+        ('name = "n"\nfield_dtype = "int8"\n', "field_dtype must be one of"),
+        ("[gs\n", "cannot read config file"),
+    ],
+)
+def test_bad_settings_exit_2_naming_the_setting(tmp_path, toml, message):
+    f = tmp_path / "b.toml"
+    f.write_text(toml)
+    r = subprocess.run(
+        [sys.executable, "-m", "fmgs.cli", "build", str(tmp_path), "--name", "n", "--config", str(f)],
+        capture_output=True,
+        text=True,
+    )
+    assert r.returncode == 2 and message in r.stderr, r.stderr
+
+
+def test_help_shows_each_default_from_its_dataclass():
+    r = subprocess.run([sys.executable, "-m", "fmgs.cli", "build", "--help"], capture_output=True, text=True)
+    assert r.returncode == 0
+    text = " ".join(r.stdout.split())
+    assert f"(default: {GSTrainConfig().densify.grad_threshold})" in text
+    assert "--gs-densify-max-gaussians" in text and "--field-lam" in text
+    assert TargetSpec().clip_model in "".join(r.stdout.split())  # help wraps long ids at hyphens

@@ -76,9 +76,7 @@ def rescore(package: Path, data: Path) -> dict:
     from fmgs.train.evaluate_field import evaluate_field
 
     ds = load_dataset(data)
-    q = evaluate_field(
-        SceneEngine.open(package), ds, MiniLMTextEncoder(), ds.split(8)[1], data / "scene.json"
-    )
+    q = evaluate_field(SceneEngine.open(package), ds, MiniLMTextEncoder(), ds.split()[1], data / "scene.json")
     return q.to_dict()
 
 

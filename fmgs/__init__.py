@@ -3,7 +3,7 @@
 Importing this package is cheap: no torch, no compiled kernel is loaded until an export is used.
 """
 
-from importlib import import_module
+from fmgs.lazy import lazy_exports
 
 _EXPORTS = {
     "Camera": "fmgs.cameras",
@@ -13,9 +13,4 @@ _EXPORTS = {
 }
 __all__ = sorted(_EXPORTS)
 __version__ = "0.1.0"
-
-
-def __getattr__(name: str):
-    if name in _EXPORTS:
-        return getattr(import_module(_EXPORTS[name]), name)
-    raise AttributeError(f"module 'fmgs' has no attribute {name!r}")
+__getattr__ = lazy_exports(__name__, _EXPORTS)

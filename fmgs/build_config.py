@@ -7,7 +7,7 @@ import dataclasses
 from dataclasses import dataclass
 
 from fmgs.features.models import DEFAULT_CLIP_ID, DEFAULT_DINO_ID, MINILM_ID
-from fmgs.scene.manifest import FIELD_DTYPES
+from fmgs.scene.manifest import FIELD_DTYPES, MODELS
 from fmgs.train.config import FieldTrainConfig, GSTrainConfig
 
 TARGET_KINDS = ("clip", "labels")
@@ -47,7 +47,7 @@ class BuildConfig:
 
     name: str
     """Scene name (folder under the model repository)."""
-    models: str = "models"
+    models: str = MODELS
     """The model repository."""
     work: str | None = None
     """Work folder for intermediate outputs (default: WORK = <models>/.work/<name>)."""

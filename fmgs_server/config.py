@@ -7,6 +7,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from fmgs.query.config import IndexConfig
+from fmgs.scene.manifest import MODELS
 from fmgs_wire import DEFAULT_PORT
 
 MiB = 1 << 20
@@ -16,7 +17,7 @@ MiB = 1 << 20
 class ServerConfig:
     """How ``fmgs-server`` runs (every field is a flag and a key of the --config TOML file)."""
 
-    models: Path = Path("models")
+    models: Path = Path(MODELS)
     """The scene repository: one folder per scene package."""
     host: str = "127.0.0.1"
     """Interface to bind (loopback unless told otherwise)."""

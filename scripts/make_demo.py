@@ -80,7 +80,7 @@ def evaluate(package: Path, data: Path) -> dict:
     engine = SceneEngine.open(package)
     enc = load_text_encoder(engine.encoder_id)
     ds = load_dataset(data)
-    q = evaluate_field(engine, ds, enc, ds.split(8)[1], data / "scene.json")
+    q = evaluate_field(engine, ds, enc, ds.split()[1], data / "scene.json")
     top1 = {}
     for o in engine.manifest.extra["objects"]:
         if o["label"] < 2:

@@ -12,6 +12,7 @@ import numpy as np
 import torch
 
 from fmgs.cameras import Camera
+from fmgs.data import HOLDOUT_EVERY
 from fmgs.data.colmap import read_model
 from fmgs.errors import ValidationError
 
@@ -49,7 +50,7 @@ class PosedDataset:
     def __len__(self) -> int:
         return len(self.frames)
 
-    def split(self, holdout_every: int = 8) -> tuple[list[int], list[int]]:
+    def split(self, holdout_every: int = HOLDOUT_EVERY) -> tuple[list[int], list[int]]:
         """(train, held-out) frame indices: every ``holdout_every``-th frame (0, 8, 16, ...) is held out."""
         if holdout_every < 2:
             return list(range(len(self.frames))), []

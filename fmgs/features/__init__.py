@@ -4,7 +4,7 @@ Importing this package loads no model and imports neither torch nor ``transforme
 on first use, and encoders load their models lazily.
 """
 
-from importlib import import_module
+from fmgs.lazy import lazy_exports
 
 _EXPORTS = {
     "ClipEncoders": "fmgs.features.clip",
@@ -41,9 +41,4 @@ _EXPORTS = {
     "resolve_model_dir": "fmgs.features.models",
 }
 __all__ = sorted(_EXPORTS)
-
-
-def __getattr__(name: str):
-    if name in _EXPORTS:
-        return getattr(import_module(_EXPORTS[name]), name)
-    raise AttributeError(f"module 'fmgs.features' has no attribute {name!r}")
+__getattr__ = lazy_exports(__name__, _EXPORTS)

@@ -5,14 +5,15 @@ text, relevancy images for a camera, segmentation, relevancy at arbitrary points
     answer = engine.text_query(vector, top_k=100)        # TextAnswer: scene indices, relevancy, ...
     image = render_pose(engine, camera, vector).relevancy
 
-Exports resolve on first use, so importing a submodule (``fmgs.query.config``) stays free of torch.
+Exports resolve on first use, so importing a submodule (``fmgs.query.config``) stays free of torch. Functions
+named like their module (``segment``, ``relevancy``) are imported from the module: once a submodule is
+imported, Python binds its name on the package, so a package export of that name would be the module.
 """
 
-from importlib import import_module
+from fmgs.lazy import lazy_exports
 
 _EXPORTS = {
     "CANONICAL_PHRASES": "fmgs.query.relevancy",
-    "relevancy": "fmgs.query.relevancy",
     "EngineConfig": "fmgs.query.engine",
     "SceneEngine": "fmgs.query.engine",
     "TextAnswer": "fmgs.query.engine",
@@ -21,14 +22,8 @@ _EXPORTS = {
     "PoseRender": "fmgs.query.pose",
     "render_pose": "fmgs.query.pose",
     "Segmentation": "fmgs.query.segment",
-    "segment": "fmgs.query.segment",
     "PointAnswer": "fmgs.query.points",
     "query_points": "fmgs.query.points",
 }
 __all__ = sorted(_EXPORTS)
-
-
-def __getattr__(name: str):
-    if name in _EXPORTS:
-        return getattr(import_module(_EXPORTS[name]), name)
-    raise AttributeError(f"module 'fmgs.query' has no attribute {name!r}")
+__getattr__ = lazy_exports(__name__, _EXPORTS)

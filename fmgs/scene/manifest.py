@@ -26,6 +26,8 @@ from fmgs.errors import ValidationError
 FORMAT = "fmgs.scene"
 VERSION = 1
 FILENAME = "manifest.json"
+MODELS = "models"
+"""The default scene repository: one folder per package (fmgs build writes there, fmgs-server serves it)."""
 CANONICAL_PHRASES = ("object", "stuff", "things", "texture")
 """The paper's canonical phrases, recorded in each manifest (queries score against them)."""
 FIELD_DTYPES = ("float32", "float16")

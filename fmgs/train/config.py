@@ -8,6 +8,7 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import asdict, dataclass, replace
 
+from fmgs.data import HOLDOUT_EVERY
 from fmgs.field.config import FieldConfig, SelectConfig
 
 
@@ -99,7 +100,7 @@ class GSTrainConfig:
     snowmiku at 124x93: 0.80 s per step with 16, 0.44 with 8, 0.31 with 4)."""
     background: tuple[float, float, float] | None = None
     """Background colour; None uses the dataset's (scene.json) or black."""
-    holdout_every: int = 8
+    holdout_every: int = HOLDOUT_EVERY
     """Every n-th frame is held out (not trained on)."""
     checkpoint_every: int = 0
     """Write a resumable checkpoint every this many steps (0: only at the end)."""
@@ -144,7 +145,7 @@ class FieldTrainConfig:
     """Seeds initialisation and view order."""
     device: str = "cpu"
     """Torch device."""
-    holdout_every: int = 8
+    holdout_every: int = HOLDOUT_EVERY
     """Every n-th frame is held out (as in the geometry stage); 0 or 1 trains on all."""
     field: FieldConfig = dataclasses.field(default_factory=FieldConfig)
     """Encoding and heads (clip_dim and dino_dim are taken from the feature cache)."""

@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from fmgs.data import HOLDOUT_EVERY
 from fmgs.data.dataset import PosedDataset
 from fmgs.gaussians import GaussianSet
 from fmgs.io.atomic import atomic_path
@@ -38,7 +39,7 @@ def evaluate(
     out_dir: str | Path | None = None,
     scale: float = 1.0,
     background: tuple[float, float, float] = (0.0, 0.0, 0.0),
-    holdout_every: int = 8,
+    holdout_every: int = HOLDOUT_EVERY,
     backend: str = "auto",
 ) -> EvalResult:
     """Render every held-out frame, compare with its photo; optionally write results into ``out_dir``."""

@@ -122,7 +122,7 @@ def build_scene(source: str | Path, cfg: BuildConfig, progress: bool = True) -> 
             from fmgs.sfm import run_sfm
 
             _stage(1, "poses", f"pycolmap SfM on {source}")
-            r = run_sfm(source, work / "sfm")
+            r = run_sfm(source, work / "sfm", cfg.sfm)
             data = Path(r.dataset_dir)
     ds = load_dataset(data)
 

@@ -8,6 +8,7 @@ from dataclasses import dataclass
 
 from fmgs.features.models import DEFAULT_CLIP_ID, DEFAULT_DINO_ID, MINILM_ID
 from fmgs.scene.manifest import FIELD_DTYPES, MODELS
+from fmgs.sfm_config import SfMConfig
 from fmgs.train.config import FieldTrainConfig, GSTrainConfig
 
 TARGET_KINDS = ("clip", "labels")
@@ -53,6 +54,8 @@ class BuildConfig:
     """Work folder for intermediate outputs (default: WORK = <models>/.work/<name>)."""
     ply: str | None = None
     """An existing 3DGS .ply (skip geometry training)."""
+    sfm: SfMConfig = dataclasses.field(default_factory=SfMConfig)
+    """The poses stage (photos only; a posed dataset skips it)."""
     gs: GSTrainConfig = dataclasses.field(default_factory=GSTrainConfig)
     """The 3DGS stage (its device is ``device``; fewer steps compress its schedule, see ``scheduled``)."""
     targets: TargetSpec = dataclasses.field(default_factory=TargetSpec)

@@ -87,12 +87,13 @@ def cmd_sfm(args: argparse.Namespace) -> int:
     """Photos to poses: pycolmap SfM, then undistortion into a dataset folder."""
     import logging
 
-    from fmgs.sfm import SfMConfig, run_sfm
+    from fmgs.sfm import run_sfm
+    from fmgs.sfm_config import SfMConfig
 
     logging.basicConfig(level=logging.INFO, format="%(message)s")
-    cfg = SfMConfig(
-        matcher=args.matcher, camera_model=args.camera_model, single_camera=not args.per_image_camera
-    )
+    _, cfg = _settings(args, SfMConfig)
+    if args.per_image_camera:
+        cfg = replace(cfg, single_camera=False)
     r = run_sfm(args.images, args.out, cfg)
     print(
         f"registered {r.registered}/{r.total} photos, {r.points} points, mean reprojection error "
@@ -307,6 +308,11 @@ def build_parser() -> argparse.ArgumentParser:
         prog="fmgs", description="FMGS: foundation-model embedded 3D Gaussian Splatting"
     )
     sub = p.add_subparsers(dest="command", required=True)
+    from fmgs import flags
+    from fmgs.build_config import BuildConfig, TargetSpec
+    from fmgs.sfm_config import SfMConfig
+    from fmgs.train.config import FieldTrainConfig, GSTrainConfig
+
     i = sub.add_parser("info", help="validate a scene (.ply or .safetensors) and print a summary")
     i.add_argument("scene")
     i.set_defaults(func=cmd_info)
@@ -329,13 +335,10 @@ def build_parser() -> argparse.ArgumentParser:
     sf = sub.add_parser("sfm", help="photos to poses with pycolmap; writes OUT/undistorted (a dataset)")
     sf.add_argument("images", help="folder of photos")
     sf.add_argument("--out", required=True)
-    sf.add_argument("--matcher", default="auto", choices=["auto", "exhaustive", "sequential"])
-    sf.add_argument("--camera-model", default="SIMPLE_RADIAL")
     sf.add_argument("--per-image-camera", action="store_true", help="one camera per photo (mixed devices)")
+    _config_flag(sf, "structure-from-motion")
+    flags.add_flags(sf.add_argument_group("structure from motion (SfMConfig)"), SfMConfig)
     sf.set_defaults(func=cmd_sfm)
-    from fmgs import flags
-    from fmgs.build_config import BuildConfig, TargetSpec
-    from fmgs.train.config import FieldTrainConfig, GSTrainConfig
 
     t = sub.add_parser("train-gs", help="train 3D Gaussian Splatting on a posed dataset")
     t.add_argument("data", help="dataset folder (transforms.json or COLMAP sparse/0 + images/)")

@@ -17,30 +17,9 @@ from pathlib import Path
 from fmgs.data.dataset import IMAGE_SUFFIXES
 from fmgs.errors import FmgsError, ValidationError
 from fmgs.io.atomic import atomic_path
+from fmgs.sfm_config import SfMConfig
 
 log = logging.getLogger(__name__)
-
-
-@dataclass(frozen=True)
-class SfMConfig:
-    """Structure-from-motion settings."""
-
-    matcher: str = "auto"
-    """exhaustive, sequential (ordered captures), or auto: exhaustive up to exhaustive_max images."""
-    exhaustive_max: int = 200
-    """auto uses exhaustive matching up to this many images."""
-    camera_model: str = "SIMPLE_RADIAL"
-    """COLMAP camera model estimated for the photos (undistorted to PINHOLE afterwards)."""
-    single_camera: bool = True
-    """All photos share one camera (one device, fixed zoom)."""
-    max_image_size: int = 1600
-    """Images are downscaled to this longest side for feature extraction."""
-    max_num_features: int = 8192
-    """SIFT features per image."""
-    min_registered_fraction: float = 0.5
-    """Fail when fewer than this fraction of the photos register."""
-    seed: int = 0
-    """Mapper random seed."""
 
 
 @dataclass

@@ -114,3 +114,30 @@ def test_help_shows_each_default_from_its_dataclass():
     assert f"(default: {GSTrainConfig().densify.grad_threshold})" in text
     assert "--gs-densify-max-gaussians" in text and "--field-lam" in text
     assert TargetSpec().clip_model in "".join(r.stdout.split())  # help wraps long ids at hyphens
+
+
+def test_sfm_settings_from_fmgs_sfm_and_fmgs_build():
+    from fmgs.sfm_config import SfMConfig
+
+    _, cfg = cli._settings(
+        _args("sfm", "IMGS", "--out", "O", "--camera-model", "OPENCV", "--max-image-size", "800"), SfMConfig
+    )
+    assert cfg == SfMConfig(camera_model="OPENCV", max_image_size=800)
+    b = cli._build_config(
+        _args("build", "P", "--name", "n", "--sfm-matcher", "sequential", "--device", "cpu")
+    )
+    assert b.sfm == SfMConfig(matcher="sequential")
+    r = subprocess.run(
+        [sys.executable, "-m", "fmgs.cli", "sfm", "IMGS", "--out", "O", "--camera-model", "FOO"],
+        capture_output=True,
+        text=True,
+    )
+    assert r.returncode == 2 and "camera_model must be one of" in r.stderr and "'FOO'" in r.stderr
+
+
+def test_every_listed_camera_model_is_colmaps():
+    import pycolmap
+
+    from fmgs.sfm_config import CAMERA_MODELS
+
+    assert all(hasattr(pycolmap.CameraModelId, m) for m in CAMERA_MODELS)

@@ -91,10 +91,13 @@ def report(rows: list[dict], info: dict, args, data: Path) -> str:
         f"({'quick CI scene' if args.quick else 'benchmark scene'}); held-out views only.",
         "",
         "Targets: label masks, each label embedded by its name with MiniLM (384-D); label 0 (empty "
-        "background) unsupervised. Queries: the object names. 2D: LERF protocol (highest-relevancy pixel "
-        "inside the object's box). 3D: top-ranked Gaussian's mean inside the object's 3D box (and, less "
-        "strict, within the Gaussian's largest 1-sigma scale of it). mIoU: per-pixel "
-        "argmax over the label names, pixels with geometry.",
+        "background) unsupervised. Queries: the object names. Every answer comes from the query engine "
+        "the server runs (SceneEngine.open(package), the server's default configuration). 2D: LERF "
+        "protocol (highest-relevancy pixel of render_pose inside the object's box). 3D: text_query's "
+        "top Gaussian's mean inside the object's 3D box (and, less strict, within the Gaussian's largest "
+        "1-sigma scale of it). mIoU: the served per-pixel labels of segment over the label names, on "
+        "pixels with geometry (pixels the embedded Gaussians barely cover, alpha < 0.1, are unlabelled "
+        "and count as misses).",
         f"Thresholds: 2D >= {THRESHOLDS['localisation_2d']:.0%}, 3D >= {THRESHOLDS['localisation_3d']:.0%}, "
         f"mIoU >= {THRESHOLDS['miou']}.",
         "",

@@ -19,6 +19,7 @@ from fmgs_client.client import DEFAULT_ADDRESS, FmgsClient, FmgsError
 from fmgs_client.ply import write_ply
 from fmgs_client.types import CameraSpec, SceneInfo, TextAnswer
 from fmgs_wire.images import colorize, depth_to_uint16, label_colors, relevancy_png, to_uint8, write_png
+from fmgs_wire.tokens import read_token_file
 
 
 def _size(s: str) -> tuple[int, int]:
@@ -311,7 +312,11 @@ def _view_options(p: argparse.ArgumentParser) -> None:
 def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="fmgs-client", description="Query an FMGS server.")
     ap.add_argument("--address", default=DEFAULT_ADDRESS, help=f"host:port (default {DEFAULT_ADDRESS})")
-    ap.add_argument("--token-file", type=Path, help="file holding the bearer token")
+    ap.add_argument(
+        "--token-file",
+        type=Path,
+        help="file holding the bearer token (the first line that is not blank or #)",
+    )
     ap.add_argument("--root-cert", type=Path, help="CA certificate (PEM): use TLS")
     ap.add_argument("--client-cert", type=Path, help="client certificate (PEM) for mutual TLS")
     ap.add_argument("--client-key", type=Path, help="client private key (PEM) for mutual TLS")
@@ -369,7 +374,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _client(args: argparse.Namespace) -> FmgsClient:
-    token = args.token_file.read_text().strip() if args.token_file else None
+    token = read_token_file(args.token_file)[0] if args.token_file else None  # the server's file format
     return FmgsClient(
         args.address,
         token=token,

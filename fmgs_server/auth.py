@@ -7,6 +7,8 @@ from pathlib import Path
 
 import grpc
 
+from fmgs_wire.tokens import read_token_file
+
 ADMIN_METHODS = frozenset(
     {"/fmgs.v1.Fmgs/LoadScene", "/fmgs.v1.Fmgs/UnloadScene", "/fmgs.v1.Fmgs/ReloadScene"}
 )
@@ -17,11 +19,7 @@ def read_tokens(path: Path | None) -> list[bytes]:
     """Tokens from a file, one per line (blank lines and '#' comments ignored); [] when path is None."""
     if path is None:
         return []
-    tokens = [ln.strip() for ln in Path(path).read_text().splitlines()]
-    tokens = [t.encode() for t in tokens if t and not t.startswith("#")]
-    if not tokens:
-        raise ValueError(f"{path}: no tokens in the file")
-    return tokens
+    return [t.encode() for t in read_token_file(path)]
 
 
 def _matches(token: bytes, allowed: list[bytes]) -> bool:

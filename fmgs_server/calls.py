@@ -11,7 +11,7 @@ import grpc
 
 from fmgs.errors import FmgsError, ValidationError
 from fmgs.query.points import NoFieldError
-from fmgs_server.errors import ServiceError
+from fmgs_server.errors import Cancelled, DeadlineExceeded, ServiceError
 
 log = logging.getLogger("fmgs_server")
 
@@ -31,23 +31,45 @@ def status_of(e: BaseException) -> tuple[grpc.StatusCode, str]:
     return grpc.StatusCode.INTERNAL, "internal error (see the server log)"
 
 
+def seen_by_client(context, code: grpc.StatusCode) -> grpc.StatusCode:
+    """The status the client saw: once the call is over, its deadline or its cancellation wins over
+    whatever the handler produced."""
+    if context.is_active():
+        return code
+    left = context.time_remaining()
+    return grpc.StatusCode.DEADLINE_EXCEEDED if left is not None and left <= 0 else grpc.StatusCode.CANCELLED
+
+
+def stop_if_gone(context, where: str) -> None:
+    """Between stages of long work: stop (freeing the compute slot) once the client's deadline has passed
+    or the client has gone, instead of finishing an answer nobody receives."""
+    left = context.time_remaining()
+    if left is not None and left <= 0:
+        raise DeadlineExceeded(f"the deadline passed during {where}")
+    if not context.is_active():
+        raise Cancelled(f"the client went away during {where}")
+
+
 def _scene_of(request) -> str:
     return getattr(request, "scene", "") if not isinstance(request, Iterator) else ""
 
 
 def rpc(fn):
-    """Unary handler: map errors to status codes, log one line with timing."""
+    """Unary handler: map errors to status codes, log one line with timing and the status the client saw."""
 
     @functools.wraps(fn)
     def wrapper(self, request, context):
         t0 = time.perf_counter()
         code = grpc.StatusCode.OK
         try:
-            return fn(self, request, context)
+            answer = fn(self, request, context)
+            code = seen_by_client(context, code)
+            return answer
         except Exception as e:
             code, msg = status_of(e)
             if code == grpc.StatusCode.INTERNAL:
                 log.exception("%s failed", fn.__name__)
+            code = seen_by_client(context, code)
             context.abort(code, msg)
         finally:
             ms = (time.perf_counter() - t0) * 1e3
@@ -57,7 +79,8 @@ def rpc(fn):
 
 
 def rpc_stream(fn):
-    """Streaming handler: as ``rpc`` for generators; stops quietly when the client has gone."""
+    """Streaming handler: as ``rpc`` for generators; stops quietly when the client has gone (logged as
+    CANCELLED, or DEADLINE_EXCEEDED when its deadline ended the call)."""
 
     @functools.wraps(fn)
     def wrapper(self, request, context):
@@ -66,14 +89,20 @@ def rpc_stream(fn):
         try:
             for msg in fn(self, request, context):
                 if not context.is_active():
-                    code = grpc.StatusCode.CANCELLED
+                    code = seen_by_client(context, grpc.StatusCode.CANCELLED)
                     return
                 n += 1
                 yield msg
+            code = seen_by_client(context, code)
+        except GeneratorExit:  # the transport closed the stream: the client left or its deadline passed
+            code = seen_by_client(context, grpc.StatusCode.CANCELLED)
+            raise
         except Exception as e:
             code, text = status_of(e)
-            if code == grpc.StatusCode.INTERNAL:
+            if code == grpc.StatusCode.INTERNAL and not getattr(e, "final", False):
                 log.exception("%s failed", fn.__name__)
+            if not getattr(e, "final", False):
+                code = seen_by_client(context, code)
             context.abort(code, text)
         finally:
             ms = (time.perf_counter() - t0) * 1e3

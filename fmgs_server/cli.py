@@ -51,7 +51,15 @@ def main(argv: list[str] | None = None, prog: str = "fmgs-server") -> int:
 
     logging.basicConfig(level=a.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     serve(cfg)
-    return 0
+    # Exit now: a handler thread left stuck in the transport (after garbage on a bidirectional stream,
+    # seen with grpcio 1.85.1) would block the interpreter's exit, which joins the pool's threads. The
+    # server writes no files, so nothing is lost; the drain has already happened (or timed out).
+    import os
+
+    logging.shutdown()
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(0)
 
 
 if __name__ == "__main__":  # pragma: no cover

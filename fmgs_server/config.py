@@ -6,7 +6,7 @@ import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from fmgs.query.config import IndexConfig
+from fmgs.query.config import POINT_CHUNK, IndexConfig
 from fmgs.scene.manifest import MODELS
 from fmgs_wire import DEFAULT_PORT
 
@@ -50,13 +50,17 @@ class ServerConfig:
     max_text_chars: int = 1000
     """Characters per text."""
     max_points: int = 1_000_000
-    """Points per point query."""
+    """Points per point query (texts x points x 8 bytes must also fit max_send_bytes)."""
+    point_chunk: int = POINT_CHUNK
+    """Points through the field at once: a point query's working memory is about 13 KiB per point of it
+    (the paper's field), whatever the request's size; the deadline is checked between chunks."""
     memory_budget_bytes: int = 0
     """Resident bytes for loaded scenes; least recently used scenes are unloaded beyond it (0: no limit)."""
     reload_check_s: float = 2.0
     """How often a scene's files are checked for changes (on access)."""
     preload: bool = False
-    """Load every scene (and its text encoder) at start instead of on first use."""
+    """Load every scene (and its text encoder) at start instead of on first use, and warm up the render
+    kernels on each (numba compiles them on first use and caches them on disk), so no request pays it."""
     index: IndexConfig = field(default_factory=IndexConfig)
     """Per-Gaussian query state of every scene (flags --index-rank, --index-exact-below, ...)."""
     device: str = "cpu"
@@ -87,7 +91,8 @@ class ServerConfig:
             raise ValueError(f"port must be in [0, 65535], got {self.port}")
         positive = (
             "max_concurrent_rpcs max_streams max_receive_bytes chunk_bytes max_send_bytes max_image_side "
-            "max_image_pixels max_top_k default_top_k max_texts max_text_chars max_points text_cache"
+            "max_image_pixels max_top_k default_top_k max_texts max_text_chars max_points text_cache "
+            "point_chunk"
         ).split()
         for name in positive:
             if getattr(self, name) < 1:

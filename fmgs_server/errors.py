@@ -9,6 +9,8 @@ class ServiceError(Exception):
     """An error with a status code; the message is sent to the client."""
 
     code = grpc.StatusCode.INTERNAL
+    final = False
+    """True when the transport has already ended the call with ``code`` (logs then report it as is)."""
 
     def __init__(self, message: str) -> None:
         super().__init__(message)
@@ -37,3 +39,14 @@ class Unavailable(ServiceError):
 
 class DeadlineExceeded(ServiceError):
     code = grpc.StatusCode.DEADLINE_EXCEEDED
+
+
+class Cancelled(ServiceError):
+    code = grpc.StatusCode.CANCELLED
+
+
+class UndecodableRequest(ServiceError):
+    """grpc could not decode a message of the request stream and ended the call with INTERNAL itself."""
+
+    code = grpc.StatusCode.INTERNAL
+    final = True

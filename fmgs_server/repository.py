@@ -17,7 +17,7 @@ from pathlib import Path
 from fmgs.errors import FmgsError
 from fmgs.query.engine import SceneEngine
 from fmgs.scene.manifest import FILENAME as MANIFEST
-from fmgs.scene.package import check_scene_name
+from fmgs.scene.package import check_scene_name, shown_name
 from fmgs_server.errors import FailedPrecondition, NotFound, ResourceExhausted
 
 log = logging.getLogger("fmgs_server")
@@ -105,13 +105,13 @@ class SceneRepository:
         try:
             check_scene_name(name)
         except FmgsError as e:
-            raise NotFound(f"scene {name!r} not found (invalid name)") from e
+            raise NotFound(f"scene {shown_name(name)} not found (invalid name)") from e
         folder = self.root / name
         if not (folder / MANIFEST).is_file():
             with self._lock:
                 if name in self._slots:
                     self._drop(name)
-            raise NotFound(f"scene {name!r} not found in {self.root}")
+            raise NotFound(f"scene {name!r} not found in the model repository")
         with self._lock:
             return self._slots.setdefault(name, SceneSlot(name))
 
@@ -177,11 +177,14 @@ class SceneRepository:
                 )
         except (FmgsError, ResourceExhausted, OSError, ValueError, RuntimeError) as e:
             msg = getattr(e, "message", None) or str(e)
+            log.warning("scene %s: load failed: %s", s.name, msg)
+            msg = msg.replace(str(self.root.resolve()) + "/", "").replace(
+                str(self.root) + "/", ""
+            )  # no host paths
             if old is not None:  # keep serving the version that works; say why the new one does not
                 s.state, s.reason = READY, f"reload failed, serving the previous version: {msg}"
             else:
                 s.state, s.reason = FAILED, msg
-            log.warning("scene %s: load failed: %s", s.name, msg)
             self.on_change(s.name, s.state)
             return
         s.engine, s.loaded_version, s.state, s.reason = engine, version, READY, ""

@@ -20,10 +20,11 @@ from fmgs_server.encoders import EncoderCache
 from fmgs_server.repository import FAILED, SceneRepository
 from fmgs_server.service import FmgsService
 from fmgs_wire.proto.fmgs.v1 import fmgs_pb2 as pb
-from fmgs_wire.proto.fmgs.v1 import fmgs_pb2_grpc as pb_grpc
 
 log = logging.getLogger("fmgs_server")
 SERVICE = pb.DESCRIPTOR.services_by_name["Fmgs"].full_name  # "fmgs.v1.Fmgs"
+STOP_MARGIN_S = 2.0
+"""How long past the grace period a stop may take before the server gives up on the transport."""
 
 
 def scene_health_name(scene: str) -> str:
@@ -46,13 +47,51 @@ class RunningServer:
         host = self.config.host if self.config.host not in ("0.0.0.0", "::", "[::]") else "127.0.0.1"
         return f"{host}:{self.port}"
 
-    def stop(self, grace: float | None = None) -> None:
-        """Refuse new calls, let in-flight ones finish within ``grace`` seconds, then stop."""
+    def stop(self, grace: float | None = None) -> bool:
+        """Refuse new calls, let in-flight ones finish within ``grace`` seconds, then stop.
+
+        Bounded whatever the transport does: grpcio's stop can wait forever after malformed messages on
+        a bidirectional stream, so this waits ``grace + STOP_MARGIN_S`` at most. True when the server
+        stopped within that; False when it gave up (``serve`` then exits the process anyway).
+        """
+        grace = self.config.grace_s if grace is None else grace
         self.health.enter_graceful_shutdown()
-        self.server.stop(self.config.grace_s if grace is None else grace).wait()
+        done = self.server.stop(grace).wait(grace + STOP_MARGIN_S)
+        if not done:
+            log.warning(
+                "the transport did not stop within %.1f s of the grace period; giving up", STOP_MARGIN_S
+            )
+        return done
 
     def wait(self) -> None:
         self.server.wait_for_termination()
+
+
+RAW_REQUESTS = ("StreamRender",)
+"""Methods whose request messages reach the service as bytes and are decoded there, so a malformed
+message on an open stream gets INVALID_ARGUMENT (and an honest log line) instead of grpc's INTERNAL abort."""
+
+_HANDLERS = {
+    (False, False): grpc.unary_unary_rpc_method_handler,
+    (False, True): grpc.unary_stream_rpc_method_handler,
+    (True, False): grpc.stream_unary_rpc_method_handler,
+    (True, True): grpc.stream_stream_rpc_method_handler,
+}
+
+
+def add_service(service: FmgsService, server: grpc.Server) -> None:
+    """Register ``fmgs.v1.Fmgs`` from its descriptor (as the generated add_FmgsServicer_to_server does,
+    except for RAW_REQUESTS)."""
+    handlers = {}
+    for m in pb.DESCRIPTOR.services_by_name["Fmgs"].methods:
+        request, response = getattr(pb, m.input_type.name), getattr(pb, m.output_type.name)
+        handlers[m.name] = _HANDLERS[(m.client_streaming, m.server_streaming)](
+            getattr(service, m.name),
+            request_deserializer=None if m.name in RAW_REQUESTS else request.FromString,
+            response_serializer=response.SerializeToString,
+        )
+    server.add_generic_rpc_handlers((grpc.method_handlers_generic_handler(SERVICE, handlers),))
+    server.add_registered_method_handlers(SERVICE, handlers)
 
 
 def _text_encoder(device: str):
@@ -100,7 +139,7 @@ def start_server(cfg: ServerConfig, encoder_factory=None) -> RunningServer:
         ],
         maximum_concurrent_rpcs=cfg.max_concurrent_rpcs,
     )
-    pb_grpc.add_FmgsServicer_to_server(service, server)
+    add_service(service, server)
     health_pb2_grpc.add_HealthServicer_to_server(health_servicer, server)
     reflection.enable_server_reflection(
         (SERVICE, health_pb2.DESCRIPTOR.services_by_name["Health"].full_name, reflection.SERVICE_NAME), server
@@ -128,14 +167,16 @@ def start_server(cfg: ServerConfig, encoder_factory=None) -> RunningServer:
             try:
                 engine = repo.get(slot.name)
                 encoders.encoder(engine.encoder_id)
+                log.info("scene %s: kernels warmed up in %.1f s", slot.name, engine.warm_up())
             except Exception as e:  # reported per scene in the listing and health
                 log.warning("preload of %s failed: %s", slot.name, e)
     log.info("serving %s on %s (%d scenes)", cfg.models, running.address, len(repo.scan()))
     return running
 
 
-def serve(cfg: ServerConfig) -> None:
-    """Run until SIGTERM or SIGINT, then drain in-flight requests for ``grace_s`` seconds."""
+def serve(cfg: ServerConfig) -> bool:
+    """Run until SIGTERM or SIGINT, then drain in-flight requests for ``grace_s`` seconds; False when the
+    transport had to be abandoned (the caller must then end the process: its threads may never return)."""
     running = start_server(cfg)
     print(f"fmgs serving {cfg.models} on {running.address}", flush=True)
     stop = threading.Event()
@@ -148,5 +189,6 @@ def serve(cfg: ServerConfig) -> None:
         signal.signal(sig, handle)
     while not stop.wait(0.5):  # short waits keep the main thread responsive to signals
         pass
-    running.stop()
-    log.info("stopped")
+    clean = running.stop()
+    log.info("stopped" if clean else "stopped (in-flight calls abandoned)")
+    return clean

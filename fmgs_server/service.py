@@ -18,7 +18,7 @@ from fmgs.query.pose import render_pose
 from fmgs.query.segment import segment
 from fmgs.scene.manifest import Manifest
 from fmgs_server import convert, responses
-from fmgs_server.calls import rpc, rpc_stream
+from fmgs_server.calls import rpc, rpc_stream, stop_if_gone
 from fmgs_server.config import ServerConfig
 from fmgs_server.encoders import EncoderCache
 from fmgs_server.errors import FailedPrecondition, InvalidArgument
@@ -99,6 +99,7 @@ class FmgsService(pb_grpc.FmgsServicer):
             canon = self._canonical(engine, request.canonical_phrases)
             answers = []
             for i, text in enumerate(values):
+                stop_if_gone(context, f"text {i} of {len(values)}")
                 t0 = time.perf_counter()
                 a = engine.text_query(q[i], k, thr, canon, inst_cfg)
                 answers.append((i, text, a, (time.perf_counter() - t0) * 1e3))
@@ -120,7 +121,8 @@ class FmgsService(pb_grpc.FmgsServicer):
                 values = convert.texts([request.text] if request.text else [], cfg, "text")
                 q = self.encoders.embed(engine.encoder_id, values)[0]
             canon = self._canonical(engine, request.canonical_phrases)
-            out = render_pose(engine, cam, q, outputs, canon)
+            stop = lambda: stop_if_gone(context, "the render")  # noqa: E731
+            out = render_pose(engine, cam, q, outputs, canon, stop)
             ms = (time.perf_counter() - t0) * 1e3
         yield from responses.render_chunks(request.sequence, cam, out, encoding, ms, cfg.chunk_bytes)
 
@@ -130,8 +132,9 @@ class FmgsService(pb_grpc.FmgsServicer):
 
     @rpc_stream
     def StreamRender(self, request_iterator, context):
+        """Requests arrive as bytes (server.RAW_REQUESTS) and are decoded by the reader thread."""
         with self.slots.stream():
-            latest = LatestRequest(request_iterator)
+            latest = LatestRequest(pb.RenderRequest.FromString(b) for b in request_iterator)
             while context.is_active():
                 req = latest.next(context.is_active)
                 if req is None:
@@ -146,6 +149,13 @@ class FmgsService(pb_grpc.FmgsServicer):
         if not request.HasField("points"):
             raise InvalidArgument("points: missing")
         pts = convert.tensor(request.points, "points", (None, 3), self.cfg.max_points)
+        answer_bytes = len(values) * len(pts) * 8  # relevancy and similarity, float32
+        if answer_bytes > self.cfg.max_send_bytes - 4096:
+            raise InvalidArgument(
+                f"points: {len(values)} texts x {len(pts)} points need a {answer_bytes / 2**20:.1f} MiB "
+                f"answer, over max_send_bytes ({self.cfg.max_send_bytes / 2**20:.0f} MiB); "
+                "send fewer points or texts"
+            )
         engine = self.repo.get(request.scene)
         if engine.field is None:
             raise FailedPrecondition(f"scene {engine.name!r} has no feature field; point queries need one")
@@ -155,7 +165,8 @@ class FmgsService(pb_grpc.FmgsServicer):
             canon = self._canonical(engine, request.canonical_phrases)
             if canon is None:
                 canon = self.encoders.embed(engine.encoder_id, list(engine.canonical_phrases))
-            a = query_points(engine, pts, q, canon)
+            stop = lambda: stop_if_gone(context, "the point query")  # noqa: E731
+            a = query_points(engine, pts, q, canon, self.cfg.point_chunk, stop)
         return pb.PointQueryResponse(
             relevancy=to_tensor(a.relevancy.numpy().astype(np.float32)),
             similarity=to_tensor(a.similarity.numpy().astype(np.float32)),

@@ -59,3 +59,7 @@ class Slots:
     def free_streams(self) -> int:
         """Stream slots free now."""
         return self._streams._value
+
+    def free_compute(self) -> int:
+        """Compute slots free now."""
+        return self._compute._value

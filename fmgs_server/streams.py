@@ -7,7 +7,7 @@ import threading
 from collections.abc import Callable, Iterable
 from typing import Generic, TypeVar
 
-from fmgs_server.errors import InvalidArgument
+from fmgs_server.errors import InvalidArgument, UndecodableRequest
 
 log = logging.getLogger("fmgs_server")
 R = TypeVar("R")
@@ -18,8 +18,9 @@ class LatestRequest(Generic[R]):
     render gets its latest pose next, never a backlog.
 
     ``next()`` returns that request, or None once the stream has ended (or the client has gone); a
-    failure while reading (a malformed message) is raised by ``next()`` as INVALID_ARGUMENT, so it
-    reaches the client as a status instead of ending the stream as if it were complete.
+    failure while reading (a malformed message) is raised by ``next()``: INVALID_ARGUMENT while the call
+    is open, so it reaches the client as a status instead of ending the stream as if it were complete,
+    or UndecodableRequest (INTERNAL, logged as such) when grpc has already ended the call for it.
     """
 
     def __init__(self, requests: Iterable[R], name: str = "fmgs-stream-reader") -> None:
@@ -54,7 +55,8 @@ class LatestRequest(Generic[R]):
                     return None
             req, self._latest = self._latest, None
             if req is None and self._error is not None:
-                if not is_active():
-                    return None  # the client went away: nobody to tell
-                raise InvalidArgument(f"request stream: could not read the next request ({self._error})")
+                why = f"request stream: could not read the next request ({self._error})"
+                if not is_active():  # grpc has ended the call already (INTERNAL for undecodable bytes)
+                    raise UndecodableRequest(why)
+                raise InvalidArgument(why)
             return req

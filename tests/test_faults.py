@@ -96,6 +96,7 @@ def test_broken_file_fails_that_scene_only(served, models, case):
     assert e.value.code() == C.FAILED_PRECONDITION and word in e.value.details()
     st = _state(stub, "victim")
     assert st.state == pb.SCENE_STATE_FAILED and word in st.reason
+    assert str(models) not in st.reason and str(models) not in e.value.details()  # no host paths
     _query(stub, "good")
     # Fixing the files brings the scene back (retried because its files changed).
     blob_scene(models / "victim")

@@ -188,6 +188,27 @@ def test_point_query_through_the_field(tmp_path):
         query_points(SceneEngine.open(q), pts, classes, canon)
 
 
+def test_point_queries_in_chunks_equal_one_pass_and_can_be_stopped(tmp_path):
+    p, classes, canon = _scene(tmp_path, with_field=True)
+    eng = SceneEngine.open(p)
+    g = torch.Generator().manual_seed(4)
+    pts = eng.gaussians.means[:50] + 0.05 * torch.randn(50, 3, generator=g)
+    whole = query_points(eng, pts, classes, canon, chunk=1000)
+    calls = []
+    parts = query_points(eng, pts, classes, canon, chunk=7, between_chunks=lambda: calls.append(1))
+    assert len(calls) == 8  # ceil(50 / 7)
+    assert torch.allclose(parts.similarity, whole.similarity, atol=1e-6)
+    assert torch.allclose(parts.relevancy, whole.relevancy, atol=1e-6)
+
+    def stop():
+        raise TimeoutError("deadline")
+
+    with pytest.raises(TimeoutError):
+        query_points(eng, pts, classes, canon, chunk=7, between_chunks=stop)
+    with pytest.raises(ValidationError, match="chunk"):
+        query_points(eng, pts, classes, canon, chunk=0)
+
+
 def test_query_state_bytes_per_gaussian():
     g = torch.Generator().manual_seed(0)
     M = 20000
@@ -254,3 +275,12 @@ def test_gaussian_columns_are_activated_attributes(tmp_path):
     assert e.gaussian_columns(idx, []) == {}
     with pytest.raises(ValidationError, match="nope"):
         e.gaussian_columns(idx, ["nope"])
+
+
+def test_warm_up_runs_the_first_request_kernels_and_leaves_no_cache(tmp_path):
+    p, classes, _ = _scene(tmp_path)
+    eng = SceneEngine.open(p)
+    assert eng.warm_up() >= 0.0
+    assert len(eng._chan_cache) == 0
+    a = eng.text_query(classes[0], 5)
+    assert len(a.index) == 5

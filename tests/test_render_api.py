@@ -98,3 +98,50 @@ def test_half_precision_features():
         assert torch.allclose(
             out.image.double(), ref, atol=0.02 * float(ref.abs().max())
         )  # bf16 keeps 8 bits: 0.4% steps
+
+
+@pytest.mark.parametrize(
+    "kw",
+    [
+        {"eps2d": float("nan")},
+        {"eps2d": -1.0},
+        {"eps2d": float("inf")},
+        {"fov_clip": float("nan")},
+        {"fov_clip": -0.1},
+    ],
+)
+def test_raster_config_refuses_nan_and_negative_settings(kw):
+    from fmgs.render import RasterConfig
+
+    with pytest.raises(ValueError):
+        RasterConfig(**kw)
+
+
+def test_exp_neg_table_is_exp_for_slightly_positive_arguments_too():
+    import math
+
+    import numpy as np
+
+    from fmgs.render.cpu_kernels import exp_neg_table, exp_table
+
+    table = exp_table(1.0 / 255.0)
+    for x in (-5.0, -0.7, -1e-3, 0.0, 1e-9, 0.004, 0.01, 0.5):
+        assert exp_neg_table(x, table) == pytest.approx(math.exp(x), rel=1e-14), x
+    assert np.isfinite(table).all()
+
+
+@pytest.mark.parametrize("backend", ["cpu", "reference"])
+def test_between_tiles_hook_leaves_the_image_unchanged_and_can_stop_it(backend):
+    sc = random_scene(seed=3, n=200, d=5, width=70, height=50, focal=60.0, background=True)
+    plain = rasterize(*sc.args(), backend=backend)
+    calls = []
+    hooked = rasterize(*sc.args(), backend=backend, between_tiles=lambda: calls.append(1))
+    assert torch.equal(plain.image, hooked.image) and torch.equal(plain.alpha, hooked.alpha)
+    assert torch.equal(plain.n_contrib, hooked.n_contrib) and torch.equal(plain.weight_sum, hooked.weight_sum)
+    assert len(calls) == (8 if backend == "cpu" else 1)
+
+    def stop():
+        raise TimeoutError("deadline")
+
+    with pytest.raises(TimeoutError):
+        rasterize(*sc.args(), backend=backend, between_tiles=stop)

@@ -80,11 +80,13 @@ def test_scan_lists_scene_folders_only(tmp_path):
 def test_bad_or_missing_names_are_not_found(tmp_path):
     _write(tmp_path, "a")
     r = Repo(tmp_path)
-    for name in ("../a", "", ".a", "a/b", "x" * 200):
-        with pytest.raises(NotFound, match="invalid name"):
+    for name in ("../a", "", ".a", "a/b", "x" * 200, "a\n", "x" * 10_000):
+        with pytest.raises(NotFound, match="invalid name") as e:
             r.repo.get(name)
-    with pytest.raises(NotFound, match=r"scene 'zz' not found in "):
+        assert len(e.value.message) < 200  # a hostile name is not echoed whole (gRPC metadata limits)
+    with pytest.raises(NotFound, match=r"scene 'zz' not found in the model repository") as e:
         r.repo.get("zz")
+    assert str(tmp_path) not in e.value.message  # no host paths in what clients see
     r.repo.get("a")
     (tmp_path / "a" / "manifest.json").unlink()
     with pytest.raises(NotFound):

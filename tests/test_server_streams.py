@@ -8,7 +8,7 @@ import time
 import grpc
 import pytest
 
-from fmgs_server.errors import InvalidArgument
+from fmgs_server.errors import InvalidArgument, UndecodableRequest
 from fmgs_server.streams import LatestRequest
 
 
@@ -54,10 +54,12 @@ def test_a_departed_client_ends_quietly():
     gate.set()
 
 
-def test_failure_after_the_client_left_is_not_raised():
+def test_failure_after_the_call_ended_is_reported_as_the_transports_status():
     gate = threading.Event()
     gate.set()
     r = LatestRequest(_gated([1], gate, RuntimeError("transport gone")))
     r._thread.join(5)
     assert r.next(lambda: True) == 1
-    assert r.next(lambda: False) is None
+    with pytest.raises(UndecodableRequest) as e:
+        r.next(lambda: False)
+    assert e.value.final and e.value.code == grpc.StatusCode.INTERNAL  # logged as grpc ended the call

@@ -82,3 +82,14 @@ def test_client_tensors_is_the_wire_codec():
         assert getattr(fmgs_client.tensors, name) is getattr(fmgs_wire.tensors, name)
     a = np.arange(12, dtype=np.float32).reshape(3, 4)
     np.testing.assert_array_equal(fmgs_client.tensors.from_tensor(fmgs_client.tensors.to_tensor(a)), a)
+
+
+def test_token_files_share_one_format(tmp_path):
+    from fmgs_wire.tokens import read_token_file
+
+    f = tmp_path / "tokens"
+    f.write_text("# read tokens\n\n  s3cret  \n# old: x\nother\n")
+    assert read_token_file(f) == ["s3cret", "other"]
+    f.write_text("# nothing\n\n")
+    with pytest.raises(ValueError, match="no tokens"):
+        read_token_file(f)

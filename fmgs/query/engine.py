@@ -7,6 +7,7 @@ caller's job, so the same engine serves any text encoder the scene was trained w
 from __future__ import annotations
 
 import threading
+import time
 from collections import OrderedDict
 from dataclasses import dataclass, field, replace
 from typing import NamedTuple
@@ -163,6 +164,27 @@ class SceneEngine:
             else:
                 out[name] = f32((0.5 + SH_C0 * g.sh[index, 0]).clamp(0, 1))
         return out
+
+    @torch.no_grad()
+    def warm_up(self) -> float:
+        """Run a tiny text query and a 16x16 relevancy and colour render, so that the kernels a first
+        request needs are compiled (numba JIT) and touched before it comes; returns the seconds taken."""
+        from fmgs.cameras import Camera
+        from fmgs.query.pose import render_pose
+
+        t0 = time.perf_counter()
+        q = torch.zeros(self.dim)
+        q[0] = 1.0
+        self.text_query(q, 1)
+        lo, hi = self.bounds[:3], self.bounds[3:]
+        eye = (lo + hi) / 2 - np.array([0.0, 0.0, 2.0 * max(float(np.max(hi - lo)), 1e-3)])
+        V = torch.eye(4, dtype=torch.float64)
+        V[:3, 3] = -torch.from_numpy(eye)
+        K = torch.tensor([[16.0, 0, 8], [0, 16.0, 8], [0, 0, 1]], dtype=torch.float64)
+        render_pose(self, Camera(K, V, 16, 16), q, ("relevancy", "rgb"))
+        with self._cache_lock:
+            self._chan_cache.clear()  # the warm-up query is nobody's
+        return time.perf_counter() - t0
 
     def _eps_for(self, cfg: InstanceConfig) -> float:
         if cfg.eps_fraction == InstanceConfig().eps_fraction:

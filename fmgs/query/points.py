@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import NamedTuple
 
 import torch
 
 from fmgs.checks import check_finite
 from fmgs.errors import ValidationError
+from fmgs.query.config import POINT_CHUNK
 from fmgs.query.relevancy import TEMPERATURE, relevancy
 
 
@@ -25,11 +27,21 @@ class NoFieldError(ValidationError):
 
 
 @torch.no_grad()
-def query_points(engine, points: torch.Tensor, queries: torch.Tensor, canonical: torch.Tensor) -> PointAnswer:
+def query_points(
+    engine,
+    points: torch.Tensor,
+    queries: torch.Tensor,
+    canonical: torch.Tensor,
+    chunk: int = POINT_CHUNK,
+    between_chunks: Callable[[], None] | None = None,
+) -> PointAnswer:
     """points [P,3] world, queries [T,D], canonical [C,D] (all normalised here).
 
-    The field's table is compacted to the rows the Gaussian means touch, so far from the scene's
-    Gaussians the encoding is zero and the answer reflects the head's bias only.
+    Points go through the field ``chunk`` at a time into preallocated [T,P] answers, so the working
+    memory is bounded by the chunk, not by P; ``between_chunks`` runs after each (a server stops a
+    request whose deadline has passed there by raising). The field's table is compacted to the rows the
+    Gaussian means touch, so far from the scene's Gaussians the encoding is zero and the answer reflects
+    the head's bias only.
     """
     if engine.field is None:
         raise NoFieldError("scene", f"{engine.name!r} has no feature field; point queries need one")
@@ -38,7 +50,17 @@ def query_points(engine, points: torch.Tensor, queries: torch.Tensor, canonical:
     check_finite("points", points)
     q = engine.unit(queries)
     c = engine.unit(canonical, "canonical embeddings")
+    if chunk < 1:
+        raise ValidationError("chunk", f"must be >= 1, got {chunk}")
     dev = next(engine.field.parameters()).device
-    f = engine.field(points.to(dev, torch.float32), dino=False).clip.float().cpu()  # [P,D]
-    sim = q @ f.T  # [T,P]
-    return PointAnswer(relevancy(sim, (f @ c.T)[None].expand(len(q), -1, -1), TEMPERATURE), sim)
+    P = points.shape[0]
+    rel = torch.empty(len(q), P, dtype=torch.float32)
+    sim = torch.empty(len(q), P, dtype=torch.float32)
+    for s in range(0, P, chunk):
+        f = engine.field(points[s : s + chunk].to(dev, torch.float32), dino=False).clip.float().cpu()  # [p,D]
+        d = q @ f.T  # [T,p]
+        sim[:, s : s + chunk] = d
+        rel[:, s : s + chunk] = relevancy(d, (f @ c.T)[None].expand(len(q), -1, -1), TEMPERATURE)
+        if between_chunks is not None:
+            between_chunks()
+    return PointAnswer(rel, sim)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import NamedTuple
 
 import torch
@@ -37,8 +38,11 @@ def render_pose(
     query: torch.Tensor | None,
     outputs: tuple[str, ...] = ("relevancy",),
     canonical: torch.Tensor | None = None,
+    between_tiles: Callable[[], None] | None = None,
 ) -> PoseRender:
-    """Render ``outputs`` for ``camera``; query [D] (needed for relevancy), canonical [C,D] optional.
+    """Render ``outputs`` for ``camera``; query [D] (needed for relevancy), canonical [C,D] optional;
+    ``between_tiles`` is called between batches of tiles (a server stops a render there once the
+    client's deadline has passed by raising).
 
     Relevancy renders 1 + C scalar channels per embedded Gaussian (f.q and f.c_n) and applies the
     relevancy to the blend, which equals scoring the rendered D-dim feature (blending is linear).
@@ -54,7 +58,10 @@ def render_pose(
             chans = engine.relevancy_channels(query, canonical)
         else:
             chans = torch.ones(engine.num_embedded, 1)
-        out = rasterize(*engine.geometry, chans.to(engine.geometry[0]), camera, backend=engine.cfg.backend)
+        out = rasterize(
+            *engine.geometry, chans.to(engine.geometry[0]), camera, backend=engine.cfg.backend,
+            between_tiles=between_tiles,
+        )  # fmt: skip
         img = out.image.float()
         alpha = out.alpha.float().cpu()
         if "relevancy" in outputs:  # scored where it was rendered: only [H,W] crosses to the host
@@ -63,7 +70,7 @@ def render_pose(
             y, x = divmod(flat, rel.shape[1])
             arg = (x, y, float(rel[y, x]))
     if "rgb" in outputs or "depth" in outputs:
-        out = render_rgb(engine.gaussians, camera, backend=engine.cfg.backend)
+        out = render_rgb(engine.gaussians, camera, backend=engine.cfg.backend, between_tiles=between_tiles)
         rgb = out.image.float().clamp(0, 1).cpu()
         depth = out.depth.float().cpu()
     want = set(outputs)

@@ -12,6 +12,8 @@ features are narrow (RGB training), else ``reference``.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import torch
 
 from fmgs.cameras import Camera
@@ -82,11 +84,14 @@ def rasterize(
     background: torch.Tensor | None = None,
     config: RasterConfig | None = None,
     backend: str = "auto",
+    between_tiles: Callable[[], None] | None = None,
 ) -> RenderOutput:
     """Alpha-blend per-Gaussian features [N,D] into a [H,W,D] image for ``camera``.
 
     Inputs are activated: scales [N,3] positive (exp of log scales), opacities [N] in [0,1],
-    quaternions [N,4] wxyz of any non-zero norm. All on one device.
+    quaternions [N,4] wxyz of any non-zero norm. All on one device. ``between_tiles`` is called between
+    batches of tiles on the cpu backend (and once after the other backends): it may raise to stop a
+    render whose answer is no longer wanted.
     """
     config = config or RasterConfig()
     validate_inputs(means, quats, scales, opacities, features, background)
@@ -105,7 +110,10 @@ def rasterize(
     if backend == "reference":
         from fmgs.render.reference import rasterize_reference
 
-        return rasterize_reference(means, quats, scales, opacities, features, camera, background, config)
+        out = rasterize_reference(means, quats, scales, opacities, features, camera, background, config)
+        if between_tiles is not None:
+            between_tiles()
+        return out
     if backend == "cpu":
         if needs_grad:
             from fmgs.render.cpu_grad import rasterize_cpu_grad
@@ -113,7 +121,12 @@ def rasterize(
             return rasterize_cpu_grad(means, quats, scales, opacities, features, camera, background, config)
         from fmgs.render.cpu_fast import rasterize_cpu
 
-        return rasterize_cpu(means, quats, scales, opacities, features, camera, background, config)
+        return rasterize_cpu(
+            means, quats, scales, opacities, features, camera, background, config, between_tiles
+        )
     from fmgs.render.cuda_gsplat import rasterize_gsplat
 
-    return rasterize_gsplat(means, quats, scales, opacities, features, camera, background, config)
+    out = rasterize_gsplat(means, quats, scales, opacities, features, camera, background, config)
+    if between_tiles is not None:
+        between_tiles()
+    return out

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import functools
 import importlib
+from collections.abc import Callable
 
 import numpy as np
 import torch
@@ -18,6 +19,10 @@ import torch
 from fmgs.cameras import Camera
 from fmgs.errors import BackendUnavailableError
 from fmgs.render.types import RasterConfig, RenderOutput
+
+TILE_BATCHES = 8
+"""With a ``between_tiles`` hook, tiles are blended in this many batches (a stop is seen within about
+1/8 of a render)."""
 
 
 def load_kernels(module: str = "cpu_kernels"):
@@ -91,8 +96,13 @@ def rasterize_cpu(
     camera: Camera,
     background: torch.Tensor | None = None,
     config: RasterConfig = RasterConfig(),
+    between_tiles: Callable[[], None] | None = None,
 ) -> RenderOutput:
-    """Same contract as fmgs.render.rasterize; CPU tensors, no gradients."""
+    """Same contract as fmgs.render.rasterize; CPU tensors, no gradients.
+
+    With ``between_tiles`` the tiles are blended in TILE_BATCHES batches of the costliest-first order
+    (tiles are independent, so the image is the same) and it is called after each; it may raise.
+    """
     import numba
 
     k = load_kernels()
@@ -114,14 +124,18 @@ def rasterize_cpu(
         image[:] = bg.astype(out_dtype)  # tiles with no Gaussian see only the background
     pair_cnt = np.zeros(len(ids), dtype=np.int64)
     pair_w = np.zeros(len(ids))
-    with numba.parallel_chunksize(1):
-        k.raster_kernel(
-            ids, offsets, tile_order, T, tiles_x, W, H,
-            p["means2d"], p["conics"], _geom(opacities), p["depths"], p["pmax"], p["bbox"],
-            feats, bg, background is not None,
-            config.alpha_max, config.alpha_min, config.transmittance_min, _exp_table(config.alpha_min),
-            image, alpha, depth, pair_cnt, pair_w,
-        )  # fmt: skip
+    batches = [tile_order] if between_tiles is None else np.array_split(tile_order, TILE_BATCHES)
+    for batch in batches:
+        with numba.parallel_chunksize(1):
+            k.raster_kernel(
+                ids, offsets, np.ascontiguousarray(batch), T, tiles_x, W, H,
+                p["means2d"], p["conics"], _geom(opacities), p["depths"], p["pmax"], p["bbox"],
+                feats, bg, background is not None,
+                config.alpha_max, config.alpha_min, config.transmittance_min, _exp_table(config.alpha_min),
+                image, alpha, depth, pair_cnt, pair_w,
+            )  # fmt: skip
+        if between_tiles is not None:
+            between_tiles()
     n_contrib = np.bincount(ids, weights=pair_cnt, minlength=N).astype(np.int32)
     weight_sum = np.bincount(ids, weights=pair_w, minlength=N)
     t = torch.from_numpy

@@ -209,11 +209,12 @@ def exp_neg_table(x, table):  # pragma: no cover
     """exp(x) for x <= 0 within 2 ulp: exp(-j/256) from ``table`` times a degree-5 Taylor term.
 
     The reduction r = x + j/256 is exact, |r| < 1/256, so the truncation error is below 1e-17.
-    Arguments past the table fall back to math.exp.
+    Arguments past the table, and positive ones (rounding can make a power slightly positive), fall back
+    to math.exp.
     """
     y = -x * 256.0
     j = int(y)
-    if j >= table.shape[0]:
+    if j < 0 or j >= table.shape[0]:
         return math.exp(x)
     r = (j - y) * 0.00390625
     return table[j] * (1.0 + r * (1.0 + r * (0.5 + r * (1.0 / 6.0 + r * (1.0 / 24.0 + r * (1.0 / 120.0))))))

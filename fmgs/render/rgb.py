@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import torch
 
 from fmgs.cameras import Camera
@@ -17,8 +19,12 @@ def render_rgb(
     sh_degree: int | None = None,
     config: RasterConfig | None = None,
     backend: str = "auto",
+    between_tiles: Callable[[], None] | None = None,
 ) -> RenderOutput:
-    """RGB image [H,W,3] of ``gaussians`` seen from ``camera`` (view-dependent colour from SH)."""
+    """RGB image [H,W,3] of ``gaussians`` seen from ``camera`` (view-dependent colour from SH);
+    ``between_tiles`` as in ``rasterize``."""
     g = gaussians
     rgb = sh_to_rgb(g.sh, g.means, camera.center.to(g.means), sh_degree)
-    return rasterize(g.means, g.quats, g.scales, g.opacities, rgb, camera, background, config, backend)
+    return rasterize(
+        g.means, g.quats, g.scales, g.opacities, rgb, camera, background, config, backend, between_tiles
+    )

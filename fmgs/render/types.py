@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -32,8 +33,10 @@ class RasterConfig:
             raise ValueError("need 0 < alpha_min < alpha_max < 1")
         if not 0 < self.transmittance_min < 1:
             raise ValueError("need 0 < transmittance_min < 1")
-        if self.eps2d <= 0 or self.tile_size < 1 or self.chunk_elems < 1:
-            raise ValueError("eps2d, tile_size and chunk_elems must be positive")
+        if not (0 < self.eps2d < math.inf) or self.tile_size < 1 or self.chunk_elems < 1:
+            raise ValueError("eps2d (finite), tile_size and chunk_elems must be positive")
+        if not (0 <= self.fov_clip < math.inf):
+            raise ValueError(f"fov_clip must be finite and >= 0, got {self.fov_clip}")
 
 
 class Projection(NamedTuple):

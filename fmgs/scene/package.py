@@ -34,7 +34,7 @@ from fmgs.scene.manifest import CANONICAL_PHRASES, FieldInfo, Manifest
 
 FIELD_DTYPES = {"float32": torch.float32, "float16": torch.float16}
 """Storage dtypes of the field's floating-point tensors (a manifest without field.dtype means float32)."""
-_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,127}$")
+_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,127}")
 
 
 @dataclass
@@ -71,9 +71,17 @@ class ScenePackage:
 
 def check_scene_name(name: str) -> str:
     """Scene names are folder names: letters, digits, '.', '_', '-', not starting with '.'."""
-    if not isinstance(name, str) or not _NAME.match(name):
-        raise ValidationError("scene name", f"{name!r} is not a valid name (letters, digits, . _ -; max 128)")
+    if not isinstance(name, str) or not _NAME.fullmatch(name):
+        raise ValidationError(
+            "scene name", f"{shown_name(name)} is not a valid name (letters, digits, . _ -; max 128)"
+        )
     return name
+
+
+def shown_name(name, limit: int = 64) -> str:
+    """repr of a (possibly hostile) name, cut to ``limit`` characters for messages and metadata."""
+    text = repr(name if isinstance(name, str) else str(type(name)))
+    return text if len(text) <= limit else text[: limit - 4] + "...'"
 
 
 @torch.no_grad()

@@ -56,6 +56,9 @@ class ServerConfig:
     (the paper's field), whatever the request's size; the deadline is checked between chunks."""
     memory_budget_bytes: int = 0
     """Resident bytes for loaded scenes; least recently used scenes are unloaded beyond it (0: no limit)."""
+    work_memory_bytes: int = 2048 * MiB
+    """Working memory of the requests in flight, estimated per request before it allocates and held
+    until its answer is consumed; beyond it RESOURCE_EXHAUSTED (0: no limit)."""
     reload_check_s: float = 2.0
     """How often a scene's files are checked for changes (on access)."""
     preload: bool = False
@@ -97,6 +100,8 @@ class ServerConfig:
         for name in positive:
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1")
+        if self.work_memory_bytes < 0 or self.memory_budget_bytes < 0:
+            raise ValueError("work_memory_bytes and memory_budget_bytes must be >= 0 (0: no limit)")
         if self.default_top_k > self.max_top_k:
             raise ValueError("default_top_k must not exceed max_top_k")
         if (self.tls_cert is None) != (self.tls_key is None):

@@ -17,7 +17,7 @@ from fmgs.query.points import query_points
 from fmgs.query.pose import render_pose
 from fmgs.query.segment import segment
 from fmgs.scene.manifest import Manifest
-from fmgs_server import convert, responses
+from fmgs_server import budget, convert, responses
 from fmgs_server.calls import rpc, rpc_stream, stop_if_gone
 from fmgs_server.config import ServerConfig
 from fmgs_server.encoders import EncoderCache
@@ -38,6 +38,7 @@ class FmgsService(pb_grpc.FmgsServicer):
         self.repo = repo
         self.encoders = encoders
         self.slots = Slots(cfg.compute_slots, cfg.max_streams, cfg.queue_timeout_s)
+        self.budget = budget.WorkBudget(cfg.work_memory_bytes, cfg.queue_timeout_s)
 
     def _canonical(self, engine, phrases) -> torch.Tensor | None:
         phrases = convert.texts(phrases, self.cfg, "canonical_phrases", allow_empty=True)
@@ -87,6 +88,12 @@ class FmgsService(pb_grpc.FmgsServicer):
         fields = set(request.fields)
         inst_cfg = convert.instance_config(request.instances) if request.instances.enabled else None
         engine = self.repo.get(request.scene)
+        need = budget.text_bytes(min(k, engine.num_embedded), len(values), 3 * len(fields))
+        with self.budget.reserve(need, context, "this text query"):
+            yield from self._text_query(request, context, engine, values, k, thr, fields, inst_cfg)
+
+    def _text_query(self, request, context, engine, values, k, thr, fields, inst_cfg):
+        cfg = self.cfg
         with self.slots.compute(context):
             if request.HasField("embeddings"):
                 if request.encoder_id != engine.encoder_id:
@@ -114,6 +121,12 @@ class FmgsService(pb_grpc.FmgsServicer):
         outputs = convert.outputs(request.outputs)
         encoding = convert.encoding(request.encoding)
         engine = self.repo.get(request.scene)
+        need = budget.render_bytes(cam.width, cam.height, outputs, encoding == pb.IMAGE_ENCODING_PNG)
+        with self.budget.reserve(need, context, "this render", patient):
+            yield from self._render_work(request, context, engine, cam, outputs, encoding, patient)
+
+    def _render_work(self, request, context, engine, cam, outputs, encoding, patient):
+        cfg = self.cfg
         with self.slots.compute(context, patient):
             t0 = time.perf_counter()
             q = None
@@ -159,7 +172,8 @@ class FmgsService(pb_grpc.FmgsServicer):
         engine = self.repo.get(request.scene)
         if engine.field is None:
             raise FailedPrecondition(f"scene {engine.name!r} has no feature field; point queries need one")
-        with self.slots.compute(context):
+        need = budget.point_bytes(len(pts), len(values), self.cfg.point_chunk)
+        with self.budget.reserve(need, context, "this point query"), self.slots.compute(context):
             t0 = time.perf_counter()
             q = self.encoders.embed(engine.encoder_id, values)
             canon = self._canonical(engine, request.canonical_phrases)
@@ -182,6 +196,12 @@ class FmgsService(pb_grpc.FmgsServicer):
                 "camera/per_gaussian: ask for pixel labels (a camera) or per_gaussian labels"
             )
         engine = self.repo.get(request.scene)
+        w, h = (cam.width, cam.height) if cam is not None else (0, 0)
+        need = budget.segment_bytes(w, h, len(names), engine.num_embedded if request.per_gaussian else 0)
+        with self.budget.reserve(need, context, "this segmentation"):
+            yield from self._segment(request, context, engine, names, cam)
+
+    def _segment(self, request, context, engine, names, cam):
         with self.slots.compute(context):
             t0 = time.perf_counter()
             v = self.encoders.embed(engine.encoder_id, names)

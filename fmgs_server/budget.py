@@ -1,0 +1,112 @@
+"""The working-memory budget of requests in flight: each reserves its estimated peak bytes before it
+allocates, holds them until its answer has been consumed (a stalled reader keeps holding them), and gets
+RESOURCE_EXHAUSTED when they cannot be had within the queue timeout (at once when they exceed the budget).
+
+Estimates are upper bounds per request kind, calibrated by measured peak RSS (benchmarks/reliability.py).
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+
+from fmgs_server.errors import DeadlineExceeded, ResourceExhausted
+
+MiB = 1 << 20
+
+RENDER_BYTES_PER_PIXEL = 64
+"""Relevancy render: the rasteriser's float32 channels (1 + 4 canonical) and float64 alpha and depth, the
+scored image and the float32 answer and its message copies."""
+RGB_BYTES_PER_PIXEL = 96
+"""Colour (and depth) render of all Gaussians: float32 RGB, float64 alpha and depth, clamped copies, the
+answer and its message copies."""
+POINT_BYTES_IN_FLIGHT = 16 << 10
+"""Per point going through the field at once (hash-grid corners, the heads' activations)."""
+BASE_BYTES = 8 * MiB
+"""Any request: decoded request, encoder call, bookkeeping."""
+
+
+def render_bytes(width: int, height: int, outputs: tuple[str, ...], png: bool) -> int:
+    """Estimated peak working memory of a pose render."""
+    px = width * height
+    n = px * (RENDER_BYTES_PER_PIXEL if ("relevancy" in outputs or "alpha" in outputs) else 0)
+    n += px * (RGB_BYTES_PER_PIXEL if ("rgb" in outputs or "depth" in outputs) else 0)
+    if png:
+        n += px * 8 * len(outputs)  # uint8/uint16 buffers and the encoded bytes
+    return BASE_BYTES + n
+
+
+def point_bytes(points: int, texts: int, chunk: int) -> int:
+    """Estimated peak working memory of a point query: one chunk through the field, [T,P] float32
+    relevancy and similarity, and their message copies."""
+    return BASE_BYTES + min(points, chunk) * POINT_BYTES_IN_FLIGHT + points * 12 + 2 * texts * points * 8
+
+
+def text_bytes(top_k: int, texts: int, columns: int) -> int:
+    """Estimated peak working memory of a text query: per answer row the index, scores and asked columns
+    (about 4 bytes each), answers held for every text, and their message copies."""
+    return BASE_BYTES + 2 * texts * top_k * (16 + 4 * columns)
+
+
+def segment_bytes(width: int, height: int, classes: int, gaussians: int) -> int:
+    """Estimated peak working memory of a segmentation: rendered class dots and labels, per-Gaussian
+    labels."""
+    return BASE_BYTES + width * height * (classes * 8 + 24) + gaussians * (classes * 4 + 16)
+
+
+class WorkBudget:
+    """Bytes of working memory shared by the requests in flight (``total`` 0: unlimited)."""
+
+    def __init__(self, total: int, queue_timeout_s: float) -> None:
+        self.total = total
+        self.queue_timeout_s = queue_timeout_s
+        self._used = 0
+        self._cond = threading.Condition()
+
+    @property
+    def used(self) -> int:
+        return self._used
+
+    @contextmanager
+    def reserve(self, nbytes: int, context, what: str, patient: bool = False) -> Iterator[None]:
+        """Hold ``nbytes`` for the duration; waits for room at most queue_timeout_s (never past the
+        deadline), or, ``patient`` (pose streams), as long as the client is there."""
+        if not self.total:
+            yield
+            return
+        if nbytes > self.total:
+            raise ResourceExhausted(
+                f"{what} needs about {nbytes / MiB:.0f} MiB of working memory, more than the server's "
+                f"work_memory_bytes ({self.total / MiB:.0f} MiB); ask for less"
+            )
+        wait = self.queue_timeout_s
+        left = context.time_remaining()
+        if left is not None:
+            wait = min(wait, left)
+        end = time.monotonic() + wait
+        with self._cond:
+            while self._used + nbytes > self.total:
+                if patient:
+                    if not context.is_active():
+                        raise ResourceExhausted("the client went away while waiting for working memory")
+                    self._cond.wait(0.25)
+                    continue
+                remaining = end - time.monotonic()
+                if remaining <= 0:
+                    left = context.time_remaining()
+                    if left is not None and left <= 0:
+                        raise DeadlineExceeded("the deadline passed while waiting for working memory")
+                    raise ResourceExhausted(
+                        f"server busy: {what} needs about {nbytes / MiB:.0f} MiB of working memory and "
+                        f"{(self.total - self._used) / MiB:.0f} MiB are free; retry later"
+                    )
+                self._cond.wait(min(remaining, 0.25))
+            self._used += nbytes
+        try:
+            yield
+        finally:
+            with self._cond:
+                self._used -= nbytes
+                self._cond.notify_all()

@@ -30,17 +30,25 @@ def _matches(token: bytes, allowed: list[bytes]) -> bool:
 
 
 class TokenAuth(grpc.ServerInterceptor):
-    """Queries need a read or admin token; admin RPCs need an admin token; health may stay open."""
+    """Queries need a read or admin token; admin RPCs need an admin token; health may stay open.
 
-    def __init__(self, read: list[bytes], admin: list[bytes], health_open: bool = True) -> None:
-        self.read, self.admin, self.health_open = read, admin, health_open
+    With ``health_open``, the server's health (service "" and "fmgs.v1.Fmgs") needs no token; a scene's
+    health ("fmgs.v1.Fmgs/<scene>") still does unless ``scene_health_open``, so scene names cannot be
+    probed without a token.
+    """
+
+    def __init__(
+        self, read: list[bytes], admin: list[bytes], health_open: bool = True, scene_health_open: bool = False
+    ) -> None:
+        self.read, self.admin = read, admin
+        self.health_open, self.scene_health_open = health_open, scene_health_open
 
     def intercept_service(self, continuation, details):
         handler = continuation(details)
         if handler is None:
             return None
         method = details.method
-        if (self.health_open and method.startswith(HEALTH_PREFIX)) or not (self.read or self.admin):
+        if not (self.read or self.admin):
             return handler
         token = b""
         for key, value in details.invocation_metadata or ():
@@ -48,6 +56,9 @@ class TokenAuth(grpc.ServerInterceptor):
                 v = value.encode() if isinstance(value, str) else value
                 if v[:7].lower() == b"bearer ":
                     token = v[7:].strip()
+        if self.health_open and method.startswith(HEALTH_PREFIX):
+            known = bool(token) and (_matches(token, self.read) | _matches(token, self.admin))
+            return handler if self.scene_health_open or known else _server_health_only(handler)
         if method in ADMIN_METHODS:
             if not token:
                 return _deny(handler, grpc.StatusCode.UNAUTHENTICATED, "missing bearer token")
@@ -61,6 +72,24 @@ class TokenAuth(grpc.ServerInterceptor):
         if not (_matches(token, self.read) | _matches(token, self.admin)):
             return _deny(handler, grpc.StatusCode.UNAUTHENTICATED, "invalid bearer token")
         return handler
+
+
+def _server_health_only(handler):
+    """The health handler, refusing per-scene services ("fmgs.v1.Fmgs/<scene>") without a token."""
+
+    def guard(fn):
+        def call(request, context):
+            if "/" in request.service:
+                context.abort(grpc.StatusCode.UNAUTHENTICATED, "a scene's health needs a bearer token")
+            return fn(request, context)
+
+        return call
+
+    if handler.unary_unary is not None:
+        return handler._replace(unary_unary=guard(handler.unary_unary))
+    if handler.unary_stream is not None:
+        return handler._replace(unary_stream=guard(handler.unary_stream))
+    return handler
 
 
 def _deny(handler, code: grpc.StatusCode, message: str):

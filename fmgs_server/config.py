@@ -81,7 +81,10 @@ class ServerConfig:
     admin_token_file: Path | None = None
     """Bearer tokens allowed to load, unload and reload scenes, one per line."""
     health_open: bool = True
-    """Health checks need no token (orchestrators)."""
+    """The server's health checks need no token (orchestrators)."""
+    scene_health_open: bool = False
+    """Per-scene health checks need no token either (with tokens on, they would let anyone probe scene
+    names)."""
     grace_s: float = 10.0
     """In-flight requests get this long to finish on SIGTERM."""
 

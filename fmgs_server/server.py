@@ -128,7 +128,8 @@ def start_server(cfg: ServerConfig, encoder_factory=None) -> RunningServer:
     encoders = EncoderCache(encoder_factory or _text_encoder(cfg.device), cfg.text_cache)
     service = FmgsService(cfg, repo, encoders)
 
-    interceptors = [TokenAuth(read, admin, cfg.health_open)] if (read or admin) else []
+    auth = TokenAuth(read, admin, cfg.health_open, cfg.scene_health_open)
+    interceptors = [auth] if (read or admin) else []
     server = grpc.server(
         futures.ThreadPoolExecutor(max_workers=cfg.max_concurrent_rpcs + 4, thread_name_prefix="fmgs-rpc"),
         interceptors=interceptors,

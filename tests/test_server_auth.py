@@ -59,6 +59,7 @@ def _served(auth: TokenAuth) -> Iterator[grpc.Channel]:
     pb_grpc.add_FmgsServicer_to_server(_Scenes(), server)
     hs = health.HealthServicer()
     hs.set("", health_pb2.HealthCheckResponse.SERVING)
+    hs.set("fmgs.v1.Fmgs/s", health_pb2.HealthCheckResponse.SERVING)
     health_pb2_grpc.add_HealthServicer_to_server(hs, server)
     port = server.add_insecure_port("127.0.0.1:0")
     server.start()
@@ -153,3 +154,21 @@ def test_no_tokens_means_open_and_unknown_methods_stay_unimplemented():
             _outcome(lambda md: list(segment(pb.SegmentRequest(), metadata=md, timeout=10)), READ)[0]
             == C.UNIMPLEMENTED
         )
+
+
+def test_scene_health_needs_a_token_unless_opened():
+    def scene_health(ch, md):
+        stub = health_pb2_grpc.HealthStub(ch)
+        return stub.Check(
+            health_pb2.HealthCheckRequest(service="fmgs.v1.Fmgs/s"), metadata=md, timeout=10
+        ).status
+
+    with _served(TokenAuth([READ], [ADMIN])) as ch:
+        server_health = _calls(ch)["health"]
+        assert _outcome(server_health, None) == "OK"  # orchestrators need no token
+        refused = (C.UNAUTHENTICATED, "a scene's health needs a bearer token")
+        assert _outcome(lambda md: scene_health(ch, md), None) == refused
+        assert _outcome(lambda md: scene_health(ch, md), b"wrong") == refused
+        assert scene_health(ch, (("authorization", "Bearer r3ad"),)) == SERVING
+    with _served(TokenAuth([READ], [ADMIN], scene_health_open=True)) as ch:
+        assert scene_health(ch, None) == SERVING

@@ -162,7 +162,10 @@ def main() -> int:
                     r.update(rescore(f.parent / "models" / r["variant"], Path(args.data)))
                 rows.append(r)
         runs = [run for _, run in runs]
-        text = report(rows, runs[0]["machine"], args, Path(args.data or "?"))
+        cmds = [r.get("command", "") for r in rows]
+        recorded = [c.split("--data ")[1].split()[0] for c in cmds if "--data " in c]
+        data = args.data or (recorded[0] if recorded else "?")  # the scene the runs were made on
+        text = report(rows, runs[0]["machine"], args, Path(data))
         Path(args.out).mkdir(parents=True, exist_ok=True)
         (Path(args.out) / "FIELD.md").write_text(text)
         if args.report:

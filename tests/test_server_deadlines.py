@@ -202,3 +202,30 @@ def test_garbage_on_a_pose_stream_is_invalid_argument_and_logged_so(served, capl
     line = _log_line(caplog, "StreamRender")
     assert "INVALID_ARGUMENT" in line
     assert srv.service.slots.free_streams() == srv.config.max_streams
+
+
+def test_maximum_render_stops_at_its_deadline(served, caplog):
+    caplog.set_level(logging.INFO, logger="fmgs_server")
+    srv, stub = served
+    cam = pb.Camera(
+        viewmat=np.eye(4).ravel().tolist(), fx=2000, fy=2000, cx=2048, cy=1080, width=4096, height=2160
+    )
+    outputs = [
+        pb.RENDER_OUTPUT_RELEVANCY,
+        pb.RENDER_OUTPUT_RGB,
+        pb.RENDER_OUTPUT_DEPTH,
+        pb.RENDER_OUTPUT_ALPHA,
+    ]
+    req = pb.RenderRequest(scene="f", camera=cam, text="red cube", outputs=outputs)
+    list(stub.Render(pb.RenderRequest(scene="f", camera=camera_small(), text="red cube")))  # load, compile
+    timeout = 0.3
+    t0 = time.monotonic()
+    with pytest.raises(grpc.RpcError) as e:
+        list(stub.Render(req, timeout=timeout))
+    assert e.value.code() == grpc.StatusCode.DEADLINE_EXCEEDED
+    assert _slot_free_after(srv, t0 + timeout) < 0.5
+    assert "DEADLINE_EXCEEDED" in _log_line(caplog, "Render")
+
+
+def camera_small() -> pb.Camera:
+    return pb.Camera(viewmat=np.eye(4).ravel().tolist(), fx=40, fy=40, cx=24, cy=20, width=48, height=40)

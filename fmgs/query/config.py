@@ -5,7 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 POINT_CHUNK = 8192
-"""Points through the field at once in a point query: bounds its working memory (about 13 KiB per point
+"""Points through the field at once in a point query: bounds its working memory (about 25 KiB per point
 in flight for the paper's field) whatever the number of points."""
 
 

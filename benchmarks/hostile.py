@@ -9,13 +9,10 @@ in-process (slot release, read from its slots), serving models/demo with the rea
 
 from __future__ import annotations
 
-import os
 import signal
 import subprocess
-import sys
 import threading
 import time
-from contextlib import contextmanager
 from pathlib import Path
 
 import grpc
@@ -23,6 +20,7 @@ import numpy as np
 
 from fmgs_server import budget
 from fmgs_server.config import ServerConfig
+from fmgs_server.launch import subprocess_server
 from fmgs_server.server import STOP_MARGIN_S, start_server
 from fmgs_wire.proto.fmgs.v1 import fmgs_pb2 as pb
 from fmgs_wire.proto.fmgs.v1 import fmgs_pb2_grpc as pb_grpc
@@ -46,38 +44,9 @@ def camera(cam: pb.Camera, w: int, h: int) -> pb.Camera:
     return pb.Camera(viewmat=cam.viewmat, fx=cam.fx * s, fy=cam.fy * s, cx=w / 2, cy=h / 2, width=w, height=h)
 
 
-@contextmanager
-def server_process(models: Path, *flags: str):
-    """``fmgs-server`` on port 0 with ``flags``; yields (process, address)."""
-    cmd = [
-        sys.executable,
-        "-m",
-        "fmgs_server.cli",
-        "--models",
-        str(models),
-        "--port",
-        "0",
-        "--log-level",
-        "WARNING",
-    ]
-    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
-    p = subprocess.Popen(
-        [*cmd, *flags], stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True, env=env
-    )
-    try:
-        line = p.stdout.readline()
-        if "serving" not in line:
-            raise RuntimeError(f"server did not start: {line!r}")
-        yield p, line.rsplit(" ", 1)[1].strip()
-    finally:
-        if p.poll() is None:
-            p.kill()
-            p.wait(10)
-
-
 def shutdown_after(models: Path, hostile) -> float:
     """Seconds from SIGTERM to exit with ``hostile(address)`` calls in flight (inf: killed after 60 s)."""
-    with server_process(models, "--grace-s", str(GRACE_S), "--preload") as (p, address):
+    with subprocess_server(models, "--grace-s", str(GRACE_S), "--preload") as (p, address):
         stop = hostile(address)
         time.sleep(1.5)
         t0 = time.monotonic()
@@ -301,7 +270,7 @@ def peak_rss(models: Path, cam: pb.Camera, texts: tuple[str, ...]) -> dict[str, 
         ),
     }
     for name, (call, estimate) in cases.items():
-        with server_process(models, "--preload") as (p, address):
+        with subprocess_server(models, "--preload") as (p, address):
             with grpc.insecure_channel(address, options=CLIENT_OPTIONS) as ch:
                 base = _rss(p.pid)
                 Path(f"/proc/{p.pid}/clear_refs").write_text("5")  # reset VmHWM to the current RSS

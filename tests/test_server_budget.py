@@ -137,44 +137,25 @@ def test_a_large_point_query_stays_within_its_reserved_estimate():
     """Regression (issue 14): a large point query ran the whole batch through the field at once (13 KiB
     per point); now its peak RSS stays within what the budget reserves for it. Served from a subprocess
     (its own RSS) on the committed demo scene with its real text encoder."""
-    import os
-    import subprocess
-    import sys
     from pathlib import Path
 
+    from fmgs_server.launch import subprocess_server
     from fmgs_wire.tensors import to_tensor
 
     models = Path(__file__).resolve().parents[1] / "models"
-    cmd = [
-        sys.executable,
-        "-m",
-        "fmgs_server.cli",
-        "--models",
-        str(models),
-        "--port",
-        "0",
-        "--log-level",
-        "WARNING",
-    ]
-    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
-    p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True, env=env)
-    try:
-        address = p.stdout.readline().rsplit(" ", 1)[1].strip()
-        n = 300_000
-        pts = np.random.default_rng(0).normal(size=(n, 3)).astype(np.float32)
-        with grpc.insecure_channel(address, options=[("grpc.max_receive_message_length", -1)]) as ch:
-            stub = pb_grpc.FmgsStub(ch)
-            stub.PointQuery(
-                pb.PointQueryRequest(scene="demo", texts=["red cube"], points=to_tensor(pts[:100]))
-            )
-            base = _status(p.pid, "VmRSS")
-            with open(f"/proc/{p.pid}/clear_refs", "w") as f:
-                f.write("5")  # the peak restarts from the current RSS
-            req = pb.PointQueryRequest(scene="demo", texts=["red cube", "blue ball"], points=to_tensor(pts))
-            a = stub.PointQuery(req, timeout=300)
-            peak = _status(p.pid, "VmHWM") - base
-        assert len(a.relevancy.data) == 4 * 2 * n
-        assert peak <= budget.point_bytes(n, 2, ServerConfig().point_chunk), peak / 2**20
-    finally:
-        p.kill()
-        p.wait(10)
+    n = 300_000
+    pts = np.random.default_rng(0).normal(size=(n, 3)).astype(np.float32)
+    with (
+        subprocess_server(models) as (p, address),
+        grpc.insecure_channel(address, options=[("grpc.max_receive_message_length", -1)]) as ch,
+    ):
+        stub = pb_grpc.FmgsStub(ch)
+        stub.PointQuery(pb.PointQueryRequest(scene="demo", texts=["red cube"], points=to_tensor(pts[:100])))
+        base = _status(p.pid, "VmRSS")
+        with open(f"/proc/{p.pid}/clear_refs", "w") as f:
+            f.write("5")  # the peak restarts from the current RSS
+        req = pb.PointQueryRequest(scene="demo", texts=["red cube", "blue ball"], points=to_tensor(pts))
+        a = stub.PointQuery(req, timeout=300)
+        peak = _status(p.pid, "VmHWM") - base
+    assert len(a.relevancy.data) == 4 * 2 * n
+    assert peak <= budget.point_bytes(n, 2, ServerConfig().point_chunk), peak / 2**20

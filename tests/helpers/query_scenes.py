@@ -80,25 +80,9 @@ def camera(w: int = 48, h: int = 40) -> Camera:
 
 
 def serve_process(models):
-    """Start ``fmgs serve`` on port 0 in a subprocess; returns (process, address)."""
-    import os
+    """Start ``fmgs serve`` (the core's alias) on port 0 in a subprocess; returns (process, address)."""
     import subprocess
-    import sys
 
-    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
-    cmd = [
-        sys.executable,
-        "-m",
-        "fmgs.cli",
-        "serve",
-        "--models",
-        str(models),
-        "--port",
-        "0",
-        "--log-level",
-        "WARNING",
-    ]
-    p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
-    line = p.stdout.readline()
-    assert "serving" in line, p.stderr.read()
-    return p, line.rsplit(" ", 1)[1].strip()
+    from fmgs_server.launch import start_subprocess
+
+    return start_subprocess(models, via_fmgs=True, stderr=subprocess.PIPE)

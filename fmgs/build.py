@@ -11,6 +11,7 @@ Stages, each skipped when its output is already complete in the work folder:
 from __future__ import annotations
 
 import json
+import logging
 import time
 from dataclasses import asdict, replace
 from pathlib import Path
@@ -21,6 +22,8 @@ from fmgs.build_config import BuildConfig, TargetSpec
 from fmgs.errors import ValidationError
 from fmgs.gaussians import GaussianSet
 from fmgs.train.field import FieldTrainResult
+
+log = logging.getLogger(__name__)
 
 
 def package_from_field(
@@ -94,6 +97,29 @@ def extract_features(ds, cache_dir: Path, spec: TargetSpec, device: str, progres
     return extract_targets(ds, cache_dir, clip, dino, pyr, ecfg)
 
 
+LOW_PSNR_DB = 20.0
+"""Held-out PSNR below which the build warns that the geometry is poor (the field can only be as good)."""
+
+
+def _report_geometry(gaussians, ds, cfg: BuildConfig) -> None:
+    """Print the geometry's held-out PSNR/SSIM (every HOLDOUT_EVERY-th view), and warn when it is low."""
+    from fmgs.train.evaluate import evaluate
+    from fmgs.train.gaussians import dataset_background
+
+    _, test = ds.split(cfg.gs.holdout_every)
+    if not test:
+        _stage(2, "geometry", "no held-out views to score")
+        return
+    r = evaluate(gaussians, ds, None, cfg.gs.image_scale, dataset_background(ds), cfg.gs.holdout_every)
+    n = f"{gaussians.num:,} Gaussians"
+    _stage(2, "geometry", f"{n}; held-out PSNR {r.psnr:.2f} dB, SSIM {r.ssim:.3f} ({len(test)} views)")
+    if r.psnr < LOW_PSNR_DB:
+        log.warning(
+            "held-out PSNR %.1f dB is below %.0f dB: the geometry is poor, and the feature field will be too "
+            "(no sparse points? too few steps? wrong poses?)", r.psnr, LOW_PSNR_DB,
+        )  # fmt: skip
+
+
 def build_scene(source: str | Path, cfg: BuildConfig, progress: bool = True) -> Path:
     """Run the stages for ``source`` (a photo folder or a posed dataset) and return the package path."""
     from fmgs.data.dataset import load_dataset
@@ -143,6 +169,7 @@ def build_scene(source: str | Path, cfg: BuildConfig, progress: bool = True) -> 
             # A finished run with other settings starts over; an interrupted one (no train.json) resumes.
             train_gaussians(ds, work / "gs", gcfg, progress=progress, resume=not record)
     gaussians = read_ply(ply)
+    _report_geometry(gaussians, ds, cfg)
 
     cache_dir = work / "features"
     _stage(3, "features", f"{cfg.targets.kind} targets -> {cache_dir}")

@@ -93,6 +93,7 @@ def test_rebuild_skips_complete_stages(built, capsys):
     assert main(args) == 0
     out = capsys.readouterr().out
     assert "[2/5] geometry: given" in out and "[4/5] field: complete" in out
+    assert "held-out PSNR" in out and " dB, SSIM " in out  # the geometry is scored, given or trained
     assert (tmp / "models" / ".work" / "toy" / "field" / "field_train.json").stat().st_mtime_ns == stamp
     again = json.loads((tmp / "models" / ".work" / "toy" / "features" / "manifest.json").read_text())
     assert again == manifest

@@ -112,3 +112,17 @@ def test_resume_continues_from_the_checkpoint(tiny_scene, tmp_path):
     meta = json.loads((tmp_path / "a" / "train.json").read_text())
     assert a.steps == 40 and b.steps == 60 and meta["steps"] == 60
     assert b.history[: len(a.history)] == a.history  # the first run's refinements carried over
+
+
+def test_random_initialisation_is_announced(tiny_scene, caplog):
+    import dataclasses
+    import logging
+
+    ds = dataclasses.replace(load_dataset(tiny_scene), points=None, colors=None)
+    with caplog.at_level(logging.WARNING, logger="fmgs.train.gaussians"):
+        g = _init_only(ds, GSTrainConfig(random_init=500))
+    assert g.num == 500
+    assert any(
+        "no sparse points" in r.getMessage() and "500 random Gaussians" in r.getMessage()
+        for r in caplog.records
+    )

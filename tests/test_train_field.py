@@ -127,6 +127,9 @@ def test_training_lowers_the_loss_and_is_deterministic(setup, tmp_path):
     assert all(torch.equal(sa[k], sb[k]) for k in sa)
     meta = json.loads((tmp_path / "a" / "field_train.json").read_text())
     assert meta["selected"] == len(a.selection.index) and meta["steps"] == 60
+    field = meta["config"]["field"]  # the dims that ran, from the cache (not the config's 512/384)
+    assert field["clip_dim"] == cache.targets["clip"].dim
+    assert field["dino_dim"] == (cache.targets["dino"].dim if "dino" in cache.targets else 0)
 
 
 def test_resume_after_interruption_gives_the_same_model(setup, tmp_path, monkeypatch):

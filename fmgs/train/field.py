@@ -236,7 +236,9 @@ def train_field(
                     "selected": len(selection.index),
                     "total": selection.total,
                     "final_loss": losses[-1] if losses else None,
-                    "config": _jsonable(cfg),
+                    # What ran: the field's dims come from the cache, its finest level from the scene
+                    # when adaptive (the requested defaults, 512/384, were recorded before).
+                    "config": _jsonable(replace(cfg, field=fcfg)),
                 },
                 indent=1,
             )

@@ -204,8 +204,7 @@ def main() -> int:
         encoder,
         cfg=ExtractConfig(feature_scale=args.feature_scale, progress=False),
     )
-    base = FieldTrainConfig()
-    base = base if steps == base.steps else base.reduced(steps)
+    base = FieldTrainConfig().reduced(steps)
     variants = {
         "field": base,
         "per-gaussian": replace(base, per_gaussian=True),

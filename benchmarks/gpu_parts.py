@@ -575,11 +575,7 @@ def part_gs_train(work: Path, quick: bool) -> dict:
     steps = 30_000 if not quick else 200
     if per_step * steps * 1.6 > budget:  # densification grows the scene: later steps cost more
         steps = int(budget / (per_step * 1.6)) // 1000 * 1000
-    cfg = (
-        GSTrainConfig(steps=steps, device=DEVICE)
-        if steps == 30_000
-        else GSTrainConfig.reduced(steps, device=DEVICE)
-    )
+    cfg = GSTrainConfig.reduced(steps, device=DEVICE)  # the defaults at 30,000
     reset_peak()
     r = train_gaussians(ds, work / "gs", cfg, progress=False, resume=False)
     res = {

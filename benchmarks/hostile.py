@@ -20,7 +20,7 @@ import numpy as np
 
 from fmgs_server import budget
 from fmgs_server.config import ServerConfig
-from fmgs_server.launch import subprocess_server
+from fmgs_server.launch import memory, reset_peak, subprocess_server
 from fmgs_server.server import STOP_MARGIN_S, start_server
 from fmgs_wire.proto.fmgs.v1 import fmgs_pb2 as pb
 from fmgs_wire.proto.fmgs.v1 import fmgs_pb2_grpc as pb_grpc
@@ -198,20 +198,6 @@ def slot_releases(models: Path, cam: pb.Camera, texts: tuple[str, ...]) -> dict[
     return out
 
 
-def _hwm(pid: int) -> int:
-    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-        if line.startswith("VmHWM:"):
-            return int(line.split()[1]) * 1024
-    raise RuntimeError("no VmHWM")
-
-
-def _rss(pid: int) -> int:
-    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-        if line.startswith("VmRSS:"):
-            return int(line.split()[1]) * 1024
-    raise RuntimeError("no VmRSS")
-
-
 def peak_rss(models: Path, cam: pb.Camera, texts: tuple[str, ...]) -> dict[str, dict]:
     """Peak RSS above the warmed-up baseline for the worst request of each kind, each in a fresh server
     (no heap left over from an earlier request), with the estimate the working-memory budget reserves."""
@@ -272,8 +258,8 @@ def peak_rss(models: Path, cam: pb.Camera, texts: tuple[str, ...]) -> dict[str, 
     for name, (call, estimate) in cases.items():
         with subprocess_server(models, "--preload") as (p, address):
             with grpc.insecure_channel(address, options=CLIENT_OPTIONS) as ch:
-                base = _rss(p.pid)
-                Path(f"/proc/{p.pid}/clear_refs").write_text("5")  # reset VmHWM to the current RSS
+                base = memory(p.pid)[0]
+                reset_peak(p.pid)
                 t0 = time.perf_counter()
                 try:
                     call(pb_grpc.FmgsStub(ch))
@@ -284,7 +270,7 @@ def peak_rss(models: Path, cam: pb.Camera, texts: tuple[str, ...]) -> dict[str, 
                     "client_saw": code,
                     "seconds": time.perf_counter() - t0,
                     "baseline_mib": base / 2**20,
-                    "peak_above_baseline_mib": (_hwm(p.pid) - base) / 2**20,
+                    "peak_above_baseline_mib": (memory(p.pid)[1] - base) / 2**20,
                     "estimate_mib": estimate / 2**20,
                 }
     out["_budget_mib"] = ServerConfig().work_memory_bytes / 2**20

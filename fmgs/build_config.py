@@ -79,9 +79,6 @@ class BuildConfig:
     def scheduled(cls, name: str, gs_steps: int | None = None, field_steps: int | None = None) -> BuildConfig:
         """Defaults with the 3DGS and field schedules compressed to the given step counts (the base that
         ``fmgs build`` applies its other settings to)."""
-        gs, fd = GSTrainConfig(), FieldTrainConfig()
-        if gs_steps is not None and gs_steps != gs.steps:
-            gs = GSTrainConfig.reduced(gs_steps)
-        if field_steps is not None and field_steps != fd.steps:
-            fd = fd.reduced(field_steps)
+        gs = GSTrainConfig() if gs_steps is None else GSTrainConfig.reduced(gs_steps)
+        fd = FieldTrainConfig() if field_steps is None else FieldTrainConfig().reduced(field_steps)
         return cls(name=name, gs=gs, field=fd)

@@ -91,7 +91,7 @@ def cmd_sfm(args: argparse.Namespace) -> int:
     from fmgs.sfm_config import SfMConfig
 
     logging.basicConfig(level=logging.INFO, format="%(message)s")
-    _, cfg = _settings(args, SfMConfig)
+    cfg = _settings(args, SfMConfig)
     if args.per_image_camera:
         cfg = replace(cfg, single_camera=False)
     r = run_sfm(args.images, args.out, cfg)
@@ -161,9 +161,9 @@ BUILD_ALIASES = {
     "field.seed": "--seed",
 }
 AUTO_DEVICE = {"device": "auto"}
+"""The commands pick the GPU when there is one (the library's configs default to the CPU)."""
 _BUILD_STAGE_OWNED = ("gs.device", "field.device")
 """Set from the build's own ``device`` for every stage."""
-"""The commands pick the GPU when there is one (the library's configs default to the CPU)."""
 
 
 def _settings(args, cls, defaults=None, base=None):
@@ -179,34 +179,28 @@ def _settings(args, cls, defaults=None, base=None):
     except ValueError as e:
         raise ValidationError("settings", str(e)) from e
     if getattr(cfg, "device", None) == "auto":
-        cfg = replace(cfg, device="cuda" if _cuda() else "cpu")
-    return values, cfg
+        cfg = replace(cfg, device=_auto_device())
+    return cfg
 
 
 def _gs_config(args: argparse.Namespace):
     from fmgs.train.config import GSTrainConfig
 
-    def base(c):  # fewer steps compress the SH and densification schedule
-        return GSTrainConfig() if c.steps == GSTrainConfig.steps else GSTrainConfig.reduced(c.steps)
-
-    return _settings(args, GSTrainConfig, AUTO_DEVICE, base)[1]
+    # Fewer steps compress the SH and densification schedule (reduced() is the default at 30,000).
+    return _settings(args, GSTrainConfig, AUTO_DEVICE, lambda c: GSTrainConfig.reduced(c.steps))
 
 
 def _target_spec(args: argparse.Namespace):
     from fmgs.build_config import TargetSpec
 
-    return _settings(args, TargetSpec)[1]
+    return _settings(args, TargetSpec)
 
 
 def _field_config(args: argparse.Namespace):
     from fmgs.train.config import FieldTrainConfig
 
-    def base(c):  # fewer steps compress the schedule (dotsim starts at the same fraction)
-        return (
-            FieldTrainConfig() if c.steps == FieldTrainConfig.steps else FieldTrainConfig().reduced(c.steps)
-        )
-
-    cfg = _settings(args, FieldTrainConfig, AUTO_DEVICE, base)[1]
+    # Fewer steps compress the schedule (dotsim starts at the same fraction).
+    cfg = _settings(args, FieldTrainConfig, AUTO_DEVICE, lambda c: FieldTrainConfig().reduced(c.steps))
     return replace(cfg, dotsim_weight=0.0) if args.no_dotsim else cfg
 
 
@@ -256,7 +250,7 @@ def _build_config(args: argparse.Namespace):
     def base(c):  # fewer steps compress each stage's schedule
         return BuildConfig.scheduled(c.name, c.gs.steps, c.field.steps)
 
-    _, cfg = _settings(args, BuildConfig, AUTO_DEVICE, base)
+    cfg = _settings(args, BuildConfig, AUTO_DEVICE, base)
     if args.no_dotsim:
         cfg = replace(cfg, field=replace(cfg.field, dotsim_weight=0.0))
     if args.extra_file:
@@ -414,14 +408,15 @@ def serve(argv: list[str]) -> int:
     return 0  # pragma: no cover - exec does not return
 
 
-def _cuda() -> bool:
+def _auto_device() -> str:
+    """``--device auto``: the first CUDA device when torch sees one, else the CPU."""
     import importlib.util
 
     if importlib.util.find_spec("torch") is None:
-        return False
+        return "cpu"
     import torch
 
-    return torch.cuda.is_available()
+    return "cuda" if torch.cuda.is_available() else "cpu"
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -433,7 +428,7 @@ def main(argv: list[str] | None = None) -> int:
         from fmgs.errors import FmgsError
 
         if getattr(args, "device", None) == "auto":
-            args.device = "cuda" if _cuda() else "cpu"
+            args.device = _auto_device()
         try:
             return args.func(args)
         except FmgsError as e:

@@ -12,7 +12,8 @@ import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 
-from fmgs_server.errors import DeadlineExceeded, ResourceExhausted
+from fmgs_server.errors import ResourceExhausted
+from fmgs_server.slots import gave_up, queue_wait
 
 MiB = 1 << 20
 
@@ -84,11 +85,7 @@ class WorkBudget:
                 f"{what} needs about {nbytes / MiB:.0f} MiB of working memory, more than the server's "
                 f"work_memory_bytes ({self.total / MiB:.0f} MiB); ask for less"
             )
-        wait = self.queue_timeout_s
-        left = context.time_remaining()
-        if left is not None:
-            wait = min(wait, left)
-        end = time.monotonic() + wait
+        end = time.monotonic() + (0.0 if patient else queue_wait(context, self.queue_timeout_s))
         with self._cond:
             while self._used + nbytes > self.total:
                 if patient:
@@ -98,12 +95,11 @@ class WorkBudget:
                     continue
                 remaining = end - time.monotonic()
                 if remaining <= 0:
-                    left = context.time_remaining()
-                    if left is not None and left <= 0:
-                        raise DeadlineExceeded("the deadline passed while waiting for working memory")
-                    raise ResourceExhausted(
+                    raise gave_up(
+                        context,
+                        "working memory",
                         f"server busy: {what} needs about {nbytes / MiB:.0f} MiB of working memory and "
-                        f"{(self.total - self._used) / MiB:.0f} MiB are free; retry later"
+                        f"{(self.total - self._used) / MiB:.0f} MiB are free; retry later",
                     )
                 self._cond.wait(min(remaining, 0.25))
             self._used += nbytes

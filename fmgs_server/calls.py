@@ -50,6 +50,16 @@ def stop_if_gone(context, where: str) -> None:
         raise Cancelled(f"the client went away during {where}")
 
 
+def _failed(name: str, e: Exception, context) -> tuple[grpc.StatusCode, str]:
+    """The status to abort with for handler error ``e`` and the one to log (what the client saw, unless
+    the transport has already ended the call with the error's own code)."""
+    code, text = status_of(e)
+    final = getattr(e, "final", False)
+    if code == grpc.StatusCode.INTERNAL and not final:
+        log.exception("%s failed", name)
+    return (code if final else seen_by_client(context, code)), text
+
+
 def _scene_of(request) -> str:
     return getattr(request, "scene", "") if not isinstance(request, Iterator) else ""
 
@@ -66,11 +76,8 @@ def rpc(fn):
             code = seen_by_client(context, code)
             return answer
         except Exception as e:
-            code, msg = status_of(e)
-            if code == grpc.StatusCode.INTERNAL:
-                log.exception("%s failed", fn.__name__)
-            code = seen_by_client(context, code)
-            context.abort(code, msg)
+            code, text = _failed(fn.__name__, e, context)
+            context.abort(code, text)
         finally:
             ms = (time.perf_counter() - t0) * 1e3
             log.info("%s scene=%s %s %.1f ms", fn.__name__, _scene_of(request), code.name, ms)
@@ -98,11 +105,7 @@ def rpc_stream(fn):
             code = seen_by_client(context, grpc.StatusCode.CANCELLED)
             raise
         except Exception as e:
-            code, text = status_of(e)
-            if code == grpc.StatusCode.INTERNAL and not getattr(e, "final", False):
-                log.exception("%s failed", fn.__name__)
-            if not getattr(e, "final", False):
-                code = seen_by_client(context, code)
+            code, text = _failed(fn.__name__, e, context)
             context.abort(code, text)
         finally:
             ms = (time.perf_counter() - t0) * 1e3

@@ -38,3 +38,16 @@ def subprocess_server(models: str | Path, *flags: str) -> Iterator[tuple[subproc
         if p.poll() is None:
             p.kill()
             p.wait(10)
+
+
+def memory(pid: int) -> tuple[int, int]:
+    """(resident bytes, peak resident bytes) of process ``pid`` (Linux ``/proc/PID/status``)."""
+    fields = dict(
+        line.split(":", 1) for line in Path(f"/proc/{pid}/status").read_text().splitlines() if ":" in line
+    )
+    return int(fields["VmRSS"].split()[0]) * 1024, int(fields["VmHWM"].split()[0]) * 1024
+
+
+def reset_peak(pid: int) -> None:
+    """Restart process ``pid``'s peak resident size from its current one (``/proc/PID/clear_refs``)."""
+    Path(f"/proc/{pid}/clear_refs").write_text("5")

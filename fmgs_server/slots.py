@@ -6,7 +6,26 @@ import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
 
-from fmgs_server.errors import DeadlineExceeded, ResourceExhausted
+from fmgs_server.errors import DeadlineExceeded, ResourceExhausted, ServiceError
+
+
+def queue_wait(context, queue_timeout_s: float) -> float:
+    """How long a request may wait for a slot or memory: queue_timeout_s, never past its deadline
+    (DEADLINE_EXCEEDED at once when that has passed)."""
+    left = context.time_remaining()
+    if left is None:
+        return queue_timeout_s
+    if left <= 0:
+        raise DeadlineExceeded("the deadline passed before the work could start")
+    return min(queue_timeout_s, left)
+
+
+def gave_up(context, what: str, busy: str) -> ServiceError:
+    """The error for a wait that timed out: its deadline passed, or the server is busy."""
+    left = context.time_remaining()
+    if left is not None and left <= 0:
+        return DeadlineExceeded(f"the deadline passed while waiting for {what}")
+    return ResourceExhausted(busy)
 
 
 class Slots:
@@ -29,18 +48,8 @@ class Slots:
             while not self._compute.acquire(timeout=0.25):
                 if not context.is_active():
                     raise ResourceExhausted("the client went away while waiting for a compute slot")
-        else:
-            wait = self.queue_timeout_s
-            left = context.time_remaining()
-            if left is not None:
-                if left <= 0:
-                    raise DeadlineExceeded("the deadline passed before the work could start")
-                wait = min(wait, left)
-            if not self._compute.acquire(timeout=wait):
-                left = context.time_remaining()
-                if left is not None and left <= 0:
-                    raise DeadlineExceeded("the deadline passed while waiting for a compute slot")
-                raise ResourceExhausted("server busy: no compute slot free; retry later")
+        elif not self._compute.acquire(timeout=queue_wait(context, self.queue_timeout_s)):
+            raise gave_up(context, "a compute slot", "server busy: no compute slot free; retry later")
         try:
             yield
         finally:

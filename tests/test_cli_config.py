@@ -55,6 +55,11 @@ def test_build_config_file_under_flags(tmp_path):
     assert cfg.field.dotsim_start == FieldTrainConfig().reduced(1000).dotsim_start
 
 
+def test_a_schedule_compressed_to_its_own_length_is_the_default():
+    assert GSTrainConfig.reduced(GSTrainConfig().steps) == GSTrainConfig()
+    assert FieldTrainConfig().reduced(FieldTrainConfig().steps) == FieldTrainConfig()
+
+
 def test_defaults_are_the_dataclasses():
     cfg = cli._build_config(_args("build", "DATA", "--name", "n", "--device", "cpu"))
     assert cfg == BuildConfig(name="n")
@@ -119,7 +124,7 @@ def test_help_shows_each_default_from_its_dataclass():
 def test_sfm_settings_from_fmgs_sfm_and_fmgs_build():
     from fmgs.sfm_config import SfMConfig
 
-    _, cfg = cli._settings(
+    cfg = cli._settings(
         _args("sfm", "IMGS", "--out", "O", "--camera-model", "OPENCV", "--max-image-size", "800"), SfMConfig
     )
     assert cfg == SfMConfig(camera_model="OPENCV", max_image_size=800)

@@ -17,18 +17,8 @@ from fmgs_server.errors import ResourceExhausted
 from fmgs_server.server import start_server
 from fmgs_wire.proto.fmgs.v1 import fmgs_pb2 as pb
 from fmgs_wire.proto.fmgs.v1 import fmgs_pb2_grpc as pb_grpc
+from tests.helpers.contexts import FakeContext as Ctx
 from tests.helpers.query_scenes import FakeEncoder, blob_scene
-
-
-class Ctx:
-    def __init__(self, active=True) -> None:
-        self.active = active
-
-    def time_remaining(self):
-        return None
-
-    def is_active(self):
-        return self.active
 
 
 def test_reserve_sheds_waits_and_releases():
@@ -126,20 +116,13 @@ def test_a_stalled_reader_holds_its_memory_and_others_are_shed(tmp_path):
         srv.stop(0)
 
 
-def _status(pid: int, key: str) -> int:
-    for line in open(f"/proc/{pid}/status").read().splitlines():
-        if line.startswith(key + ":"):
-            return int(line.split()[1]) * 1024
-    raise AssertionError(key)
-
-
 def test_a_large_point_query_stays_within_its_reserved_estimate():
     """Regression (issue 14): a large point query ran the whole batch through the field at once (13 KiB
     per point); now its peak RSS stays within what the budget reserves for it. Served from a subprocess
     (its own RSS) on the committed demo scene with its real text encoder."""
     from pathlib import Path
 
-    from fmgs_server.launch import subprocess_server
+    from fmgs_server.launch import memory, reset_peak, subprocess_server
     from fmgs_wire.tensors import to_tensor
 
     models = Path(__file__).resolve().parents[1] / "models"
@@ -151,11 +134,10 @@ def test_a_large_point_query_stays_within_its_reserved_estimate():
     ):
         stub = pb_grpc.FmgsStub(ch)
         stub.PointQuery(pb.PointQueryRequest(scene="demo", texts=["red cube"], points=to_tensor(pts[:100])))
-        base = _status(p.pid, "VmRSS")
-        with open(f"/proc/{p.pid}/clear_refs", "w") as f:
-            f.write("5")  # the peak restarts from the current RSS
+        base = memory(p.pid)[0]
+        reset_peak(p.pid)
         req = pb.PointQueryRequest(scene="demo", texts=["red cube", "blue ball"], points=to_tensor(pts))
         a = stub.PointQuery(req, timeout=300)
-        peak = _status(p.pid, "VmHWM") - base
+        peak = memory(p.pid)[1] - base
     assert len(a.relevancy.data) == 4 * 2 * n
     assert peak <= budget.point_bytes(n, 2, ServerConfig().point_chunk), peak / 2**20

@@ -4,7 +4,6 @@ messages built from engine answers (responses): chunks under the byte cap, the s
 from __future__ import annotations
 
 import threading
-import time
 
 import grpc
 import numpy as np
@@ -25,6 +24,7 @@ from fmgs_server.service import FmgsService
 from fmgs_server.slots import Slots
 from fmgs_wire.proto.fmgs.v1 import fmgs_pb2 as pb
 from fmgs_wire.tensors import from_tensor
+from tests.helpers.contexts import FakeContext as Ctx
 from tests.helpers.query_scenes import blob_scene, camera
 
 
@@ -43,20 +43,6 @@ def test_status_of_each_error(error, code):
     got, message = status_of(error)
     assert got == code
     assert "secret" not in message  # internal details stay in the server log
-
-
-class Ctx:
-    """A call context with an optional deadline ``remaining`` seconds from now."""
-
-    def __init__(self, remaining=None, active=True) -> None:
-        self.deadline = None if remaining is None else time.monotonic() + remaining
-        self.active = active
-
-    def time_remaining(self):
-        return None if self.deadline is None else self.deadline - time.monotonic()
-
-    def is_active(self):
-        return self.active
 
 
 def test_compute_slots_shed_and_honour_deadlines():

@@ -80,7 +80,7 @@ def section(sz: FieldSizes, scene: SceneSizes, work: Path) -> dict:
                 enc,
                 cfg=ExtractConfig(feature_scale=run.feature_scale, progress=False),
             )
-        base = paper if run.steps == paper.steps else paper.reduced(run.steps)
+        base = paper.reduced(run.steps)
         grid = replace(g0, log2_table=run.log2_table, levels=run.levels)
         cfg = replace(base, field=replace(base.field, grid=grid), checkpoint_every=0)
         if warm:  # compiled kernels and caches, outside the timed runs

@@ -111,7 +111,8 @@ class GSTrainConfig:
 
     @classmethod
     def reduced(cls, steps: int, **kw) -> GSTrainConfig:
-        """A shorter run whose SH and densification schedule are compressed by steps / 30,000."""
+        """A run whose SH and densification schedule are compressed by steps / 30,000 (the defaults at
+        30,000)."""
         f = steps / cls.steps  # the dataclass default: graphdeco's schedule length
         return cls(steps=steps, sh_every=max(1, round(1_000 * f)), densify=DensifyConfig().scaled(f), **kw)
 
@@ -163,7 +164,8 @@ class FieldTrainConfig:
             raise ValueError("need steps >= 1, 0 <= lam <= 1 and an odd dotsim_kernel >= 3")
 
     def reduced(self, steps: int, **kw) -> FieldTrainConfig:
-        """The same schedule compressed to ``steps`` (dotsim starts at the same fraction)."""
+        """The same schedule compressed to ``steps`` (dotsim starts at the same fraction; unchanged at
+        ``self.steps``)."""
         start = round(self.dotsim_start * steps / self.steps)
         return replace(self, steps=steps, dotsim_start=start, **kw)
 

@@ -23,9 +23,9 @@ scored image and the float32 answer and its message copies."""
 RGB_BYTES_PER_PIXEL = 96
 """Colour (and depth) render of all Gaussians: float32 RGB, float64 alpha and depth, clamped copies, the
 answer and its message copies."""
-POINT_BYTES_IN_FLIGHT = 32 << 10
-"""Per point going through the field at once (hash-grid corners, the heads' activations): measured about
-25 KiB with the allocator's overhead (300K points x 2 texts on the demo scene)."""
+POINT_BYTES_IN_FLIGHT = 48 << 10
+"""Per point going through the field at once (hash-grid corners, the heads' activations): measured 25 to
+32 KiB with the allocator's overhead (300K points x 2 texts on the demo scene, on two runs)."""
 BASE_BYTES = 8 * MiB
 """Any request: decoded request, encoder call, bookkeeping."""
 
@@ -44,7 +44,7 @@ def point_bytes(points: int, texts: int, chunk: int) -> int:
     """Estimated peak working memory of a point query: one chunk through the field, the points as received
     and widened (64 bytes each), and [T,P] float32 relevancy and similarity held in five forms at once at
     worst (tensors, arrays, wire bytes, serialised message, margin): 48 bytes per (text, point). Measured
-    438-494 MiB for 1M points x 8 texts (RELIABILITY.md), 251 MiB for 300K x 2 (tests)."""
+    438-498 MiB for 1M points x 8 texts (RELIABILITY.md), 251-311 MiB for 300K x 2 (tests)."""
     return BASE_BYTES + min(points, chunk) * POINT_BYTES_IN_FLIGHT + points * 64 + texts * points * 48
 
 

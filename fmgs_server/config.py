@@ -52,8 +52,8 @@ class ServerConfig:
     max_points: int = 1_000_000
     """Points per point query (texts x points x 8 bytes must also fit max_send_bytes)."""
     point_chunk: int = POINT_CHUNK
-    """Points through the field at once: a point query's working memory is about 25 KiB per point of it
-    (the paper's field), whatever the request's size; the deadline is checked between chunks."""
+    """Points through the field at once: a point query's working memory is 25-32 KiB (measured) per point
+    of it (the paper's field), whatever the request's size; the deadline is checked between chunks."""
     memory_budget_bytes: int = 0
     """Resident bytes for loaded scenes; least recently used scenes are unloaded beyond it (0: no limit)."""
     work_memory_bytes: int = 2048 * MiB

@@ -3,14 +3,15 @@
 from __future__ import annotations
 
 import math
+from fractions import Fraction
 
 import numpy as np
 import pytest
 import torch
 
-from fmgs.cameras import Camera
+from fmgs.cameras import Camera, quat_wxyz_to_rotmat
 from fmgs.errors import ValidationError
-from fmgs.render import rasterize
+from fmgs.render import RasterConfig, rasterize
 from tests.helpers.brute_force import brute_force_render
 from tests.helpers.scenes import RandomScene, look_at, random_scene
 from tests.helpers.tolerances import assert_close
@@ -93,6 +94,79 @@ def test_extreme_anisotropy(ratio, shape):
         [[[1, 0, 0, 0], [0.924, 0, 0, 0.383], [0.854, 0.146, 0.354, 0.354]], _rand_quats(n - 3, 5)]
     )
     _check_all(_scene(means, quats, scales, np.full(n, 0.9)), grads=True)
+
+
+def _exact_alpha_image(sc: RandomScene, config: RasterConfig) -> np.ndarray:
+    """[H,W] alpha of a single Gaussian with the covariance, its inverse and the power in exact rationals
+    (from the float64 inputs and the code's own rotation matrix); only exp() is rounded."""
+    F = Fraction
+    cam = sc.camera
+    fx, fy, cx, cy = (F(v) for v in (cam.fx, cam.fy, cam.cx, cam.cy))
+    W, H = cam.width, cam.height
+    p = [F(float(v)) for v in sc.means[0]]  # identity viewmat: camera coordinates
+    Rq = quat_wxyz_to_rotmat(sc.quats.to(torch.float64))[0]
+    L = [[F(float(Rq[i, j])) * F(float(sc.scales[0, j])) for j in range(3)] for i in range(3)]
+    clip = F(config.fov_clip)
+    lim_x = (-(cx / fx + clip * W / 2 / fx), (W - cx) / fx + clip * W / 2 / fx)
+    lim_y = (-(cy / fy + clip * H / 2 / fy), (H - cy) / fy + clip * H / 2 / fy)
+    z = p[2]
+    tx = z * min(max(p[0] / z, lim_x[0]), lim_x[1])
+    ty = z * min(max(p[1] / z, lim_y[0]), lim_y[1])
+    J = [[fx / z, 0, -fx * tx / z**2], [0, fy / z, -fy * ty / z**2]]
+    M = [[sum(J[r][k] * L[k][c] for k in range(3)) for c in range(3)] for r in range(2)]
+    eps = F(config.eps2d)
+    a = sum(m * m for m in M[0]) + eps
+    b = sum(m0 * m1 for m0, m1 in zip(M[0], M[1], strict=True))
+    c = sum(m * m for m in M[1]) + eps
+    det = a * c - b * b
+    u, v = fx * p[0] / z + cx, fy * p[1] / z + cy
+    o = float(sc.opacities[0])
+    out = np.full((H, W), np.nan)  # NaN: within 1e-6 of alpha_min, where rounding may decide
+    for i in range(H):
+        for j in range(W):
+            dx, dy = j + F(1, 2) - u, i + F(1, 2) - v
+            power = float((c * dx * dx - 2 * b * dx * dy + a * dy * dy) / det)
+            alpha = min(o * math.exp(-0.5 * power), config.alpha_max)
+            if abs(alpha / config.alpha_min - 1) > 1e-6:
+                out[i, j] = alpha if alpha >= config.alpha_min else 0.0
+    return out
+
+
+@pytest.mark.parametrize("distance", [1e4, 1e5, 1e6])
+@pytest.mark.parametrize("backend", [*BACKENDS, "cpu-grad"])
+def test_needle_seen_far_from_its_centre_keeps_its_precision(distance, backend):
+    """A needle whose centre projects ``distance`` px off-image and which reaches into it at an angle:
+    in conic form (A dx^2 + 2B dx dy + C dy^2) its terms are ~1e10 times the power at 1e5 px and alpha
+    lost up to 6 digits (1e-4 relative at 1e6 px). The completed-square form leaves only the rounding of
+    the projected centre, an error proportional to the distance: bounded here by 2e-15 per pixel."""
+    W = H = 32
+    focal, depth, theta = 1024.0, 8.0, 0.3
+    u0, v0 = W / 2 - distance * math.cos(theta), H / 2 - distance * math.sin(theta)
+    long_px = distance / 2.5  # alpha stays visible across the image at this distance
+    sc = _scene(
+        [[(u0 - W / 2) / focal * depth, (v0 - H / 2) / focal * depth, depth]],
+        [[math.cos(theta / 2), 0, 0, math.sin(theta / 2)]],
+        [[long_px * depth / focal, 1e-3, 1e-3]],
+        [0.9],
+        feats=[[1.0]],
+        width=W,
+        height=H,
+        focal=focal,
+    )
+    config = RasterConfig()
+    exact = _exact_alpha_image(sc, config)
+    lit = exact > 0
+    assert lit.sum() > 50 and (exact == 0).sum() > 500  # the needle crosses the image, with edges
+    feats = sc.features.clone().requires_grad_(backend == "cpu-grad")
+    with torch.set_grad_enabled(backend == "cpu-grad"):
+        out = rasterize(
+            sc.means, sc.quats, sc.scales, sc.opacities, feats, sc.camera, config=config,
+            backend="cpu" if backend == "cpu-grad" else backend,
+        ).alpha.detach().numpy()  # fmt: skip
+    known = ~np.isnan(exact)
+    np.testing.assert_array_equal(out[known & ~lit], 0.0)
+    rel = np.abs(out[lit] - exact[lit]) / exact[lit]
+    assert rel.max() <= 2e-15 * distance, f"alpha relative error {rel.max():.2e} at {distance:.0e} px"
 
 
 def test_sub_pixel_gaussians():

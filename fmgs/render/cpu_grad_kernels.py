@@ -65,7 +65,7 @@ def blend_forward(
         for k in range(start, end):
             g = ids[k]
             u, v = means2d[g, 0], means2d[g, 1]
-            ca, cb, cc = conics[g, 0], conics[g, 1], conics[g, 2]
+            qa, qr, qe = conics[g, 0], conics[g, 1], conics[g, 2]
             o, z = opac[g], depths[g]
             xlo, xhi = max(bbox[g, 0], x_0), min(bbox[g, 2], x_e)
             cnt = 0
@@ -77,8 +77,8 @@ def blend_forward(
                     p = row + xx
                     if done[p]:
                         continue
-                    dx = xx + 0.5 - u
-                    power = ca * dx**2 + 2 * cb * dx * dy + cc * dy**2
+                    s = xx + 0.5 - u + qr * dy
+                    power = qa * s * s + qe * dy * dy
                     alpha = min(o * math.exp(-0.5 * power), alpha_max)
                     if alpha < alpha_min:
                         continue
@@ -164,7 +164,7 @@ def blend_backward(
         for k in range(kmax - 1, start - 1, -1):
             g = ids[k]
             u, v = means2d[g, 0], means2d[g, 1]
-            ca, cb, cc = conics[g, 0], conics[g, 1], conics[g, 2]
+            qa, qr, qe = conics[g, 0], conics[g, 1], conics[g, 2]
             o, z = opac[g], depths[g]
             xlo, xhi = max(bbox[g, 0], x_0), min(bbox[g, 2], x_e)
             gu = gv = ga = gb = gc = go = gz = 0.0
@@ -175,8 +175,8 @@ def blend_backward(
                     p = row + xx
                     if k >= last[p]:
                         continue  # past this pixel's last blended Gaussian
-                    dx = xx + 0.5 - u
-                    power = ca * dx**2 + 2 * cb * dx * dy + cc * dy**2
+                    s = xx + 0.5 - u + qr * dy
+                    power = qa * s * s + qe * dy * dy
                     ex = math.exp(-0.5 * power)
                     raw = o * ex
                     alpha = min(raw, alpha_max)
@@ -197,12 +197,12 @@ def blend_backward(
                         continue  # clamped: alpha does not depend on o or the power here
                     go += d_alpha * ex
                     d_power = -0.5 * alpha * d_alpha
-                    ga += d_power * dx * dx
-                    gb += d_power * 2.0 * dx * dy
+                    # power = A s^2 + e dy^2 with s = dx + r dy, dx = px - u, dy = py - v
+                    ga += d_power * s * s
+                    gb += d_power * 2.0 * qa * s * dy
                     gc += d_power * dy * dy
-                    # power depends on the mean through dx = px - u, dy = py - v
-                    gu -= d_power * (2.0 * ca * dx + 2.0 * cb * dy)
-                    gv -= d_power * (2.0 * cb * dx + 2.0 * cc * dy)
+                    gu -= d_power * 2.0 * qa * s
+                    gv -= d_power * 2.0 * (qa * s * qr + qe * dy)
             d_means2d[k, 0] = gu
             d_means2d[k, 1] = gv
             d_conics[k, 0] = ga

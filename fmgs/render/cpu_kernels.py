@@ -126,9 +126,9 @@ def project_kernel(
         n12 = m01 * m12 - m02 * m11
         det = (n01 * n01 + n02 * n02 + n12 * n12) + eps2d * (a_raw + c_raw) + eps2d * eps2d
         a, c_ = a_raw + eps2d, c_raw + eps2d
-        conics[i, 0] = c_ / det
-        conics[i, 1] = -b / det
-        conics[i, 2] = a / det
+        conics[i, 0] = c_ / det  # completed-square form (A, r, e), see Projection.conics
+        conics[i, 1] = -b / c_
+        conics[i, 2] = 1.0 / c_
         u = fx * px / zs + cx
         v = fy * py / zs + cy
         means2d[i, 0] = u
@@ -282,15 +282,15 @@ def raster_kernel(
         for k in range(start, end):
             g = ids[k]
             u, v = means2d[g, 0], means2d[g, 1]
-            ca, cb2, cc = conics[g, 0], 2.0 * conics[g, 1], conics[g, 2]
+            qa, qr, qe = conics[g, 0], conics[g, 1], conics[g, 2]
             o, z, pm = np.float64(opac[g]), depths[g], pmax[g]
             xlo, xhi = max(bbox[g, 0], x_0), min(bbox[g, 2], x_e)
             cnt = 0
             wk = 0.0
             for yy in range(max(bbox[g, 1], y_0), min(bbox[g, 3], y_e) + 1):
                 dy = yy + 0.5 - v
-                bdy = cb2 * dy
-                cdy = cc * dy * dy
+                rdy = qr * dy
+                edy = qe * dy * dy
                 row = (yy - y_0) * tile - x_0
                 for xx in range(xlo, xhi + 1):
                     p = row + xx
@@ -298,7 +298,8 @@ def raster_kernel(
                     if Tp < 0.0:
                         continue  # terminated
                     dx = xx + 0.5 - u
-                    power = ca * dx * dx + bdy * dx + cdy
+                    s = dx + rdy
+                    power = qa * s * s + edy
                     if power > pm:
                         continue  # alpha surely below alpha_min
                     alpha = min(o * exp_neg_table(-0.5 * power, exp_tab), alpha_max)

@@ -75,7 +75,7 @@ def project(
     eps = config.eps2d
     det = (minors * minors).sum(-1) + eps * (a_raw + c_raw) + eps * eps
     a, c = a_raw + eps, c_raw + eps
-    conics = torch.stack([c / det, -b / det, a / det], -1)
+    conics = torch.stack([c / det, -b / c, 1.0 / c], -1)  # completed square: see Projection.conics
 
     u = fx * p[:, 0] / z_safe + cx
     v = fy * p[:, 1] / z_safe + cy

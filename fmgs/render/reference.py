@@ -149,10 +149,9 @@ def _blend_chunk(
     """
     B, P = Tcar.shape
     d = pix_b - means2d[g][:, None, :, :]  # [B,P,k,2]
-    con = conics[g][:, None]  # [B,1,k,3]
-    power = (
-        con[..., 0] * d[..., 0] ** 2 + 2 * con[..., 1] * d[..., 0] * d[..., 1] + con[..., 2] * d[..., 1] ** 2
-    )
+    con = conics[g][:, None]  # [B,1,k,3] completed-square form (A, r, e), see Projection.conics
+    s = d[..., 0] + con[..., 1] * d[..., 1]
+    power = con[..., 0] * s**2 + con[..., 2] * d[..., 1] ** 2
     opac = torch.where(gv, opacities[g], 0.0)[:, None, :]
     alpha = gaussian_alpha(power, opac, config)
     # Transmittance after each Gaussian, carried in as the first factor so the product is formed in

@@ -47,7 +47,11 @@ class Projection(NamedTuple):
     depths: torch.Tensor
     """[N] camera-space z of the means."""
     conics: torch.Tensor
-    """[N,3] (A, B, C) of the inverse dilated 2D covariance: power = A dx^2 + 2B dx dy + C dy^2."""
+    """[N,3] (A, r, e): the inverse dilated 2D covariance [[a, b], [b, c]] in completed-square form,
+    power = A (dx + r dy)^2 + e dy^2 with A = c / det, r = -b / c, e = 1 / c. Algebraically the conic
+    A dx^2 + 2 A r dx dy + (A r^2 + e) dy^2, but without its cancellation: for a needle seen far from
+    its centre the conic's terms are ~1e10 times the power, and even correctly rounded conic entries
+    lose that many digits."""
     opacities: torch.Tensor
     """[N] opacities in [0,1]."""
     radii: torch.Tensor

@@ -11,9 +11,16 @@ from pathlib import Path
 
 
 def _load_scene(path: Path):
+    from fmgs.errors import ValidationError
     from fmgs.io.ply import read_ply
     from fmgs.io.tensors import load_gaussians
 
+    if path.is_dir():
+        found = sorted(
+            str(p.relative_to(path)) for p in path.glob("**/*") if p.suffix in (".ply", ".safetensors")
+        )
+        hint = f"; it holds {', '.join(found[:3])}" if found else ""
+        raise ValidationError(str(path), f"is a folder: pass a scene file (.ply or .safetensors){hint}")
     return load_gaussians(path) if path.suffix == ".safetensors" else read_ply(path)
 
 
@@ -36,45 +43,86 @@ def cmd_info(args: argparse.Namespace) -> int:
 
 
 def cmd_render(args: argparse.Namespace) -> int:
-    """Render one frame of a transforms.json (OpenGL camera-to-world) to a PNG."""
+    """Render one camera of a dataset (any layout fmgs reads, undistorted like training) to a PNG."""
     import numpy as np
     import torch
     from PIL import Image
 
-    from fmgs.cameras import Camera
     from fmgs.render.rgb import render_rgb
 
     g = _load_scene(Path(args.scene))
-    meta = json.loads(Path(args.transforms).read_text())
-    frames = meta["frames"]
-    if not 0 <= args.frame < len(frames):
-        raise SystemExit(f"--frame {args.frame} out of range: {args.transforms} has {len(frames)} frames")
-    fr = frames[args.frame]
-    w, h = int(fr.get("w", meta["w"])), int(fr.get("h", meta["h"]))
-    K = Camera.intrinsics(
-        fr.get("fl_x", meta["fl_x"]),
-        fr.get("fl_y", meta["fl_y"]),
-        fr.get("cx", meta["cx"]),
-        fr.get("cy", meta["cy"]),
-    )
-    cam = Camera.from_opengl_c2w(torch.tensor(fr["transform_matrix"]), K, w, h).scaled(args.scale)
+    cam = _render_camera(args).scaled(args.scale)
     t0 = time.perf_counter()
     with torch.no_grad():
         out = render_rgb(g, cam, background=torch.zeros(3), backend=args.backend)
     dt = time.perf_counter() - t0
     img = (out.image.clamp(0, 1).numpy() * 255 + 0.5).astype(np.uint8)
     Image.fromarray(img).save(args.out)
-    print(f"wrote {args.out} ({cam.width}x{cam.height}, {dt * 1000:.1f} ms, backend {args.backend})")
+    print(
+        f"wrote {args.out} ({cam.name}, {cam.width}x{cam.height}, {dt * 1000:.1f} ms, backend {args.backend})"
+    )
     return 0
+
+
+def _render_camera(args: argparse.Namespace):
+    """The camera ``--frame`` (index or image name) names: frames numbered as every command numbers
+    them (sorted by name, those with an image); a transforms.json with no image at all is a camera path,
+    numbered in its listed order."""
+    import logging
+
+    from fmgs.data.dataset import load_dataset
+    from fmgs.data.transforms import parse_transforms
+    from fmgs.errors import ValidationError
+
+    src = Path(args.transforms)
+    if src.is_dir() and (src / "transforms.json").is_file() and not (src / "sparse").exists():
+        src = src / "transforms.json"
+    cams = None
+    if src.is_file() and src.suffix == ".json":
+        if not parse_transforms(src).frames:  # a camera path: no photos to number by
+            parsed = parse_transforms(src, keep_missing=True)
+            if any(not f.lens.is_pinhole for f in parsed.frames):
+                logging.getLogger("fmgs").warning("%s: lens distortion ignored (renders are pinhole)", src)
+            cams = [f.camera for f in parsed.frames]
+    if cams is None:
+        cams = [f.camera for f in load_dataset(src, undistort_dir=args.undistort_dir).frames]
+    names = [c.name for c in cams]
+    frame = args.frame
+    if frame.lstrip("-").isdigit():
+        i = int(frame)
+        if not 0 <= i < len(cams):
+            raise ValidationError(
+                "--frame", f"{i} is out of range: {src} has {len(cams)} frames (0..{len(cams) - 1})"
+            )
+        return cams[i]
+    if frame in names:
+        return cams[names.index(frame)]
+    matches = [i for i, n in enumerate(names) if Path(n).name == frame]
+    if len(matches) == 1:
+        return cams[matches[0]]
+    raise ValidationError("--frame", f"no frame named {frame!r} in {src} (first: {names[:3]})")
 
 
 def cmd_synth(args: argparse.Namespace) -> int:
     """Render a synthetic labelled scene (Open3D ray casting) as a transforms.json dataset."""
+    from fmgs.errors import ValidationError
     from fmgs.synth import SynthConfig, generate
 
     w, h = (int(v) for v in args.size.lower().split("x"))
+    try:
+        dist = tuple(float(v) for v in args.distortion.split(","))
+    except ValueError:
+        dist = ()
+    if len(dist) != 4:
+        raise ValidationError("--distortion", f"expected four numbers k1,k2,p1,p2, got {args.distortion!r}")
     cfg = SynthConfig(
-        views=args.views, width=w, height=h, objects=args.objects, seed=args.seed, points=args.points
+        views=args.views,
+        width=w,
+        height=h,
+        objects=args.objects,
+        seed=args.seed,
+        points=args.points,
+        distortion=dist,
     )
     t0 = time.perf_counter()
     path = generate(args.out, cfg)
@@ -123,9 +171,9 @@ def cmd_eval_gs(args: argparse.Namespace) -> int:
     from fmgs.train.evaluate import evaluate
     from fmgs.train.gaussians import dataset_background
 
-    ds = load_dataset(args.data)
+    ds = load_dataset(args.data, undistort_dir=args.undistort_dir)
     g = _load_scene(Path(args.scene))
-    res = evaluate(g, ds, args.out, scale=args.scale, background=dataset_background(ds))
+    res = evaluate(g, ds, args.out, scale=args.scale, background=dataset_background(ds), progress=True)
     print(res.table())
     if args.out:
         print(
@@ -209,7 +257,7 @@ def cmd_features(args: argparse.Namespace) -> int:
     from fmgs.build import extract_features
     from fmgs.data.dataset import load_dataset
 
-    ds = load_dataset(args.data)
+    ds = load_dataset(args.data, undistort_dir=args.undistort_dir)
     cache = extract_features(ds, Path(args.out), _target_spec(args), args.device)
     t = {k: f"{v.encoder} ({v.dim}-D)" for k, v in cache.targets.items()}
     print(f"feature cache {args.out}: {len(cache.image_names)} images, targets {t}")
@@ -224,7 +272,7 @@ def cmd_train_field(args: argparse.Namespace) -> int:
     from fmgs.features.text import load_text_encoder
     from fmgs.train.field import train_field
 
-    ds = load_dataset(args.data)
+    ds = load_dataset(args.data, undistort_dir=args.undistort_dir)
     g = _load_scene(Path(args.gaussians))
     cache = FeatureCache.open(args.features)
     res = train_field(g, ds, cache, args.out, _field_config(args), resume=not args.restart)
@@ -293,6 +341,14 @@ def _add_package_args(p: argparse.ArgumentParser) -> None:
     )
 
 
+def _undistort_flag(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--undistort-dir",
+        help="where the undistorted copy of a dataset with lens distortion goes (default: "
+        "fmgs_undistorted/ beside the dataset; made once, reused while the dataset is unchanged)",
+    )
+
+
 def _no_dotsim(p) -> None:
     p.add_argument("--no-dotsim", action="store_true", help="ablation: no dot-product-similarity loss")
 
@@ -310,10 +366,23 @@ def build_parser() -> argparse.ArgumentParser:
     i = sub.add_parser("info", help="validate a scene (.ply or .safetensors) and print a summary")
     i.add_argument("scene")
     i.set_defaults(func=cmd_info)
-    r = sub.add_parser("render", help="render a frame of a transforms.json to PNG")
+    r = sub.add_parser(
+        "render", help="render a camera of a dataset (or of a camera-path transforms.json) to PNG"
+    )
     r.add_argument("scene", help="graphdeco .ply or fmgs .safetensors")
-    r.add_argument("--transforms", required=True, help="transforms.json with the camera")
-    r.add_argument("--frame", type=int, default=0, help="frame index in transforms.json")
+    r.add_argument(
+        "--transforms",
+        "--data",
+        dest="transforms",
+        required=True,
+        help="dataset folder or transforms.json with the camera (undistorted as for training)",
+    )
+    r.add_argument(
+        "--frame",
+        default="0",
+        help="frame index (the order every command uses: sorted by name) or image name",
+    )
+    _undistort_flag(r)
     r.add_argument("--scale", type=float, default=1.0, help="resize the image by this factor")
     r.add_argument("--backend", default="auto", choices=["auto", "reference", "cpu", "cuda"])
     r.add_argument("--out", default="render.png")
@@ -325,6 +394,12 @@ def build_parser() -> argparse.ArgumentParser:
     sy.add_argument("--objects", type=int, default=6)
     sy.add_argument("--seed", type=int, default=0)
     sy.add_argument("--points", type=int, default=20_000, help="surface samples in points3D.ply")
+    sy.add_argument(
+        "--distortion",
+        default="0,0,0,0",
+        metavar="K1,K2,P1,P2",
+        help="render through an OpenCV lens with these coefficients (written to transforms.json)",
+    )
     sy.set_defaults(func=cmd_synth)
     sf = sub.add_parser("sfm", help="photos to poses with pycolmap; writes OUT/undistorted (a dataset)")
     sf.add_argument("images", help="folder of photos")
@@ -337,7 +412,7 @@ def build_parser() -> argparse.ArgumentParser:
     t = sub.add_parser("train-gs", help="train 3D Gaussian Splatting on a posed dataset")
     t.add_argument("data", help="dataset folder (transforms.json or COLMAP sparse/0 + images/)")
     t.add_argument("--out", required=True)
-    t.add_argument("--undistort-dir", help="where to undistort a distorted COLMAP model first")
+    _undistort_flag(t)
     t.add_argument("--restart", action="store_true", help="ignore an existing checkpoint in --out")
     _config_flag(t, "training")
     g = t.add_argument_group("training (GSTrainConfig; fewer --steps compress the SH and densify schedule)")
@@ -348,11 +423,13 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("scene", help="trained .ply or .safetensors")
     e.add_argument("--out", help="folder for eval.json, eval.md and side-by-side renders")
     e.add_argument("--scale", type=float, default=1.0)
+    _undistort_flag(e)
     e.set_defaults(func=cmd_eval_gs)
     fe = sub.add_parser("features", help="extract feature targets of a posed dataset into a cache")
     fe.add_argument("data", help="posed dataset folder")
     fe.add_argument("--out", required=True, help="feature cache folder")
     fe.add_argument("--device", default="auto", help="torch device (auto: cuda when available)")
+    _undistort_flag(fe)
     _config_flag(fe, "target")
     flags.add_flags(fe.add_argument_group("targets (TargetSpec)"), TargetSpec, aliases=TARGET_ALIASES)
     fe.set_defaults(func=cmd_features)
@@ -362,6 +439,7 @@ def build_parser() -> argparse.ArgumentParser:
     tf.add_argument("--features", required=True, help="feature cache folder")
     tf.add_argument("--out", required=True, help="folder for the checkpoint and field_train.json")
     tf.add_argument("--package", help="also write a scene package to this folder (e.g. models/NAME)")
+    _undistort_flag(tf)
     _add_package_args(tf)
     tf.add_argument("--restart", action="store_true", help="ignore an existing checkpoint in --out")
     _config_flag(tf, "distillation")

@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
+from fmgs.data.distortion import OpenCVDistortion
 from fmgs.io.atomic import atomic_path
 
 # name, base colour (linear RGB in [0,1]); label ids: 0 background, 1 floor, 2.. objects in this order
@@ -60,6 +61,9 @@ class SynthConfig:
     views); labels and depth come from the ray through the pixel centre. Must be odd."""
     checker: float = 0.15
     """Edge of the 3D checkerboard cells of the procedural texture (scene units)."""
+    distortion: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)
+    """OpenCV lens distortion (k1, k2, p1, p2) the images are rendered with (rays through the distorted
+    pixels); written as transforms.json keys with camera_model OPENCV when non-zero."""
 
 
 def _look_at(eye: np.ndarray, target: np.ndarray) -> np.ndarray:
@@ -158,7 +162,9 @@ def generate(out: str | Path, cfg: SynthConfig = SynthConfig()) -> Path:
     K = np.array([[fx, 0, W / 2], [0, fx, H / 2], [0, 0, 1.0]])
     # S x S sub-pixel samples per pixel; the middle one is the pixel centre (j + 0.5, i + 0.5).
     js, is_ = np.meshgrid((np.arange(W * S) + 0.5) / S, (np.arange(H * S) + 0.5) / S)
-    d_cam = np.stack([(js - K[0, 2]) / fx, (is_ - K[1, 2]) / fx, np.ones_like(js)], -1)  # z = 1
+    lens = OpenCVDistortion(*cfg.distortion)
+    x, y = lens.undistort((js - K[0, 2]) / fx, (is_ - K[1, 2]) / fx)  # the ray each pixel sees
+    d_cam = np.stack([x, y, np.ones_like(js)], -1)  # z = 1
     mid = S // 2
 
     frames, views = [], []
@@ -212,7 +218,8 @@ def generate(out: str | Path, cfg: SynthConfig = SynthConfig()) -> Path:
         "fl_y": fx,
         "cx": W / 2,
         "cy": H / 2,
-        "camera_model": "PINHOLE",
+        "camera_model": "PINHOLE" if lens.is_zero else "OPENCV",
+        **({} if lens.is_zero else dict(zip(("k1", "k2", "p1", "p2"), cfg.distortion, strict=True))),
         "ply_file_path": "points3D.ply",
         "background": list(BACKGROUND),
         "frames": frames,

@@ -91,3 +91,59 @@ def test_train_and_eval_commands_apply_their_flags(tmp_path, capsys):
         == 0
     )
     assert "mean" in capsys.readouterr().out and (tmp_path / "ev" / "eval.json").is_file()
+
+
+def _scene_file(tmp_path):
+    n = 200
+    g = torch.Generator().manual_seed(1)
+    gs = GaussianSet.from_activated(
+        torch.randn(n, 3, generator=g) * 0.4,
+        torch.randn(n, 4, generator=g),
+        torch.full((n, 3), 0.06),
+        torch.full((n,), 0.8),
+        colors=torch.rand(n, 3, generator=g),
+    )
+    write_ply(gs, tmp_path / "s.ply")
+    return tmp_path / "s.ply"
+
+
+def test_render_reads_datasets_like_every_command(tmp_path, capsys):
+    """One reader: Blender-style files (camera_angle_x, no size, extensionless paths), frames numbered
+    over the photos that exist (sorted by name), picked by index or image name; user errors exit 2."""
+    scene = _scene_file(tmp_path)
+    data = tmp_path / "blender"
+    (data / "train").mkdir(parents=True)
+    poses = []
+    for k, z in enumerate((4.0, 5.0, 6.0)):
+        c2w = np.eye(4)
+        c2w[2, 3] = z
+        poses.append(c2w)
+        if k != 1:  # r_1's photo is missing
+            Image.new("RGB", (36, 24)).save(data / "train" / f"r_{k}.png")
+    frames = [{"file_path": f"./train/r_{k}", "transform_matrix": p.tolist()} for k, p in enumerate(poses)]
+    (data / "transforms.json").write_text(json.dumps({"camera_angle_x": 0.8, "frames": frames}))
+    out = tmp_path / "r.png"
+    assert main(["render", str(scene), "--data", str(data), "--frame", "1", "--out", str(out)]) == 0
+    assert "train/r_2.png" in capsys.readouterr().out  # index 1 of the photos that exist
+    assert np.asarray(Image.open(out)).shape == (24, 36, 3)
+    assert main(["render", str(scene), "--data", str(data), "--frame", "r_0.png", "--out", str(out)]) == 0
+    assert "train/r_0.png" in capsys.readouterr().out
+    for argv, message in (
+        (["--frame", "2"], "--frame: 2 is out of range"),
+        (["--frame", "r_9.png"], "no frame named 'r_9.png'"),
+    ):
+        assert main(["render", str(scene), "--data", str(data), *argv, "--out", str(out)]) == 2
+        assert message in capsys.readouterr().err
+    assert main(["render", str(scene), "--data", str(tmp_path / "nope"), "--out", str(out)]) == 2
+    assert "no such file or folder" in capsys.readouterr().err
+
+
+def test_folders_and_photo_folders_get_a_hint(tmp_path, capsys):
+    _scene_file(tmp_path)
+    assert main(["info", str(tmp_path)]) == 2
+    assert "is a folder: pass a scene file (.ply or .safetensors); it holds s.ply" in capsys.readouterr().err
+    photos = tmp_path / "shots"
+    (photos / "images").mkdir(parents=True)
+    Image.new("RGB", (8, 8)).save(photos / "images" / "a.jpg")
+    assert main(["eval-gs", str(photos), str(tmp_path / "s.ply")]) == 2
+    assert "photos without poses need `fmgs sfm`" in capsys.readouterr().err

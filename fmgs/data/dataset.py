@@ -2,9 +2,7 @@
 
 from __future__ import annotations
 
-import json
 import logging
-import math
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -12,14 +10,13 @@ import numpy as np
 import torch
 
 from fmgs.cameras import Camera
-from fmgs.data import HOLDOUT_EVERY
+from fmgs.data import HOLDOUT_EVERY, IMAGE_SUFFIXES
 from fmgs.data.colmap import read_model
+from fmgs.data.transforms import parse_transforms
+from fmgs.data.undistort import CACHE_DIR, fingerprint, undistorted_copy
 from fmgs.errors import ValidationError
 
 log = logging.getLogger(__name__)
-
-# Photo file extensions we read (compared case-insensitively).
-IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
 
 
 @dataclass(frozen=True)
@@ -91,37 +88,48 @@ class PosedDataset:
 
 def load_dataset(path: str | Path, undistort_dir: str | Path | None = None) -> PosedDataset:
     """Read a dataset: a COLMAP model (``sparse/0``, ``sparse`` or the folder, images in ``images/``)
-    or ``transforms.json``. When a folder has both, the COLMAP model wins: it carries sparse points.
+    or a ``transforms.json`` (instant-ngp, nerfstudio, Blender/NeRF-synthetic). When a folder has both,
+    the COLMAP model wins: it carries sparse points.
 
-    A COLMAP model with distorted cameras is undistorted (pycolmap) into ``undistort_dir`` first;
-    an existing undistorted copy there is reused.
+    Cameras with lens distortion (either layout) are undistorted once by pycolmap into
+    ``undistort_dir`` (default: ``fmgs_undistorted/`` beside the dataset) and read from there.
     """
     path = Path(path)
-    if path.is_file() and path.name.endswith(".json"):
-        return read_transforms(path)
+    if not path.exists():
+        raise ValidationError(str(path), "no such file or folder")
+    if path.is_file():
+        if path.suffix == ".json":
+            return read_transforms(path, undistort_dir)
+        raise ValidationError(str(path), "expected a dataset folder or a transforms.json file")
     for sub in ("sparse/0", "sparse", "."):
         if (
             any((path / sub / f"cameras{e}").is_file() for e in (".bin", ".txt"))
             and (path / "images").is_dir()
         ):
-            return read_colmap(path / sub, path / "images", undistort_dir)
+            und = Path(undistort_dir) if undistort_dir is not None else path / CACHE_DIR
+            return read_colmap(path / sub, path / "images", und)
     if (path / "transforms.json").is_file():
-        return read_transforms(path / "transforms.json")
-    raise ValidationError(str(path), "no transforms.json and no COLMAP model (sparse/0, sparse or here)")
+        return read_transforms(path / "transforms.json", undistort_dir)
+    hint = ""
+    if (path / "images").is_dir() or any(p.suffix.lower() in IMAGE_SUFFIXES for p in path.iterdir()):
+        hint = "; photos without poses need `fmgs sfm` (or `fmgs build`, which runs it) first"
+    raise ValidationError(
+        str(path), f"no transforms.json and no COLMAP model (sparse/0, sparse or here){hint}"
+    )
 
 
 def read_colmap(
     model_dir: str | Path, image_dir: str | Path, undistort_dir: str | Path | None = None
 ) -> PosedDataset:
     """A dataset from a COLMAP model; distorted cameras are undistorted into ``undistort_dir`` or refused."""
+    model_dir = Path(model_dir)
     model = read_model(model_dir)
     image_dir = Path(image_dir)
     if undistort_dir is not None and not all(c.is_pinhole for c in model.cameras.values()):
-        und = Path(undistort_dir)
-        if not (und / "sparse" / "cameras.bin").is_file():
-            undistort_colmap(model_dir, image_dir, und)
+        files = [model_dir / f"{k}{e}" for k in ("cameras", "images") for e in (".bin", ".txt")]
+        und = undistorted_copy(model, image_dir, Path(undistort_dir), fingerprint(files, str(image_dir)))
         return read_colmap(und / "sparse", und / "images")
-    frames = []
+    frames, missing = [], []
     for img in model.images.values():
         cam = model.cameras.get(img.camera_id)
         if cam is None:
@@ -130,11 +138,11 @@ def read_colmap(
             raise ValidationError(
                 "cameras",
                 f"camera {cam.id} is {cam.model} with distortion; undistort the model first "
-                "(fmgs.data.undistort.undistort_colmap or `fmgs sfm`)",
+                "(fmgs.data.undistort.undistorted_copy, or load_dataset with an undistort folder)",
             )
         p = image_dir / img.name
         if not p.is_file():
-            log.warning("skipping %s: image file missing", p)
+            missing.append(img.name)
             continue
         frames.append(
             Frame(
@@ -145,95 +153,45 @@ def read_colmap(
                 ),
             )
         )
-    if not frames:
-        raise ValidationError(str(image_dir), "no image of the COLMAP model was found")
+    _report_missing(str(model_dir), missing, len(model.images), image_dir)
     frames.sort(key=lambda f: f.name)
-    return PosedDataset(Path(model_dir), frames, model.points, model.colors)
+    return PosedDataset(model_dir, frames, model.points, model.colors)
 
 
-def undistort_colmap(model_dir: str | Path, image_dir: str | Path, out: str | Path) -> Path:
-    """Undistort a COLMAP model and its images to PINHOLE with pycolmap; writes out/{images, sparse}."""
-    import pycolmap
+def _report_missing(source: str, missing: list[str], total: int, where: Path) -> None:
+    """One warning for all missing images; an error when none is left."""
+    if missing and len(missing) == total:
+        raise ValidationError(
+            source, f"none of its {total} images exists under {where} (first: {missing[0]})"
+        )
+    if missing:
+        log.warning(
+            "%s: %d of %d images are missing under %s and are skipped (first: %s)",
+            source, len(missing), total, where, missing[0],
+        )  # fmt: skip
 
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    pycolmap.undistort_images(out, Path(model_dir), Path(image_dir))
-    if not (out / "sparse" / "cameras.bin").is_file():
-        raise ValidationError(str(out), "undistortion wrote no model")
-    return out
 
-
-def read_transforms(path: str | Path) -> PosedDataset:
-    """A dataset from an instant-ngp / nerfstudio ``transforms.json`` (OpenGL camera-to-world).
-
-    Intrinsics may be global or per frame (fl_x/fl_y/cx/cy/w/h, or camera_angle_x); frames whose
-    image is missing are skipped with a warning. Non-zero distortion coefficients are refused.
-    """
+def read_transforms(path: str | Path, undistort_dir: str | Path | None = None) -> PosedDataset:
+    """A dataset from a ``transforms.json`` (OpenGL camera-to-world): instant-ngp, nerfstudio or
+    Blender/NeRF-synthetic keys, global or per frame (``fmgs.data.transforms``). Frames whose image is
+    missing are skipped (one warning with the count). Distorted cameras are undistorted into
+    ``undistort_dir`` (default ``fmgs_undistorted/`` beside the file) and read from there."""
     path = Path(path)
-    try:
-        meta = json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError) as e:
-        raise ValidationError(str(path), f"cannot read transforms.json ({e})") from e
-    if not isinstance(meta.get("frames"), list):
-        raise ValidationError(str(path), "no 'frames' list")
     root = path.parent
-    frames = []
-    for i, fr in enumerate(meta["frames"]):
-        p = _resolve_image(root, str(fr.get("file_path", "")))
-        if p is None:
-            log.warning("skipping frame %d: image %s missing", i, fr.get("file_path"))
-            continue
-        get = lambda k, fr=fr: fr.get(k, meta.get(k))  # noqa: E731 (per-frame value overrides global)
-        w, h = get("w"), get("h")
-        if w is None or h is None:
-            from PIL import Image
-
-            with Image.open(p) as im:
-                w, h = im.size
-        fx, fy = get("fl_x"), get("fl_y")
-        if fx is None:
-            angle = get("camera_angle_x")
-            if angle is None:
-                raise ValidationError(str(path), f"frame {i}: no focal length (fl_x or camera_angle_x)")
-            fx = 0.5 * w / math.tan(0.5 * float(angle))
-        if fy is None:
-            angle_y = get("camera_angle_y")
-            fy = 0.5 * h / math.tan(0.5 * float(angle_y)) if angle_y is not None else fx
-        cx, cy = get("cx"), get("cy")
-        cx = w / 2 if cx is None else cx
-        cy = h / 2 if cy is None else cy
-        dist = [get(k) or 0.0 for k in ("k1", "k2", "k3", "k4", "p1", "p2")]
-        if any(dist):
-            raise ValidationError(
-                str(path), f"frame {i}: distortion {dist} is not supported; undistort first"
-            )
-        try:
-            c2w = torch.tensor(fr["transform_matrix"], dtype=torch.float64)
-            cam = Camera.from_opengl_c2w(
-                c2w, Camera.intrinsics(fx, fy, cx, cy), int(w), int(h), name=str(p.relative_to(root))
-            )
-        except (KeyError, TypeError, ValueError, RuntimeError) as e:
-            raise ValidationError(str(path), f"frame {i}: bad transform_matrix or intrinsics ({e})") from e
-        frames.append(Frame(str(p.relative_to(root)), p, cam))
-    if not frames:
-        raise ValidationError(str(path), "none of the listed images exist")
-    frames.sort(key=lambda f: f.name)
+    parsed = parse_transforms(path)
+    _report_missing(str(path), parsed.missing, parsed.total, root)
     points = colors = None
-    if meta.get("ply_file_path"):
-        points, colors = _read_point_ply(root / meta["ply_file_path"])
-    return PosedDataset(root, frames, points, colors)
-
-
-def _resolve_image(root: Path, file_path: str) -> Path | None:
-    p = root / file_path
-    if p.is_file():
-        return p
-    for suf in IMAGE_SUFFIXES:  # NeRF-synthetic style paths omit the extension
-        for cased in (suf, suf.upper()):
-            q = p.with_name(p.name + cased)
-            if q.is_file():
-                return q
-    return None
+    if parsed.ply_file:
+        points, colors = _read_point_ply(root / parsed.ply_file)
+    if all(f.lens.is_pinhole for f in parsed.frames):
+        frames = [Frame(f.name, f.image_path, f.camera) for f in parsed.frames]
+        frames.sort(key=lambda f: f.name)
+        return PosedDataset(root, frames, points, colors)
+    und = Path(undistort_dir) if undistort_dir is not None else root / CACHE_DIR
+    names = "\n".join(f.name for f in parsed.frames)
+    copy = undistorted_copy(parsed.colmap_model(), root, und, fingerprint([path], names))
+    ds = read_colmap(copy / "sparse", copy / "images")
+    return PosedDataset(root, ds.frames, points, colors)
 
 
 def _read_point_ply(path: Path) -> tuple[np.ndarray, np.ndarray]:

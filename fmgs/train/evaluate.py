@@ -41,9 +41,13 @@ def evaluate(
     background: tuple[float, float, float] = (0.0, 0.0, 0.0),
     holdout_every: int = HOLDOUT_EVERY,
     backend: str = "auto",
+    progress: bool = False,
 ) -> EvalResult:
-    """Render every held-out frame, compare with its photo; optionally write results into ``out_dir``."""
+    """Render every held-out frame, compare with its photo; optionally write results into ``out_dir``.
+
+    ``progress`` shows a bar over the views (stderr)."""
     from PIL import Image
+    from tqdm.auto import tqdm
 
     _, test = ds.split(holdout_every)
     if not test:
@@ -53,7 +57,7 @@ def evaluate(
     rows = []
     if out_dir is not None:
         (Path(out_dir) / "renders").mkdir(parents=True, exist_ok=True)
-    for i in test:
+    for i in tqdm(test, desc="eval-gs", unit="view", disable=not progress, leave=False):
         img, cam = ds.image(i, scale)
         with torch.no_grad():
             out = render_rgb(gaussians, cam, background=bg, backend=backend).image.clamp(0, 1).cpu()

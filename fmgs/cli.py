@@ -307,11 +307,11 @@ def build_parser() -> argparse.ArgumentParser:
     from fmgs.sfm_config import SfMConfig
     from fmgs.train.config import FieldTrainConfig, GSTrainConfig
 
-    i = sub.add_parser("info", help="validate a scene (.ply or .safetensors) and print a summary")
+    i = sub.add_parser("info", help="validate a scene (.ply, .splat or .safetensors) and print a summary")
     i.add_argument("scene")
     i.set_defaults(func=cmd_info)
     r = sub.add_parser("render", help="render a frame of a transforms.json to PNG")
-    r.add_argument("scene", help="graphdeco .ply or fmgs .safetensors")
+    r.add_argument("scene", help="3DGS .ply (graphdeco or compressed), .splat, or fmgs .safetensors")
     r.add_argument("--transforms", required=True, help="transforms.json with the camera")
     r.add_argument("--frame", type=int, default=0, help="frame index in transforms.json")
     r.add_argument("--scale", type=float, default=1.0, help="resize the image by this factor")
@@ -345,7 +345,7 @@ def build_parser() -> argparse.ArgumentParser:
     t.set_defaults(func=cmd_train_gs)
     e = sub.add_parser("eval-gs", help="PSNR/SSIM on the held-out views (every 8th image)")
     e.add_argument("data")
-    e.add_argument("scene", help="trained .ply or .safetensors")
+    e.add_argument("scene", help="trained .ply, .splat or .safetensors")
     e.add_argument("--out", help="folder for eval.json, eval.md and side-by-side renders")
     e.add_argument("--scale", type=float, default=1.0)
     e.set_defaults(func=cmd_eval_gs)
@@ -358,7 +358,7 @@ def build_parser() -> argparse.ArgumentParser:
     fe.set_defaults(func=cmd_features)
     tf = sub.add_parser("train-field", help="distil a feature cache into the feature field")
     tf.add_argument("data", help="posed dataset folder")
-    tf.add_argument("--gaussians", required=True, help="frozen 3DGS scene (.ply or .safetensors)")
+    tf.add_argument("--gaussians", required=True, help="frozen 3DGS scene (.ply, .splat or .safetensors)")
     tf.add_argument("--features", required=True, help="feature cache folder")
     tf.add_argument("--out", required=True, help="folder for the checkpoint and field_train.json")
     tf.add_argument("--package", help="also write a scene package to this folder (e.g. models/NAME)")

@@ -8,6 +8,10 @@ Vertex properties, all float32, in this order::
 ``scale_*`` are log standard deviations, ``opacity`` is a logit and ``rot_*`` is a wxyz quaternion.
 Files from graphdeco, gsplat and nerfstudio exports use this layout; normals may be absent.
 A file we write and read back is bit-identical, and so is the float32 data of any file we read.
+
+``read_ply`` is the one entry point for 3DGS files: it also reads antimatter15 ``.splat`` files (by
+suffix, ``fmgs.io.splat``) and SuperSplat / PlayCanvas compressed PLY files (by their header,
+``fmgs.io.compressed_ply``).
 """
 
 from __future__ import annotations
@@ -22,6 +26,7 @@ import torch
 from fmgs.errors import ValidationError
 from fmgs.gaussians import GaussianSet, sh_degree_from_bases
 from fmgs.io.atomic import atomic_path
+from fmgs.io.formats import GRAPHDECO_PLY, fail, gaussian_set
 
 _REST = re.compile(r"^f_rest_(\d+)$")
 
@@ -30,28 +35,41 @@ def _column(vertex, name: str, path: Path) -> np.ndarray:
     try:
         return np.asarray(vertex[name], dtype=np.float32)
     except (KeyError, ValueError) as e:
-        raise ValidationError(str(path), f"PLY vertex element lacks property {name!r}") from e
+        raise fail(path, GRAPHDECO_PLY, f"PLY vertex element lacks property {name!r}") from e
 
 
 def read_ply(path: str | os.PathLike) -> GaussianSet:
-    """Load a graphdeco-layout PLY as a float32 GaussianSet (validated: finite, non-zero quats)."""
+    """Load a 3DGS file as a float32 GaussianSet (validated: finite, non-zero quats).
+
+    Reads graphdeco-layout PLY, SuperSplat compressed PLY (told apart by the header) and, by the
+    ``.splat`` suffix, antimatter15 ``.splat``. A file that does not decode raises ValidationError
+    naming the file and the format it was read as.
+    """
     from plyfile import PlyData, PlyParseError  # lazy: plyfile is a core extra
 
     path = Path(path)
+    if path.suffix.lower() == ".splat":
+        from fmgs.io.splat import read_splat
+
+        return read_splat(path)
     if not path.is_file():
         raise ValidationError(str(path), "no such file")
     try:
         ply = PlyData.read(str(path))
     except (PlyParseError, ValueError, EOFError, OSError) as e:
         raise ValidationError(str(path), f"not a readable PLY file ({e})") from e
+    from fmgs.io.compressed_ply import decode_compressed_ply, is_compressed
+
+    if is_compressed(ply):
+        return decode_compressed_ply(ply, path)
     if "vertex" not in ply:
         raise ValidationError(str(path), "PLY has no 'vertex' element")
     v = ply["vertex"]
     names = [p.name for p in v.properties]
     rest = sorted((int(m.group(1)), n) for n in names if (m := _REST.match(n)))
     if [i for i, _ in rest] != list(range(len(rest))) or len(rest) % 3:
-        raise ValidationError(
-            str(path), f"f_rest_* properties must be f_rest_0..f_rest_{{3k-1}}, got {len(rest)}"
+        raise fail(
+            path, GRAPHDECO_PLY, f"f_rest_* properties must be f_rest_0..f_rest_{{3k-1}}, got {len(rest)}"
         )
     k = len(rest) // 3 + 1
     sh_degree_from_bases(k)
@@ -64,16 +82,17 @@ def read_ply(path: str | os.PathLike) -> GaussianSet:
     sh[:, 0, :] = cols("f_dc_0", "f_dc_1", "f_dc_2")
     if k > 1:
         sh[:, 1:, :] = cols(*(name for _, name in rest)).reshape(n, 3, k - 1).transpose(0, 2, 1)
-    try:
-        return GaussianSet(
-            means=torch.from_numpy(cols("x", "y", "z")),
-            quats=torch.from_numpy(cols("rot_0", "rot_1", "rot_2", "rot_3")),
-            log_scales=torch.from_numpy(cols("scale_0", "scale_1", "scale_2")),
-            opacity_logits=torch.from_numpy(_column(v, "opacity", path).copy()),
-            sh=torch.from_numpy(sh),
-        )
-    except ValidationError as e:
-        raise ValidationError(f"{path}: {e.field}", e.reason, e.index) from e
+    log_scales = cols("scale_0", "scale_1", "scale_2")
+    opacity_logits = _column(v, "opacity", path).copy()
+    return gaussian_set(
+        path,
+        GRAPHDECO_PLY,
+        means=cols("x", "y", "z"),
+        quats=cols("rot_0", "rot_1", "rot_2", "rot_3"),
+        log_scales=log_scales,
+        opacity_logits=opacity_logits,
+        sh=sh,
+    )
 
 
 def ply_property_names(sh_degree: int) -> list[str]:

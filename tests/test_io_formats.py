@@ -1,4 +1,4 @@
-"""Other tools' 3DGS files: antimatter15 .splat and SuperSplat compressed PLY.
+"""Other tools' 3DGS files: antimatter15 .splat, SuperSplat compressed PLY, graphdeco PLY with extra columns.
 
 Files are written here by test-side encoders that follow each format's description (not our decoders
 run backwards); decoded values must land within the format's quantisation bounds.
@@ -7,6 +7,7 @@ run backwards); decoded values must land within the format's quantisation bounds
 from __future__ import annotations
 
 import json
+import logging
 import math
 
 import numpy as np
@@ -17,7 +18,7 @@ from plyfile import PlyData, PlyElement
 from fmgs.cli import main
 from fmgs.errors import ValidationError
 from fmgs.gaussians import SH_C0, GaussianSet
-from fmgs.io.ply import read_ply
+from fmgs.io.ply import ply_property_names, read_ply, write_ply
 
 
 def _set(n=40, degree=0, seed=0, colour_range=1.0) -> GaussianSet:
@@ -291,3 +292,66 @@ def test_malformed_compressed_ply_names_file_and_format(tmp_path):
     _write(tmp_path / "float.ply", els)
     with pytest.raises(ValidationError, match=rf"float\.ply: packed_position must be uint32.*{fmt}"):
         read_ply(tmp_path / "float.ply")
+
+
+# --- graphdeco PLY with extra columns ----------------------------------------------------------------
+
+
+def _graphdeco(path, g: GaussianSet, extra: dict[str, np.ndarray]) -> None:
+    write_ply(g, path)
+    v = PlyData.read(str(path))["vertex"].data
+    names = ply_property_names(g.sh_degree)
+    rec = np.empty(len(v), dtype=[(n, "<f4") for n in names] + [(n, "<f4") for n in extra])
+    for n in names:
+        rec[n] = v[n]
+    for n, vals in extra.items():
+        rec[n] = vals
+    PlyData([PlyElement.describe(rec, "vertex")], byte_order="<").write(str(path))
+
+
+def test_unknown_extras_warn_once_naming_them(tmp_path, caplog):
+    g = _set(n=8, degree=1)
+    _graphdeco(tmp_path / "x.ply", g, {"semantic_0": np.zeros(8), "depth_conf": np.ones(8)})
+    with caplog.at_level(logging.WARNING, logger="fmgs.io.ply"):
+        h = read_ply(tmp_path / "x.ply")
+    warnings = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    assert len(warnings) == 1
+    assert "x.ply" in warnings[0] and "semantic_0" in warnings[0] and "depth_conf" in warnings[0]
+    assert all(torch.equal(a, b) for a, b in zip(g.tensors().values(), h.tensors().values(), strict=True))
+    caplog.clear()
+    write_ply(g, tmp_path / "plain.ply")  # normals only: nothing to say
+    with caplog.at_level(logging.WARNING, logger="fmgs.io.ply"):
+        read_ply(tmp_path / "plain.ply")
+    assert not caplog.records
+
+
+def test_mip_splatting_filter_3d_is_folded_in(tmp_path, caplog):
+    g = _set(n=6, degree=0)
+    filt = np.array([0.0, 0.01, 0.1, 1.0, 5.0, 0.0], np.float32)
+    _graphdeco(tmp_path / "mip.ply", g, {"filter_3D": filt})
+    with caplog.at_level(logging.WARNING, logger="fmgs.io.ply"):
+        h = read_ply(tmp_path / "mip.ply")
+    assert not caplog.records  # a known property, applied
+    # Mip-Splatting's get_scaling_with_3D_filter / get_opacity_with_3D_filter, in float64.
+    s2 = g.scales.double() ** 2
+    f2 = torch.from_numpy(filt).double()[:, None] ** 2
+    scales = (s2 + f2).sqrt()
+    op = g.opacities.double() * (s2.prod(1) / (s2 + f2).prod(1)).sqrt()
+    assert torch.allclose(h.scales.double(), scales, rtol=1e-5)
+    assert torch.allclose(h.opacities.double(), op, rtol=1e-4, atol=1e-7)
+    assert (h.opacities[1:5] < g.opacities[1:5]).all()
+    for i in (0, 5):  # filter 0: the row's bits as stored
+        assert torch.equal(h.log_scales[i], g.log_scales[i])
+        assert torch.equal(h.opacity_logits[i], g.opacity_logits[i])
+    assert torch.equal(h.means, g.means) and torch.equal(h.quats, g.quats) and torch.equal(h.sh, g.sh)
+
+
+def test_filter_3d_edge_rows_stay_finite_and_exact(tmp_path):
+    """A filter too small to move a float32 scale leaves the row's bits; a saturated opacity stays finite."""
+    g = _set(n=3, degree=0)
+    g.opacity_logits[:] = torch.tensor([60.0, 60.0, -60.0])
+    _graphdeco(tmp_path / "edge.ply", g, {"filter_3D": np.array([1e-12, 1.0, 1.0], np.float32)})
+    h = read_ply(tmp_path / "edge.ply")
+    assert torch.equal(h.log_scales[0], g.log_scales[0])
+    assert torch.equal(h.opacity_logits[0], g.opacity_logits[0])
+    assert torch.isfinite(h.opacity_logits).all() and (h.log_scales[1:] > g.log_scales[1:]).all()

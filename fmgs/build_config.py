@@ -53,7 +53,7 @@ class BuildConfig:
     work: str | None = None
     """Work folder for intermediate outputs (default: WORK = <models>/.work/<name>)."""
     ply: str | None = None
-    """An existing 3DGS .ply (skip geometry training)."""
+    """An existing 3DGS scene (skip geometry training): .ply (graphdeco or compressed) or .splat."""
     sfm: SfMConfig = dataclasses.field(default_factory=SfMConfig)
     """The poses stage (photos only; a posed dataset skips it)."""
     gs: GSTrainConfig = dataclasses.field(default_factory=GSTrainConfig)

@@ -17,10 +17,14 @@ def _load_scene(path: Path):
 
     if path.is_dir():
         found = sorted(
-            str(p.relative_to(path)) for p in path.glob("**/*") if p.suffix in (".ply", ".safetensors")
+            str(p.relative_to(path))
+            for p in path.glob("**/*")
+            if p.suffix in (".ply", ".splat", ".safetensors")
         )
         hint = f"; it holds {', '.join(found[:3])}" if found else ""
-        raise ValidationError(str(path), f"is a folder: pass a scene file (.ply or .safetensors){hint}")
+        raise ValidationError(
+            str(path), f"is a folder: pass a scene file (.ply, .splat or .safetensors){hint}"
+        )
     return load_gaussians(path) if path.suffix == ".safetensors" else read_ply(path)
 
 
@@ -363,13 +367,13 @@ def build_parser() -> argparse.ArgumentParser:
     from fmgs.sfm_config import SfMConfig
     from fmgs.train.config import FieldTrainConfig, GSTrainConfig
 
-    i = sub.add_parser("info", help="validate a scene (.ply or .safetensors) and print a summary")
+    i = sub.add_parser("info", help="validate a scene (.ply, .splat or .safetensors) and print a summary")
     i.add_argument("scene")
     i.set_defaults(func=cmd_info)
     r = sub.add_parser(
         "render", help="render a camera of a dataset (or of a camera-path transforms.json) to PNG"
     )
-    r.add_argument("scene", help="graphdeco .ply or fmgs .safetensors")
+    r.add_argument("scene", help="3DGS .ply (graphdeco or compressed), .splat, or fmgs .safetensors")
     r.add_argument(
         "--transforms",
         "--data",
@@ -420,7 +424,7 @@ def build_parser() -> argparse.ArgumentParser:
     t.set_defaults(func=cmd_train_gs)
     e = sub.add_parser("eval-gs", help="PSNR/SSIM on the held-out views (every 8th image)")
     e.add_argument("data")
-    e.add_argument("scene", help="trained .ply or .safetensors")
+    e.add_argument("scene", help="trained .ply, .splat or .safetensors")
     e.add_argument("--out", help="folder for eval.json, eval.md and side-by-side renders")
     e.add_argument("--scale", type=float, default=1.0)
     _undistort_flag(e)
@@ -435,7 +439,7 @@ def build_parser() -> argparse.ArgumentParser:
     fe.set_defaults(func=cmd_features)
     tf = sub.add_parser("train-field", help="distil a feature cache into the feature field")
     tf.add_argument("data", help="posed dataset folder")
-    tf.add_argument("--gaussians", required=True, help="frozen 3DGS scene (.ply or .safetensors)")
+    tf.add_argument("--gaussians", required=True, help="frozen 3DGS scene (.ply, .splat or .safetensors)")
     tf.add_argument("--features", required=True, help="feature cache folder")
     tf.add_argument("--out", required=True, help="folder for the checkpoint and field_train.json")
     tf.add_argument("--package", help="also write a scene package to this folder (e.g. models/NAME)")

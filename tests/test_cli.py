@@ -141,7 +141,10 @@ def test_render_reads_datasets_like_every_command(tmp_path, capsys):
 def test_folders_and_photo_folders_get_a_hint(tmp_path, capsys):
     _scene_file(tmp_path)
     assert main(["info", str(tmp_path)]) == 2
-    assert "is a folder: pass a scene file (.ply or .safetensors); it holds s.ply" in capsys.readouterr().err
+    assert (
+        "is a folder: pass a scene file (.ply, .splat or .safetensors); it holds s.ply"
+        in capsys.readouterr().err
+    )
     photos = tmp_path / "shots"
     (photos / "images").mkdir(parents=True)
     Image.new("RGB", (8, 8)).save(photos / "images" / "a.jpg")

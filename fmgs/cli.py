@@ -147,9 +147,13 @@ def cmd_sfm(args: argparse.Namespace) -> int:
     if args.per_image_camera:
         cfg = replace(cfg, single_camera=False)
     r = run_sfm(args.images, args.out, cfg)
+    params = ",".join(f"{v:.6g}" for v in r.camera_params)
+    cams = f"{r.cameras} cameras, first " if r.cameras > 1 else ""
     print(
         f"registered {r.registered}/{r.total} photos, {r.points} points, mean reprojection error "
-        f"{r.mean_reprojection_error:.3f} px, {r.seconds:.0f} s; dataset: {r.dataset_dir}"
+        f"{r.mean_reprojection_error:.3f} px, {r.seconds:.0f} s\n"
+        f"camera: {cams}{r.camera_model} {params} (focal from {r.focal_source})\n"
+        f"dataset: {r.dataset_dir}; COLMAP's log: {Path(args.out) / 'colmap.log'}"
     )
     return 0
 

@@ -128,21 +128,45 @@ def test_sfm_settings_from_fmgs_sfm_and_fmgs_build():
         _args("sfm", "IMGS", "--out", "O", "--camera-model", "OPENCV", "--max-image-size", "800"), SfMConfig
     )
     assert cfg == SfMConfig(camera_model="OPENCV", max_image_size=800)
-    b = cli._build_config(
-        _args("build", "P", "--name", "n", "--sfm-matcher", "sequential", "--device", "cpu")
+    known = ("--camera-model", "PINHOLE", "--camera-params", "400,401.5,240,180", "--refine-principal-point")
+    cfg = cli._settings(
+        _args("sfm", "I", "--out", "O", *known, "--no-refine-focal", "--intrinsics-file", "k.json"), SfMConfig
     )
-    assert b.sfm == SfMConfig(matcher="sequential")
+    assert cfg == SfMConfig(
+        camera_model="PINHOLE",
+        camera_params=(400.0, 401.5, 240.0, 180.0),
+        refine_principal_point=True,
+        refine_focal=False,
+        intrinsics_file="k.json",
+    )
+    b = cli._build_config(
+        _args(
+            "build",
+            "P",
+            "--name",
+            "n",
+            "--sfm-matcher",
+            "sequential",
+            "--device",
+            "cpu",
+            "--no-sfm-refine-extra",
+        )
+    )
+    assert b.sfm == SfMConfig(matcher="sequential", refine_extra=False)
     r = subprocess.run(
         [sys.executable, "-m", "fmgs.cli", "sfm", "IMGS", "--out", "O", "--camera-model", "FOO"],
         capture_output=True,
         text=True,
     )
     assert r.returncode == 2 and "camera_model must be one of" in r.stderr and "'FOO'" in r.stderr
+    assert "'SIMPLE_RADIAL'" in r.stderr and "Traceback" not in r.stderr
 
 
-def test_every_listed_camera_model_is_colmaps():
+def test_every_listed_camera_model_is_colmaps_with_its_parameters():
     import pycolmap
 
-    from fmgs.sfm_config import CAMERA_MODELS
+    from fmgs.sfm_config import CAMERA_PARAMS
 
-    assert all(hasattr(pycolmap.CameraModelId, m) for m in CAMERA_MODELS)
+    for model, params in CAMERA_PARAMS.items():
+        cam = pycolmap.Camera.create_from_model_name(1, model, 1.0, 10, 10)
+        assert cam.params_info.replace(" ", "") == params

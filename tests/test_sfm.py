@@ -1,13 +1,17 @@
-"""SfM helpers: similarity alignment and pose errors (the pycolmap run is in benchmarks/sfm.py)."""
+"""SfM: similarity alignment, pose errors, messages, and known intrinsics on six real photos (accuracy is
+measured by benchmarks/sfm.py)."""
 
 from __future__ import annotations
+
+import json
+import shutil
 
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
 from fmgs.errors import ValidationError
-from fmgs.sfm import align_similarity, pose_errors, run_sfm
+from fmgs.sfm import SfMConfig, align_similarity, pose_errors, read_intrinsics, run_sfm
 
 
 def test_umeyama_recovers_a_similarity():
@@ -49,3 +53,83 @@ def test_pose_errors_are_zero_for_a_similar_copy_and_see_a_perturbation():
 def test_run_sfm_rejects_too_few_photos(tmp_path):
     with pytest.raises(ValidationError, match="at least 3 photos"):
         run_sfm(tmp_path, tmp_path / "out")
+
+
+def test_photo_folder_messages_name_the_fix(tmp_path, capsys):
+    from fmgs import cli
+
+    assert cli.main(["sfm", str(tmp_path / "nope"), "--out", str(tmp_path / "o")]) == 2
+    assert "nope: does not exist" in capsys.readouterr().err
+    (tmp_path / "images").mkdir()
+    for i in range(3):
+        (tmp_path / "images" / f"{i}.jpg").write_bytes(b"")
+    assert cli.main(["sfm", str(tmp_path), "--out", str(tmp_path / "o")]) == 2
+    assert f"photos are in {tmp_path / 'images'}: pass that" in capsys.readouterr().err
+
+
+def test_camera_params_are_checked_against_the_model(tmp_path, capsys):
+    from fmgs import cli
+
+    with pytest.raises(ValueError, match=r"PINHOLE takes 4 values \(fx,fy,cx,cy\), got 3"):
+        SfMConfig(camera_model="PINHOLE", camera_params=(400.0, 300.0, 200.0))
+    argv = ["sfm", str(tmp_path), "--out", str(tmp_path / "o"), "--camera-params", "400,300,200"]
+    assert cli.main(argv) == 2 and "PINHOLE" not in capsys.readouterr().err  # SIMPLE_RADIAL: f,cx,cy,k
+    assert cli.main([*argv, "--camera-model", "PINHOLE"]) == 2
+    assert "PINHOLE takes 4 values" in capsys.readouterr().err
+
+
+def test_intrinsics_file_is_checked(tmp_path):
+    f = tmp_path / "k.json"
+    names = ["a.jpg", "b.jpg"]
+    ok = {"model": "PINHOLE", "width": 40, "height": 30, "params": [50, 50, 20, 15]}
+    f.write_text(json.dumps({"a.jpg": ok}))
+    assert read_intrinsics(f, names) == {"a.jpg": ("PINHOLE", 40, 30, [50.0, 50.0, 20.0, 15.0])}
+    for bad, msg in [
+        ({"c.jpg": ok}, "no such photo"),
+        ({"a.jpg": {**ok, "model": "FOO"}}, "unknown camera model 'FOO'"),
+        ({"a.jpg": {**ok, "params": [1, 2]}}, "PINHOLE takes fx,fy,cx,cy, got 2"),
+        ({"a.jpg": {"model": "PINHOLE"}}, "needs"),
+    ]:
+        f.write_text(json.dumps(bad))
+        with pytest.raises(ValidationError, match=msg):
+            read_intrinsics(f, names)
+
+
+@pytest.fixture(scope="module")
+def six_photos(tmp_path_factory, data_dir):
+    """Six consecutive snowmiku photos (495x371) and the reference PINHOLE intrinsics."""
+    import pycolmap
+
+    src = data_dir / "snowmiku_small"
+    d = tmp_path_factory.mktemp("photos")
+    for n in sorted(p.name for p in (src / "images").iterdir())[:6]:
+        shutil.copy(src / "images" / n, d / n)
+    cam = next(iter(pycolmap.Reconstruction(src / "sparse/0").cameras.values()))
+    return d, [float(v) for v in cam.params]
+
+
+def test_known_intrinsics_are_held_and_colmap_logs_to_a_file(six_photos, tmp_path, capfd):
+    """Shared camera_params: the reconstruction keeps them exactly (refine_known is off); COLMAP's log
+    goes to OUT/colmap.log and the terminal gets the four phase lines only."""
+    photos, known = six_photos
+    res = run_sfm(photos, tmp_path, SfMConfig(camera_model="PINHOLE", camera_params=tuple(known)))
+    assert res.registered == 6 and res.cameras == 1 and res.focal_source == "given"
+    assert res.camera_model == "PINHOLE" and res.camera_params == pytest.approx(known, abs=1e-9)
+    cap = capfd.readouterr()
+    assert cap.out == "" and "sift" not in cap.err.lower()
+    assert "Feature extraction" in (tmp_path / "colmap.log").read_text()
+
+
+def test_per_photo_intrinsics_file(six_photos, tmp_path):
+    """Two photos listed with known OPENCV intrinsics (held), the rest estimated per photo (refined)."""
+    photos, (fx, fy, cx, cy) = six_photos
+    names = sorted(p.name for p in photos.iterdir())
+    k = {"model": "OPENCV", "width": 495, "height": 371, "params": [fx, fy, cx, cy, 0, 0, 0, 0]}
+    (tmp_path / "k.json").write_text(json.dumps({n: k for n in names[:2]}))
+    res = run_sfm(photos, tmp_path / "out", SfMConfig(intrinsics_file=str(tmp_path / "k.json")))
+    assert res.cameras == 6 and res.focal_source == "2 given, 4 default"
+    assert res.camera_model == "OPENCV" and res.camera_params == pytest.approx(k["params"], abs=1e-9)
+    again = run_sfm(
+        photos, tmp_path / "refined", SfMConfig(intrinsics_file=str(tmp_path / "k.json"), refine_known=True)
+    )
+    assert again.camera_params != pytest.approx(k["params"], abs=1e-3)  # refine_known frees them

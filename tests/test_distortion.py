@@ -185,3 +185,39 @@ def test_bad_lens_keys_are_named(tmp_path, edit, message):
     (tmp_path / "transforms.json").write_text(json.dumps(meta))
     with pytest.raises(ValidationError, match=f"transforms.json.*frame 0: {message}"):
         load_dataset(tmp_path)
+
+
+def test_nerfstudio_phone_capture_loads_as_given(tmp_path):
+    """A Polycam/Record3D-style nerfstudio export: per-frame intrinsics (each photo its own), OPENCV with
+    zero coefficients, extra keys (applied_transform, depth_file_path, sharpness) ignored."""
+    from PIL import Image
+
+    (tmp_path / "images").mkdir()
+    frames = []
+    for k in range(3):
+        Image.new("RGB", (64, 48), (40 * k, 20, 10)).save(tmp_path / "images" / f"frame_{k:05d}.jpg")
+        c2w = np.eye(4)
+        c2w[0, 3] = 0.1 * k
+        frames.append(
+            {
+                "file_path": f"images/frame_{k:05d}.jpg",
+                "depth_file_path": f"depth/{k}.png",
+                "transform_matrix": c2w.tolist(),
+                "fl_x": 50.0 + k,
+                "fl_y": 50.5 + k,
+                "cx": 31.0,
+                "cy": 24.5,
+                "w": 64,
+                "h": 48,
+                "sharpness": 12.0,
+            }
+        )
+    meta = {"camera_model": "OPENCV", "k1": 0.0, "k2": 0.0, "p1": 0.0, "p2": 0.0, "frames": frames}
+    meta["applied_transform"] = np.eye(4)[:3].tolist()
+    (tmp_path / "transforms.json").write_text(json.dumps(meta))
+    ds = load_dataset(tmp_path)
+    assert [f.name for f in ds.frames] == [f"images/frame_{k:05d}.jpg" for k in range(3)]
+    assert [f.camera.fx for f in ds.frames] == [50.0, 51.0, 52.0]
+    assert ds.frames[2].camera.fy == 52.5 and ds.frames[0].camera.cx == 31.0
+    assert not (tmp_path / "fmgs_undistorted").exists()  # zero coefficients: nothing to resample
+    torch.testing.assert_close(ds.frames[1].camera.center, torch.tensor([0.1, 0.0, 0.0], dtype=torch.float64))

@@ -41,6 +41,85 @@ def test_colmap_binary_round_trip(snow, tmp_path):
     np.testing.assert_array_equal(b.colors, m.colors)
 
 
+def _assert_same_model(a, b) -> None:
+    """Bit-for-bit: pycolmap keeps the file's quaternions unnormalised, so nothing needs a tolerance."""
+    assert a.cameras.keys() == b.cameras.keys() and a.images.keys() == b.images.keys()
+    for i, c in a.cameras.items():
+        assert (c.id, c.model, c.width, c.height, c.params) == (
+            b.cameras[i].id,
+            b.cameras[i].model,
+            b.cameras[i].width,
+            b.cameras[i].height,
+            b.cameras[i].params,
+        )
+    for i, im in a.images.items():
+        assert (im.id, im.name, im.camera_id) == (b.images[i].id, b.images[i].name, b.images[i].camera_id)
+        np.testing.assert_array_equal(im.qvec, b.images[i].qvec)
+        np.testing.assert_array_equal(im.tvec, b.images[i].tvec)
+    np.testing.assert_array_equal(a.points, b.points)
+    np.testing.assert_array_equal(a.colors, b.colors)
+    assert a.points.dtype == b.points.dtype and a.colors.dtype == b.colors.dtype
+
+
+@pytest.mark.parametrize("form", ["text", "binary"])
+def test_pycolmap_and_fmgs_readers_agree(snow, tmp_path, monkeypatch, form):
+    pytest.importorskip("pycolmap")
+    from fmgs.data import colmap
+
+    path = snow / "sparse/0"
+    if form == "binary":
+        write_binary(read_model(path), tmp_path / "bin")
+        path = tmp_path / "bin"
+    ours = read_model(path, backend="fmgs")
+    assert len(ours.images) == 97 and len(ours.points) == 25_784
+
+    def no_fallback(_: object) -> None:
+        raise AssertionError("pycolmap refused the model and our reader ran instead")
+
+    monkeypatch.setattr(colmap, "_read_text", no_fallback)
+    monkeypatch.setattr(colmap, "_read_binary", no_fallback)
+    _assert_same_model(read_model(path, backend="pycolmap"), ours)
+    _assert_same_model(read_model(path, backend="auto"), ours)
+
+
+def test_points_come_in_point_id_order(tmp_path):
+    """The file's order is not kept (pycolmap cannot keep it); non-finite points are dropped."""
+    (tmp_path / "cameras.txt").write_text("1 PINHOLE 10 10 5 5 5 5\n")
+    (tmp_path / "images.txt").write_text("1 1 0 0 0 0 0 0 1 a.png\n\n")
+    (tmp_path / "points3D.txt").write_text("9 3 3 3 30 30 30 0\n2 1 1 1 10 10 10 0\n5 nan 0 0 1 1 1 0\n")
+    for backend in ("fmgs", "pycolmap"):
+        m = read_model(tmp_path, backend=backend)
+        np.testing.assert_array_equal(m.points, [[1, 1, 1], [3, 3, 3]])
+        np.testing.assert_array_equal(m.colors, [[10, 10, 10], [30, 30, 30]])
+
+
+@pytest.mark.parametrize("backend", ["fmgs", "pycolmap", "auto"])
+def test_bad_models_are_named_by_every_backend(tmp_path, backend):
+    """pycolmap's refusals fall back to our reader, which names the file and the fault."""
+    bad = tmp_path / "m"
+    bad.mkdir()
+    (bad / "images.txt").write_text("1 1 0 0 0 0 0 0 1 a.png\n\n")
+    for cams, fault in [
+        ("1 PINHOLE 10 10 5 5\n", "takes 4 parameters"),
+        ("1 WEIRD 10 10 5 5\n", "unknown model 'WEIRD'"),
+        ("1 PINHOLE 10 0 5 5 5 5\n", "empty size"),
+    ]:
+        (bad / "cameras.txt").write_text(cams)
+        with pytest.raises(ValidationError, match=rf"{bad}: malformed COLMAP txt model .*{fault}"):
+            read_model(bad, backend=backend)
+    (bad / "cameras.txt").write_text("1 PINHOLE 10 10 5 5 5 5\n")
+    (bad / "images.txt").write_text("1 nan 0 0 0 0 0 0 1 a.png\n\n")
+    with pytest.raises(ValidationError, match=r"non-finite or zero pose"):
+        read_model(bad, backend=backend)
+    # An unknown camera id: pycolmap refuses it, ours reads it (read_colmap names it later).
+    (bad / "images.txt").write_text("1 1 0 0 0 0 0 0 7 a.png\n\n")
+    assert read_model(bad, backend=backend).images[1].camera_id == 7
+    with pytest.raises(ValidationError, match="no COLMAP model here"):
+        read_model(tmp_path / "empty", backend=backend)
+    with pytest.raises(ValueError, match="unknown COLMAP reader backend"):
+        read_model(bad, backend="colmap")  # type: ignore[arg-type]
+
+
 def test_colmap_and_transforms_datasets_agree(snow):
     a = read_transforms(snow / "transforms.json")
     c = load_dataset(snow)  # the COLMAP model wins when both exist: it has the sparse points

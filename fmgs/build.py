@@ -13,7 +13,7 @@ from __future__ import annotations
 import json
 import logging
 import time
-from dataclasses import asdict, replace
+from dataclasses import replace
 from pathlib import Path
 
 import torch
@@ -156,13 +156,13 @@ def build_scene(source: str | Path, cfg: BuildConfig, progress: bool = True) -> 
         _stage(2, "geometry", f"given {cfg.ply}")
         ply = Path(cfg.ply)
     else:
-        from fmgs.train.gaussians import train_gaussians
+        from fmgs.train.gaussians import config_record, train_gaussians
 
         gcfg = replace(cfg.gs, device=cfg.device)
         ply = work / "gs" / "point_cloud.ply"
         done = work / "gs" / "train.json"
         record = json.loads(done.read_text()) if ply.is_file() and done.is_file() else {}
-        if record.get("config") == json.loads(json.dumps(asdict(gcfg))):  # same steps and settings
+        if record.get("config") == config_record(gcfg):  # same steps and settings
             _stage(2, "geometry", f"complete ({ply})")
         else:
             _stage(2, "geometry", f"3DGS, {gcfg.steps} steps")

@@ -106,11 +106,16 @@ def _init_only(ds, cfg):
 
 def test_resume_continues_from_the_checkpoint(tiny_scene, tmp_path):
     ds = load_dataset(tiny_scene)
-    a = train_gaussians(ds, tmp_path / "a", GSTrainConfig.reduced(40, checkpoint_every=20), progress=False)
-    # a second call with more steps resumes at step 40 instead of starting again
-    b = train_gaussians(ds, tmp_path / "a", GSTrainConfig.reduced(60), progress=False)
+    before = torch.get_num_threads()
+    cfg = GSTrainConfig.reduced(40, checkpoint_every=20, threads=1)
+    a = train_gaussians(ds, tmp_path / "a", cfg, progress=False)
+    assert json.loads((tmp_path / "a" / "train.json").read_text())["threads"] == 1
+    assert torch.get_num_threads() == before  # the run's thread count does not leak out of it
+    # a second call with more steps (and another thread count: speed only) resumes at step 40
+    b = train_gaussians(ds, tmp_path / "a", GSTrainConfig.reduced(60, threads=2), progress=False)
     meta = json.loads((tmp_path / "a" / "train.json").read_text())
-    assert a.steps == 40 and b.steps == 60 and meta["steps"] == 60
+    assert a.steps == 40 and b.steps == 60 and meta["steps"] == 60 and meta["threads"] == 2
+    assert "threads" not in meta["config"]
     assert b.history[: len(a.history)] == a.history  # the first run's refinements carried over
 
 

@@ -108,6 +108,11 @@ class GSTrainConfig:
     """Seeds initialisation, view order and splitting."""
     device: str = "cpu"
     """Torch device for parameters and images."""
+    threads: int = 0
+    """CPU threads for torch and numba during the run; 0: auto, the cores idle when it starts (cores
+    minus the whole part of the load average, at least 1). torch's and numba's own default, every core,
+    oversubscribes a busy machine: train-gs made 0.26 steps/s with 2 threads on a 2-core EPYC under a
+    load of 6-8 against 2.6 with 1; idle, 2 threads won (benchmarks/THREADS.md)."""
 
     @classmethod
     def reduced(cls, steps: int, **kw) -> GSTrainConfig:
@@ -146,6 +151,11 @@ class FieldTrainConfig:
     """Seeds initialisation and view order."""
     device: str = "cpu"
     """Torch device."""
+    threads: int = 0
+    """CPU threads for torch and numba during the run; 0: auto, the cores idle when it starts (cores
+    minus the whole part of the load average, at least 1). torch's and numba's own default, every core,
+    oversubscribes a busy machine: train-gs made 0.26 steps/s with 2 threads on a 2-core EPYC under a
+    load of 6-8 against 2.6 with 1; idle, 2 threads won (benchmarks/THREADS.md)."""
     holdout_every: int = HOLDOUT_EVERY
     """Every n-th frame is held out (as in the geometry stage); 0 or 1 trains on all."""
     field: FieldConfig = dataclasses.field(default_factory=FieldConfig)

@@ -32,6 +32,7 @@ from fmgs.render.types import RasterConfig
 from fmgs.render.weights import ViewWeights, view_weights
 from fmgs.sparse import SparseMatrix
 from fmgs.train.config import FieldTrainConfig
+from fmgs.train.threads import thread_count
 from fmgs.vecmath import safe_normalize
 
 CHECKPOINT_FORMAT = "fmgs.field_checkpoint"
@@ -148,9 +149,23 @@ def train_field(
 ) -> FieldTrainResult:
     """Train the field on the dataset's training frames with targets from ``cache`` (a FeatureCache).
 
-    Writes ``out_dir/field_checkpoint.safetensors`` (resumable) and ``out_dir/field_train.json``.
+    Writes ``out_dir/field_checkpoint.safetensors`` (resumable) and ``out_dir/field_train.json``. Runs
+    with ``cfg.threads`` CPU threads (torch and numba); field_train.json records the count in effect.
     """
-    out_dir = Path(out_dir)
+    with thread_count(cfg.threads) as threads:
+        return _train(gaussians, ds, cache, Path(out_dir), cfg, progress, resume, threads)
+
+
+def _train(
+    gaussians: GaussianSet,
+    ds: PosedDataset,
+    cache,
+    out_dir: Path,
+    cfg: FieldTrainConfig,
+    progress: bool,
+    resume: bool,
+    threads: int,
+) -> FieldTrainResult:
     out_dir.mkdir(parents=True, exist_ok=True)
     dev = torch.device(cfg.device)
     train, _ = ds.split(cfg.holdout_every)
@@ -236,6 +251,7 @@ def train_field(
                     "selected": len(selection.index),
                     "total": selection.total,
                     "final_loss": losses[-1] if losses else None,
+                    "threads": threads,
                     # What ran: the field's dims come from the cache, its finest level from the scene
                     # when adaptive (the requested defaults, 512/384, were recorded before).
                     "config": _jsonable(replace(cfg, field=fcfg)),
@@ -247,7 +263,10 @@ def train_field(
 
 
 def _jsonable(cfg: FieldTrainConfig) -> dict:
-    return json.loads(json.dumps(cfg.to_dict()))
+    """What decides the result: every setting but ``threads`` (speed only; a resume may change it)."""
+    d = json.loads(json.dumps(cfg.to_dict()))
+    del d["threads"]
+    return d
 
 
 def _save(path, model, opt, step, losses, gen, selection, cfg) -> None:

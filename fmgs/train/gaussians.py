@@ -26,6 +26,7 @@ from fmgs.render import RasterConfig, rasterize
 from fmgs.sh import sh_to_rgb
 from fmgs.train.config import GSTrainConfig
 from fmgs.train.strategy import DensifyState, accumulate, refine, reset_opacity
+from fmgs.train.threads import thread_count
 
 log = logging.getLogger(__name__)
 PARAM_NAMES = ("means", "quats", "log_scales", "opacity_logits", "sh_dc", "sh_rest")
@@ -121,8 +122,16 @@ def train_gaussians(
     progress: bool = True,
     resume: bool = True,
 ) -> TrainResult:
-    """Train 3DGS on the dataset's training frames; writes ``out_dir/point_cloud.ply`` and a checkpoint."""
-    out_dir = Path(out_dir)
+    """Train 3DGS on the dataset's training frames; writes ``out_dir/point_cloud.ply`` and a checkpoint.
+
+    Runs with ``cfg.threads`` CPU threads (torch and numba); train.json records the count in effect."""
+    with thread_count(cfg.threads) as threads:
+        return _train(ds, Path(out_dir), cfg, progress, resume, threads)
+
+
+def _train(
+    ds: PosedDataset, out_dir: Path, cfg: GSTrainConfig, progress: bool, resume: bool, threads: int
+) -> TrainResult:
     out_dir.mkdir(parents=True, exist_ok=True)
     dev = torch.device(cfg.device)
     g = torch.Generator().manual_seed(cfg.seed)
@@ -222,9 +231,10 @@ def train_gaussians(
                     "seconds": secs,
                     "final_loss": loss_val,
                     "backend": backend,
+                    "threads": threads,
                     "gaussians": gs.num,
                     "extent": extent,
-                    "config": _jsonable(cfg),
+                    "config": config_record(cfg),
                     "densify_history": state.history,
                 },
                 indent=1,
@@ -250,9 +260,11 @@ def dataset_background(ds: PosedDataset) -> tuple[float, float, float]:
     return (0.0, 0.0, 0.0)
 
 
-def _jsonable(cfg: GSTrainConfig) -> dict:
-    d = asdict(cfg)
-    d["densify"] = asdict(cfg.densify)
+def config_record(cfg: GSTrainConfig) -> dict:
+    """The settings that decide what a run trains, as JSON values: all but ``threads`` (speed only), so
+    a finished run or checkpoint is reused whatever thread count it ran with."""
+    d = json.loads(json.dumps(asdict(cfg)))
+    del d["threads"]
     return d
 
 
@@ -278,7 +290,7 @@ def save_checkpoint(path: Path, params, opt, state: DensifyState, step: int, cfg
         "adam_steps": json.dumps(steps),
         "resets": str(state.resets),
         "history": json.dumps(state.history),
-        "config": json.dumps(_jsonable(cfg)),
+        "config": json.dumps(config_record(cfg)),
     }
     with atomic_path(path) as tmp:
         save_file(t, str(tmp), metadata=meta)

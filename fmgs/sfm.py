@@ -12,19 +12,16 @@ from __future__ import annotations
 
 import json
 import logging
-import os
 import shutil
-import sys
 import time
 from collections import Counter
-from collections.abc import Iterator
-from contextlib import contextmanager
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
 from fmgs.data.dataset import IMAGE_SUFFIXES
 from fmgs.errors import FmgsError, ValidationError
 from fmgs.io.atomic import atomic_path
+from fmgs.io.capture import output_to
 from fmgs.sfm_config import CAMERA_PARAMS, SfMConfig
 
 log = logging.getLogger(__name__)
@@ -103,28 +100,6 @@ def read_intrinsics(path: str | Path, names: list[str]) -> dict[str, tuple[str, 
     return out
 
 
-@contextmanager
-def _output_to(path: Path) -> Iterator[None]:
-    """Send what COLMAP writes to the process's stdout and stderr (its glog lines, ~170 a run) to ``path``."""
-    sys.stdout.flush()
-    sys.stderr.flush()
-    try:
-        saved = os.dup(1), os.dup(2)
-    except OSError:  # no standard streams (a daemon): nothing to keep clean
-        yield
-        return
-    try:
-        with open(path, "ab") as f:
-            os.dup2(f.fileno(), 1)
-            os.dup2(f.fileno(), 2)
-            yield
-    finally:
-        os.dup2(saved[0], 1)
-        os.dup2(saved[1], 2)
-        os.close(saved[0])
-        os.close(saved[1])
-
-
 def _cameras_after_extraction(
     db_path: Path, known: dict[str, tuple[str, int, int, list[float]]], shared_given: bool
 ) -> tuple[int, dict[int, str]]:
@@ -193,7 +168,7 @@ def run_sfm(images: str | Path, out: str | Path, cfg: SfMConfig = SfMConfig()) -
     else:
         mode = pycolmap.CameraMode.SINGLE if cfg.single_camera else pycolmap.CameraMode.AUTO
     t = time.perf_counter()
-    with _output_to(colmap_log):
+    with output_to(colmap_log):
         pycolmap.extract_features(
             db,
             images,
@@ -221,7 +196,7 @@ def run_sfm(images: str | Path, out: str | Path, cfg: SfMConfig = SfMConfig()) -
     if matcher == "auto":
         matcher = "exhaustive" if len(names) <= cfg.exhaustive_max else "sequential"
     t = time.perf_counter()
-    with _output_to(colmap_log):
+    with output_to(colmap_log):
         if matcher == "exhaustive":
             pycolmap.match_exhaustive(db, device=pycolmap.Device.cpu)
         elif matcher == "sequential":
@@ -249,7 +224,7 @@ def run_sfm(images: str | Path, out: str | Path, cfg: SfMConfig = SfMConfig()) -
     if not cfg.refine_known:  # known intrinsics stay exactly as given, whatever the refine_* settings
         opts.constant_cameras = {i for i, src in sources.items() if src == "given"}
     t = time.perf_counter()
-    with _output_to(colmap_log):
+    with output_to(colmap_log):
         maps = pycolmap.incremental_mapping(db, images, sparse, options=opts)
     if not maps:
         raise FmgsError(
@@ -275,7 +250,7 @@ def run_sfm(images: str | Path, out: str | Path, cfg: SfMConfig = SfMConfig()) -
     und = out / "undistorted"
     shutil.rmtree(und, ignore_errors=True)
     t = time.perf_counter()
-    with _output_to(colmap_log):
+    with output_to(colmap_log):
         pycolmap.undistort_images(und, sparse / str(best_id), images)
     log.info("undistortion: %d photos to PINHOLE (%.1f s)", registered, time.perf_counter() - t)
     reg = sorted((best.images[i] for i in best.reg_image_ids()), key=lambda im: im.name)

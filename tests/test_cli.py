@@ -15,15 +15,7 @@ from fmgs.io.ply import write_ply
 
 def test_info_and_render(tmp_path, capsys):
     n = 300
-    g = torch.Generator().manual_seed(0)
-    gs = GaussianSet.from_activated(
-        torch.randn(n, 3, generator=g) * 0.5,
-        torch.randn(n, 4, generator=g),
-        torch.full((n, 3), 0.05),
-        torch.full((n,), 0.8),
-        colors=torch.rand(n, 3, generator=g),
-    )
-    write_ply(gs, tmp_path / "s.ply")
+    _scene_file(tmp_path, n, seed=0, spread=0.5, scale=0.05)
     assert main(["info", str(tmp_path / "s.ply")]) == 0
     info = json.loads(capsys.readouterr().out)
     assert info["gaussians"] == n and info["sh_degree"] == 0
@@ -93,13 +85,13 @@ def test_train_and_eval_commands_apply_their_flags(tmp_path, capsys):
     assert "mean" in capsys.readouterr().out and (tmp_path / "ev" / "eval.json").is_file()
 
 
-def _scene_file(tmp_path):
-    n = 200
-    g = torch.Generator().manual_seed(1)
+def _scene_file(tmp_path, n: int = 200, seed: int = 1, spread: float = 0.4, scale: float = 0.06):
+    """A random degree-0 scene written as tmp_path/s.ply; returns the path."""
+    g = torch.Generator().manual_seed(seed)
     gs = GaussianSet.from_activated(
-        torch.randn(n, 3, generator=g) * 0.4,
+        torch.randn(n, 3, generator=g) * spread,
         torch.randn(n, 4, generator=g),
-        torch.full((n, 3), 0.06),
+        torch.full((n, 3), scale),
         torch.full((n,), 0.8),
         colors=torch.rand(n, 3, generator=g),
     )

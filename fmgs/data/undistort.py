@@ -18,6 +18,7 @@ from pathlib import Path
 
 from fmgs.data.colmap import ColmapModel, write_binary
 from fmgs.errors import ValidationError
+from fmgs.io.capture import output_to
 
 log = logging.getLogger(__name__)
 
@@ -55,7 +56,9 @@ def undistorted_copy(model: ColmapModel, image_dir: Path, out: Path, source_fing
         write_binary(model, tmp / "distorted")
         n = len(model.images)
         log.info("undistorting %d images into %s (once; reused while the dataset is unchanged)", n, out)
-        pycolmap.undistort_images(tmp, tmp / "distorted", image_dir)
+        tmp.mkdir(parents=True, exist_ok=True)
+        with output_to(tmp / "colmap.log"):  # pycolmap's own log lines stay off the terminal
+            pycolmap.undistort_images(tmp, tmp / "distorted", image_dir)
         if not (tmp / "sparse" / "cameras.bin").is_file():
             raise ValidationError(str(out), "pycolmap's undistortion wrote no model")
         shutil.rmtree(tmp / "distorted")

@@ -152,10 +152,7 @@ class FieldTrainConfig:
     device: str = "cpu"
     """Torch device."""
     threads: int = 0
-    """CPU threads for torch and numba during the run; 0: auto, the cores idle when it starts (cores
-    minus the whole part of the load average, at least 1). torch's and numba's own default, every core,
-    oversubscribes a busy machine: train-gs made 0.26 steps/s with 2 threads on a 2-core EPYC under a
-    load of 6-8 against 2.6 with 1; idle, 2 threads won (benchmarks/THREADS.md)."""
+    """CPU threads for torch and numba during the run; 0: auto, as GSTrainConfig.threads."""
     holdout_every: int = HOLDOUT_EVERY
     """Every n-th frame is held out (as in the geometry stage); 0 or 1 trains on all."""
     field: FieldConfig = dataclasses.field(default_factory=FieldConfig)

@@ -156,6 +156,7 @@ def assemble_text_answers(
                 **extra,
                 instances=instances,
                 elapsed_ms=float(st.first.elapsed_ms),
+                rescored=int(st.first.rescored),
             )
         )
     return answers

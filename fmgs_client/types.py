@@ -172,6 +172,9 @@ class TextAnswer:
     """Object instances, best first (when asked for)."""
     elapsed_ms: float = 0.0
     """Server-side time spent on this text, milliseconds."""
+    rescored: int = 0
+    """Gaussians the server scored exactly to certify that this is the exact top-k (0 from servers that
+    do not report it)."""
 
     def __len__(self) -> int:
         return len(self.index)

@@ -48,10 +48,15 @@ def point_bytes(points: int, texts: int, chunk: int) -> int:
     return BASE_BYTES + min(points, chunk) * POINT_BYTES_IN_FLIGHT + points * 64 + texts * points * 48
 
 
-def text_bytes(top_k: int, texts: int, columns: int) -> int:
-    """Estimated peak working memory of a text query: per answer row the index, scores and asked columns
-    (about 4 bytes each), answers held for every text, and their message copies."""
-    return BASE_BYTES + 2 * texts * top_k * (16 + 4 * columns)
+def text_bytes(top_k: int, texts: int, columns: int, embedded: int = 0, dim: int = 0) -> int:
+    """Estimated peak working memory of a text query: an upper bound per embedded Gaussian and text
+    (float32) plus a rescoring pass (fmgs.query.index.RESCORE_CHUNK rows, float32 and float64); per
+    answer row the index, scores and asked columns (about 4 bytes each), answers held for every text,
+    and their message copies."""
+    from fmgs.query.index import RESCORE_CHUNK
+
+    scan = embedded * (4 * texts + 9) + RESCORE_CHUNK * dim * 12
+    return BASE_BYTES + scan + 2 * texts * top_k * (16 + 4 * columns)
 
 
 def segment_bytes(width: int, height: int, classes: int, gaussians: int) -> int:

@@ -73,6 +73,7 @@ def text_chunks(
         chunk = pb.TextQueryChunk(text_index=i, start=s)
         if n == 0:
             chunk.text, chunk.total, chunk.elapsed_ms = text, len(idx), ms
+            chunk.rescored = a.rescored
             chunk.instances.extend(convert.instance(j, x) for j, x in enumerate(a.instances))
         for name, c in cols.items():
             getattr(chunk, name).CopyFrom(to_tensor(c[s:e]))

@@ -88,7 +88,9 @@ class FmgsService(pb_grpc.FmgsServicer):
         fields = set(request.fields)
         inst_cfg = convert.instance_config(request.instances) if request.instances.enabled else None
         engine = self.repo.get(request.scene)
-        need = budget.text_bytes(min(k, engine.num_embedded), len(values), 3 * len(fields))
+        need = budget.text_bytes(
+            min(k, engine.num_embedded), len(values), 3 * len(fields), engine.num_embedded, engine.dim
+        )
         with self.budget.reserve(need, context, "this text query"):
             yield from self._text_query(request, context, engine, values, k, thr, fields, inst_cfg)
 
@@ -104,12 +106,12 @@ class FmgsService(pb_grpc.FmgsServicer):
             else:
                 q = self.encoders.embed(engine.encoder_id, values)
             canon = self._canonical(engine, request.canonical_phrases)
-            answers = []
-            for i, text in enumerate(values):
-                stop_if_gone(context, f"text {i} of {len(values)}")
-                t0 = time.perf_counter()
-                a = engine.text_query(q[i], k, thr, canon, inst_cfg)
-                answers.append((i, text, a, (time.perf_counter() - t0) * 1e3))
+            n = len(values)
+            t0 = time.perf_counter()
+            between = lambda i: stop_if_gone(context, f"text {i} of {n}")  # noqa: E731
+            many = engine.text_query_many(q, k, thr, canon, inst_cfg, between)  # one pass for all texts
+            ms = (time.perf_counter() - t0) * 1e3 / max(1, len(values))
+            answers = [(i, text, a, ms) for i, (text, a) in enumerate(zip(values, many, strict=True))]
         for i, text, a, ms in answers:
             yield from responses.text_chunks(engine, i, text, a, fields, ms, cfg.chunk_bytes)
 

@@ -43,23 +43,13 @@ def test_compact_index_against_exact_ranking(rerank):
     cfg = IndexConfig(rank=12, exact_below=0, rerank=rerank)
     idx = EmbeddingIndex.build(emb, canon, cfg)
     assert not idx.exact and idx.coeffs.shape == (M, 12)
-    hits, worst = 0, 0.0
     for _ in range(20):
         q = safe_normalize(torch.randn(64, generator=g) @ torch.eye(64))
         q = safe_normalize(q[None] @ basis.T @ basis + 0.05 * q[None])[0]
         fast, ref = idx.rank(q, 50), rank_reference(emb, canon, q, 50)
-        hits += int(torch.equal(fast.rows, ref.rows))
-        common = np.intersect1d(fast.rows.numpy(), ref.rows.numpy())
-        worst = max(worst, 1 - len(common) / 50)
-        if rerank:  # re-ranked scores are exact
-            pos = {int(v): i for i, v in enumerate(ref.rows)}
-            for i, row in enumerate(fast.rows.tolist()):
-                if row in pos:
-                    assert abs(float(fast.similarity[i]) - float(ref.similarity[pos[row]])) < 1e-5
-    if rerank:
-        assert hits == 20
-    else:
-        assert worst < 0.2  # compact scores alone: most of the top 50 agree
+        assert torch.equal(fast.rows, ref.rows)  # certified: exact whatever the initial candidates
+        assert torch.equal(fast.similarity, ref.similarity)
+        assert 50 <= fast.rescored < M
 
 
 def test_exact_index_equals_reference_and_threshold(tmp_path):
@@ -215,8 +205,8 @@ def test_query_state_bytes_per_gaussian():
     emb = safe_normalize(torch.randn(M, 512, generator=g)).half()
     canon = torch.randn(M, 4, generator=g)
     idx = EmbeddingIndex.build(emb, canon, IndexConfig(rank=32, exact_below=0))
-    per = (idx.nbytes() - idx.basis.numel() * 4 - idx.scales.numel() * 4) / M + 8  # + int64 scene index
-    assert per <= 160, per
+    per = (idx.nbytes() - idx.basis.numel() * 8 - idx.scales.numel() * 4) / M + 8  # + int64 scene index
+    assert per <= 32 + 12 + 8, per  # codes, two bound norms and the canonical maximum, scene index
 
 
 def test_engine_config_rejects_nonsense():
@@ -241,7 +231,7 @@ def test_int8_kernel_matches_reference():
     shift = torch.randn(3000, generator=g)
     assert (idx.dots(v, shift) - (ref - shift[:, None])).abs().max() < 1e-5
     # Quantisation error against the unquantised rank-24 projection stays at the int8 step size.
-    proj = (emb @ idx.basis.T) @ (v @ idx.basis.T).T
+    proj = ((emb.double() @ idx.basis.T) @ (v.double() @ idx.basis.T).T).float()
     assert (ref - proj).abs().max() < 24 * float(idx.scales.max()) / 2
 
 

@@ -23,9 +23,10 @@ from benchmarks.workprec.text import field_scene, no_rerank
 
 
 def tiled(index, n: int, emb16: torch.Tensor):
-    """A compact state of n rows: ``index``'s int8 coefficients and canonical dots tiled, re-ranking from
+    """A compact state of n rows: ``index``'s codes, bound norms and canonical dots tiled, rescoring from
     ``emb16`` rows modulo its size (latency and memory only: the scores repeat)."""
     from fmgs.query.index import EmbeddingIndex
+    from fmgs.query.state import QueryState
 
     t = math.ceil(n / index.num)
     m = len(emb16)
@@ -33,9 +34,12 @@ def tiled(index, n: int, emb16: torch.Tensor):
     def read_rows(rows: np.ndarray) -> torch.Tensor:
         return emb16[torch.from_numpy(rows % m)].float()
 
-    coeffs = index.coeffs.repeat(t, 1)[:n].contiguous()
-    canon = index.canonical.repeat(t, 1)[:n].contiguous()
-    return EmbeddingIndex(coeffs, index.basis, canon, read_rows, index.cfg, index.scales)
+    st = index.state
+    rep = lambda x: x.repeat(t, *([1] * (x.ndim - 1)))[:n].contiguous()  # noqa: E731
+    state = QueryState(
+        st.basis, st.scales, rep(st.codes), rep(st.err_norm), rep(st.res_norm), st.code_norm_max
+    )
+    return EmbeddingIndex(None, rep(index.canonical), index.cfg, state, read_rows)
 
 
 def query_fn(index, threads: int, queries: torch.Tensor) -> Callable[[int], Any]:

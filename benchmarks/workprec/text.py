@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import asdict, replace
+from dataclasses import asdict
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -101,12 +101,30 @@ def most_opaque(opacities: torch.Tensor, fraction: float) -> torch.Tensor:
     return torch.topk(opacities, n).indices
 
 
-def no_rerank(index):
-    """The same compact state, returning compact scores (no exact re-rank)."""
-    from fmgs.query.index import EmbeddingIndex
+class CompactOnly:
+    """The compact state's scores alone, ranked without exact rescoring (not certified): what the
+    approximation gives by itself."""
 
-    cfg = replace(index.cfg, rerank=0)
-    return EmbeddingIndex(index.coeffs, index.basis, index.canonical, index.read_rows, cfg, index.scales)
+    def __init__(self, index) -> None:
+        self.index = index
+
+    def rank(self, q: torch.Tensor, k: int):
+        from fmgs.query.certify import order_rows
+        from fmgs.query.index import Ranked, served_relevancy
+
+        ix = self.index
+        m = ix.dots(q[None], ix.canonical_max)[:, 0]
+        top = torch.topk(m, min(k, len(m)), sorted=False).indices
+        rows = top[order_rows(m[top], top)]
+        return Ranked(rows, served_relevancy(m[rows]), m[rows] + ix.canonical_max[rows])
+
+    def nbytes(self) -> int:
+        return self.index.nbytes()
+
+
+def no_rerank(index) -> CompactOnly:
+    """The same compact state, returning compact scores (no exact rescoring)."""
+    return CompactOnly(index)
 
 
 class EngineRanker:

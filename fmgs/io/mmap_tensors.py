@@ -13,7 +13,14 @@ import numpy as np
 
 from fmgs.errors import ValidationError
 
-_DTYPES = {"F16": np.float16, "F32": np.float32, "F64": np.float64, "I32": np.int32, "I64": np.int64}
+_DTYPES = {
+    "I8": np.int8,
+    "F16": np.float16,
+    "F32": np.float32,
+    "F64": np.float64,
+    "I32": np.int32,
+    "I64": np.int64,
+}
 
 
 def mmap_tensor(path: str | Path, key: str) -> np.ndarray:
@@ -44,3 +51,13 @@ def mmap_tensor(path: str | Path, key: str) -> np.ndarray:
     if offset + (stop - start) > path.stat().st_size:
         raise ValidationError(str(path), f"tensor {key!r}: file is truncated")
     return np.memmap(path, dtype=np.dtype(dt).newbyteorder("<"), mode="r", offset=offset, shape=shape)
+
+
+def mmap_torch(path: str | Path, key: str):
+    """A torch tensor over a copy-on-write map of tensor ``key`` (writable for torch, never written back)."""
+    import torch
+
+    a = mmap_tensor(path, key)
+    if isinstance(a, np.memmap):
+        a = np.memmap(a.filename, dtype=a.dtype, mode="c", offset=a.offset, shape=a.shape)
+    return torch.from_numpy(a)

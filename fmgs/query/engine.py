@@ -9,6 +9,7 @@ from __future__ import annotations
 import threading
 import time
 from collections import OrderedDict
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from typing import NamedTuple
 
@@ -52,6 +53,8 @@ class TextAnswer(NamedTuple):
     """Object instances among the K Gaussians, best first (empty unless asked)."""
     instance_ids: np.ndarray | None
     """[K] int32 instance of each Gaussian (-1 none), or None unless instances were asked for."""
+    rescored: int = 0
+    """Gaussians scored exactly to certify the ranking (fmgs.query.certify)."""
 
 
 class SceneEngine:
@@ -79,7 +82,9 @@ class SceneEngine:
         self.geometry = (sub.means, sub.quats, sub.scales.float(), sub.opacities.float())
         """Activated geometry of the embedded Gaussians (relevancy renders)."""
         icfg = cfg.index if cfg.device == "cpu" else replace(cfg.index, device=cfg.device)
-        self.index = EmbeddingIndex.build(package.embeddings, package.canonical, icfg)
+        self.index = EmbeddingIndex.build(
+            package.embeddings, package.canonical, icfg, state=package.query_state
+        )
         means = g.means.detach().cpu().double().numpy()
         self.bounds = np.concatenate([means.min(0), means.max(0)]) if len(means) else np.zeros(6, np.float64)
         """[6] min xyz, max xyz of all means."""
@@ -127,18 +132,34 @@ class SceneEngine:
         instances: InstanceConfig | None = None,
     ) -> TextAnswer:
         """Rank the embedded Gaussians for query [D]; canonical [C,D] replaces the scene's phrases."""
-        q = self.unit(query[None])[0]
+        return self.text_query_many(query[None], top_k, threshold, canonical, instances)[0]
+
+    @torch.no_grad()
+    def text_query_many(
+        self,
+        queries: torch.Tensor,
+        top_k: int,
+        threshold: float = 0.0,
+        canonical: torch.Tensor | None = None,
+        instances: InstanceConfig | None = None,
+        between: Callable[[int], None] | None = None,
+    ) -> list[TextAnswer]:
+        """``text_query`` for queries [n,D], scored in one pass over the query state; ``between(j)`` runs
+        before text j is ranked (a deadline check may raise there)."""
+        q = self.unit(queries)
         c = None if canonical is None else self.unit(canonical, "canonical embeddings")
-        r = self.index.rank(q, top_k, threshold, c)
-        idx = self.selected[r.rows]
-        inst, ids = [], None
-        if instances is not None:
-            g = self.gaussians
-            means = g.means[idx].detach().cpu().double().numpy()
-            opac = g.opacities[idx].detach().cpu().double().numpy()
-            eps = instances.eps or self._eps_for(instances)
-            inst, ids = group_instances(means, r.relevancy.numpy(), opac, instances, eps)
-        return TextAnswer(idx, r.relevancy, r.similarity, inst, ids)
+        out = []
+        for r in self.index.rank_many(q, top_k, threshold, c, between):
+            idx = self.selected[r.rows]
+            inst, ids = [], None
+            if instances is not None:
+                g = self.gaussians
+                means = g.means[idx].detach().cpu().double().numpy()
+                opac = g.opacities[idx].detach().cpu().double().numpy()
+                eps = instances.eps or self._eps_for(instances)
+                inst, ids = group_instances(means, r.relevancy.numpy(), opac, instances, eps)
+            out.append(TextAnswer(idx, r.relevancy, r.similarity, inst, ids, r.rescored))
+        return out
 
     def gaussian_columns(self, index: torch.Tensor, names) -> dict[str, np.ndarray]:
         """Attributes of the Gaussians at scene indices [K], float32, for each name asked (a subset of

@@ -1,16 +1,17 @@
-"""The per-Gaussian query state of a scene: compact scores for every embedded Gaussian, exact re-ranking.
+"""The per-Gaussian query state of a scene and certified exact ranking.
 
-Exact path (small scenes, or ``rank=0``): the stored embeddings [M,D] as float32; a query is one
-matrix-vector product. Compact path (large scenes): a rank-r basis B [r,D] of the scene's embeddings
-(top eigenvectors of E^T E) and coefficients E B^T [M,r] quantised to int8 with one scale per basis
-vector, so a query reads r bytes per Gaussian (a numba kernel); the best ``rerank * k`` candidates are
-then rescored exactly from the full embeddings, memory-mapped from the package, so the returned scores
-are exact and the ranking is exact whenever the true top-k lie among the candidates (measured in
-benchmarks/server.py).
+Gaussians are ranked by the served margin m_i = f_i.q - max_n f_i.c_n (ties by row), computed in
+float64 from the stored embeddings; relevancy = sigmoid(t m_i) orders them the same way but saturates.
+Every answer is the exact top K of that ranking, whatever the query (fmgs.query.certify): a cheap pass
+gives each row an upper bound on its margin, and rows are rescored exactly until no unscored row can
+reach the K-th margin. ``Ranked.rescored`` says how many were.
 
-Scores: relevancy = min_n sigmoid(t (f.q - f.c_n)) = sigmoid(t (f.q - max_n f.c_n)); Gaussians are ranked
-by the exact margin f.q - max_n f.c_n (ties by index), which orders them as relevancy does but never
-saturates.
+Exact path (small scenes, ``rank=0``, CUDA): the embeddings [M,D] as float32; the pass is one matrix
+product, bounded by float32 rounding (about D 2^-24), so only near-ties are rescored.
+Compact path (large scenes, CPU): the package's query state (fmgs.query.state: rank-r int8 codes and two
+error norms per row, memory-mapped) read by a numba kernel, r bytes per Gaussian; rows are rescored from
+the float16 embeddings, memory-mapped from the package. How many rows that takes depends on how well r
+basis vectors describe the scene's embeddings in the query's direction (benchmarks/TEXT.md).
 """
 
 from __future__ import annotations
@@ -21,8 +22,15 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
+from fmgs.errors import ValidationError
+from fmgs.query.certify import certified_top_k, order_rows, threshold_margin
 from fmgs.query.config import IndexConfig
 from fmgs.query.relevancy import TEMPERATURE
+from fmgs.query.state import QueryState, build_state
+
+RESCORE_CHUNK = 8192
+"""Rows rescored at once: bounds the working memory of a rescoring pass (RESCORE_CHUNK x D x 12 bytes)."""
+_U32 = 2.0**-24
 
 
 class Ranked(NamedTuple):
@@ -34,10 +42,17 @@ class Ranked(NamedTuple):
     """[K] float32 relevancy in (0,1)."""
     similarity: torch.Tensor
     """[K] float32 f.q."""
+    rescored: int = 0
+    """Rows scored exactly to certify the answer."""
 
 
 RowReader = Callable[[np.ndarray], torch.Tensor]
 """Exact embeddings for sorted unique rows [k] -> [k,D] float32."""
+
+
+def served_relevancy(margin: torch.Tensor) -> torch.Tensor:
+    """Relevancy as served from float32 margins."""
+    return torch.sigmoid(TEMPERATURE * margin)
 
 
 class EmbeddingIndex:
@@ -45,27 +60,46 @@ class EmbeddingIndex:
 
     def __init__(
         self,
-        coeffs: torch.Tensor,
-        basis: torch.Tensor | None,
+        table: torch.Tensor | None,
         canonical: torch.Tensor,
-        read_rows: RowReader | None,
         cfg: IndexConfig,
-        scales: torch.Tensor | None = None,
+        state: QueryState | None = None,
+        read_rows: RowReader | None = None,
     ) -> None:
-        self.coeffs = coeffs
-        """[M,r] int8 coefficients (float32 embeddings on the exact path, r = D)."""
-        self.basis = basis
-        """[r,D] float32 orthonormal rows, or None on the exact path."""
-        self.scales = scales
-        """[r] float32 dequantisation scale per basis vector (compact path)."""
+        self.table = table
+        """[M,D] float32 embeddings on the exact path (None on the compact path)."""
+        self.state = state
+        """The compact state (None on the exact path)."""
         self.canonical = canonical
-        """[M,C] float32 dot products with the scene's canonical phrases (exact, from the package)."""
+        """[M,C] float32 dot products with the scene's canonical phrases (may be memory-mapped)."""
         self.canonical_max = (
-            canonical.amax(1) if canonical.shape[1] else torch.zeros(len(canonical), device=canonical.device)
-        )
-        """[M] the largest canonical dot per Gaussian."""
+            canonical.float().amax(1)
+            if canonical.shape[1]
+            else torch.zeros(len(canonical), device=canonical.device)
+        ).contiguous()
+        """[M] the largest canonical dot per Gaussian (float32, as stored)."""
         self.read_rows = read_rows
         self.cfg = cfg
+        if state is not None:
+            self.coeffs = state.codes
+            self.basis = state.basis
+            self.scales = state.scales
+            self._err = state.err_norm.float().contiguous()
+            self._res = state.res_norm.float().contiguous()
+            self._W_basis = (state.basis * state.scales.double()[:, None]).contiguous()  # [r,D] float64
+            r = state.rank
+            self.slack = 8 * (r + 8) * _U32 * max(1.0, state.code_norm_max) + 1e-6
+        else:
+            self.coeffs = table
+            self.basis = self.scales = None
+            u = _U32
+            if table.is_cuda and torch.backends.cuda.matmul.allow_tf32:
+                u = 2.0**-11  # TF32 matmuls keep 10 mantissa bits
+            fmax = max(
+                (float(table[s : s + 65536].norm(dim=1).max()) for s in range(0, len(table), 65536)),
+                default=1.0,
+            )
+            self.slack = 2 * (table.shape[1] + 8) * u * max(1.0, fmax) + 1e-6
 
     @classmethod
     def build(
@@ -74,73 +108,121 @@ class EmbeddingIndex:
         canonical: torch.Tensor,
         cfg: IndexConfig = IndexConfig(),
         read_rows: RowReader | None = None,
+        state: QueryState | None = None,
     ) -> EmbeddingIndex:
-        """From embeddings [M,D] (any float dtype) and canonical dots [M,C].
+        """From embeddings [M,D] (any float dtype, e.g. a float16 memory map) and canonical dots [M,C].
 
-        ``read_rows`` supplies exact rows for re-ranking on the compact path (default: slices of
-        ``embeddings``, which then stay referenced).
+        ``state``: the package's compact state, used when its rank is the configured one (else one is
+        built here). ``read_rows`` supplies exact rows for rescoring on the compact path (default: slices
+        of ``embeddings``, which then stay referenced).
         """
         M, D = embeddings.shape
         dev = torch.device(cfg.device)
         if dev.type != "cpu":
-            return cls(_float32_on(embeddings, dev), None, canonical.float().to(dev), None, cfg)
-        canonical = canonical.float().contiguous()
+            return cls(_float32_on(embeddings, dev), canonical.float().to(dev), cfg)
         if cfg.rank == 0 or cfg.rank >= D or M < cfg.exact_below:
-            return cls(embeddings.float().contiguous(), None, canonical, None, cfg)
-        basis = _basis(embeddings, cfg.rank, cfg.basis_sample)
-        coeffs, scales = _quantise(embeddings, basis)
+            return cls(embeddings.float().contiguous(), canonical, cfg)
+        if state is None or state.rank != cfg.rank or state.num != M:
+            state = build_state(embeddings, cfg.rank, cfg.basis_sample)
         if read_rows is None:
             src = embeddings
 
             def read_rows(rows: np.ndarray) -> torch.Tensor:
                 return src[torch.from_numpy(rows)].float()
 
-        return cls(coeffs, basis, canonical, read_rows, cfg, scales)
+        return cls(None, canonical, cfg, state, read_rows)
 
     @property
     def exact(self) -> bool:
-        return self.basis is None
+        return self.state is None
 
     @property
     def num(self) -> int:
         return int(self.coeffs.shape[0])
 
     def nbytes(self) -> int:
-        """Bytes of the in-memory state (coefficients, basis, canonical dots)."""
-        t = [self.coeffs, self.canonical, self.canonical_max] + (
-            [self.basis] if self.basis is not None else []
-        )
+        """Resident bytes per the query state: codes (or float32 table), bound norms, canonical maxima,
+        basis. The canonical dots [M,C] are not counted when memory-mapped (pose renders page them in)."""
+        t = [self.coeffs, self.canonical_max]
+        if self.state is not None:
+            t += [self._err, self._res, self.basis, self.scales]
         return sum(x.numel() * x.element_size() for x in t)
 
     @property
     def device(self) -> torch.device:
         return self.coeffs.device
 
-    def dots(self, vectors: torch.Tensor, shift: torch.Tensor | None = None) -> torch.Tensor:
-        """[M,n] f.v - shift for unit vectors [n,D] (compact approximation on the compact path).
+    def _weights(self, v: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Kernel weights [r,n] float32 (= scales * B v), |B v| [n] and |v - B^T B v| [n] (float64 maths)."""
+        v64 = v.double()
+        w = v64 @ self.basis.T  # [n,r]
+        perp = v64 - w @ self.basis
+        W = (v64 @ self._W_basis.T).T.float().contiguous()
+        return W, w.norm(dim=1).float(), perp.norm(dim=1).float()
 
-        shift [M] (default 0) is subtracted from every column, fused into the kernel. The result lives
-        on the index's device.
-        """
+    def dots(self, vectors: torch.Tensor, shift: torch.Tensor | None = None) -> torch.Tensor:
+        """[M,n] f.v - shift for unit vectors [n,D] (the compact approximation on the compact path: pose
+        renders use it). shift [M] (default 0) is fused into the kernel. Lives on the index's device."""
         v = vectors.float().to(self.device)
-        if self.basis is None:
+        if self.state is None:
             d = self.coeffs @ v.T
             return d if shift is None else d - shift[:, None]
         from fmgs.query.kernels import int8_dots
 
-        W = ((v @ self.basis.T) * self.scales).T.contiguous()  # [r,n]
+        W, _, _ = self._weights(v)
         out = np.empty((self.num, len(v)), np.float32)
         sh = np.zeros(self.num, np.float32) if shift is None else shift.float().contiguous().numpy()
         int8_dots(self.coeffs.numpy(), W.numpy(), sh, out)
         return torch.from_numpy(out)
 
+    def _bounds(self, v: torch.Tensor, shift: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor]:
+        """Approximate f.v - shift [M,n] and the bound on its error [M,n] (or [1,n] when uniform)."""
+        if self.state is None:
+            a = self.dots(v, shift)
+            return a, torch.full((1, len(v)), self.slack, device=a.device)
+        _, wn, vn = self._weights(v)
+        a = self.dots(v, shift)
+        return a, self._err[:, None] * wn[None] + self._res[:, None] * vn[None] + self.slack
+
+    def _upper(self, q: torch.Tensor, canonical_vectors: torch.Tensor | None) -> torch.Tensor:
+        """[M,n] upper bounds on the margins of queries q [n,D]."""
+        n = len(q)
+        if canonical_vectors is None:
+            if self.state is None:
+                a, b = self._bounds(q, self.canonical_max)
+                return a + b
+            from fmgs.query.kernels import int8_upper
+
+            W, wn, vn = self._weights(q)
+            out = np.empty((self.num, n), np.float32)
+            int8_upper(
+                self.coeffs.numpy(), W.numpy(), self.canonical_max.numpy(), self._err.numpy(),
+                self._res.numpy(), wn.numpy(), vn.numpy(), np.float32(self.slack), out,
+            )  # fmt: skip
+            return torch.from_numpy(out)
+        a, b = self._bounds(torch.cat([q, canonical_vectors.to(q.device)]), None)
+        b = b.expand_as(a)
+        lower_canon = (a[:, n:] - b[:, n:]).amax(1, keepdim=True)
+        return a[:, :n] + b[:, :n] - lower_canon
+
     def exact_dots(self, rows: torch.Tensor, vectors: torch.Tensor) -> torch.Tensor:
-        """[k,n] exact f.v for rows [k] (any order)."""
-        if self.basis is None:
-            return self.coeffs[rows.to(self.device)] @ vectors.float().to(self.device).T
-        r = rows.numpy()
+        """[k,n] float64 f.v for rows [k] (any order), from the stored embeddings, RESCORE_CHUNK rows at a
+        time. ValidationError when a stored row is not finite (a damaged package)."""
+        v64 = vectors.double().to(self.device)
+        r = rows.cpu().numpy()
         uniq, inv = np.unique(r, return_inverse=True)
-        return (self.read_rows(uniq) @ vectors.float().T)[torch.from_numpy(inv)]
+        out = torch.empty(len(uniq), len(v64), dtype=torch.float64, device=self.device)
+        for s in range(0, len(uniq), RESCORE_CHUNK):
+            part = uniq[s : s + RESCORE_CHUNK]
+            if self.state is None:
+                f = self.table[torch.from_numpy(part).to(self.device)]
+            else:
+                f = self.read_rows(part)
+            out[s : s + len(part)] = f.double() @ v64.T
+        if not bool(torch.isfinite(out).all()):
+            bad = int(uniq[int((~torch.isfinite(out)).any(1).nonzero()[0, 0])])
+            raise ValidationError("embeddings", f"row {bad} is not finite: the package is damaged")
+        return out[torch.from_numpy(inv).to(self.device)]
 
     def rank(
         self,
@@ -149,40 +231,50 @@ class EmbeddingIndex:
         threshold: float = 0.0,
         canonical_vectors: torch.Tensor | None = None,
     ) -> Ranked:
-        """Best ``top_k`` rows for a unit query [D] with relevancy >= threshold.
+        """Exact best ``top_k`` rows for a unit query [D] with relevancy >= threshold (certified).
 
         canonical_vectors [C,D] replace the scene's canonical phrases (None: the stored dots).
         """
-        M = self.num
+        return self.rank_many(query[None], top_k, threshold, canonical_vectors)[0]
+
+    def rank_many(
+        self,
+        queries: torch.Tensor,
+        top_k: int,
+        threshold: float = 0.0,
+        canonical_vectors: torch.Tensor | None = None,
+        between: Callable[[int], None] | None = None,
+    ) -> list[Ranked]:
+        """``rank`` for unit queries [n,D], all scored in one pass over the state; ``between(j)`` runs
+        before query j is certified (a deadline check may raise there)."""
+        M, n = self.num, len(queries)
         k = max(0, min(int(top_k), M))
-        if k == 0:
+        if k == 0 or n == 0:
             e = torch.zeros(0)
-            return Ranked(torch.zeros(0, dtype=torch.int64), e, e)
-        vecs = query[None] if canonical_vectors is None else torch.cat([query[None], canonical_vectors])
-        vecs = vecs.float().to(self.device)
-        if canonical_vectors is None and not self.exact:  # margin f.q - max_n f.c_n from the kernel
-            margin = self.dots(vecs, self.canonical_max)[:, 0]
-            d = None
-        elif canonical_vectors is None:
-            d = self.dots(vecs)
-            margin = d[:, 0] - self.canonical_max
-        else:
-            d = self.dots(vecs)  # [M, 1+C]
-            margin = d[:, 0] - d[:, 1:].amax(1)
-        n_cand = k if (self.exact or self.cfg.rerank == 0) else min(M, self.cfg.rerank * k)
-        cand = torch.topk(margin, n_cand, sorted=False).indices
-        if self.exact or self.cfg.rerank == 0:
-            m = margin[cand]
-            sim = m + self.canonical_max[cand] if d is None else d[cand, 0]
-        else:
-            ex = self.exact_dots(cand, vecs)
-            sim = ex[:, 0]
-            m = sim - (self.canonical_max[cand] if canonical_vectors is None else ex[:, 1:].amax(1))
-        order = _order(m, cand)[:k]
-        rows, sim, m = cand[order], sim[order], m[order]
-        rel = torch.sigmoid(TEMPERATURE * m)
-        keep = rel >= threshold
-        return Ranked(rows[keep].cpu(), rel[keep].cpu(), sim[keep].cpu())
+            return [Ranked(torch.zeros(0, dtype=torch.int64), e, e, 0) for _ in range(n)]
+        q = queries.float().to(self.device)
+        cv = None if canonical_vectors is None else canonical_vectors.float().to(self.device)
+        upper = self._upper(q, cv)
+        m_min = threshold_margin(threshold, served_relevancy)
+        first = k if self.state is None else min(M, max(k, self.cfg.rerank * k))
+        cmax64 = self.canonical_max.double()
+        out = []
+        for j in range(n):
+            if between is not None:
+                between(j)
+            vecs = q[j : j + 1] if cv is None else torch.cat([q[j : j + 1], cv])
+
+            def margins(rows: torch.Tensor, vecs=vecs) -> torch.Tensor:
+                d = self.exact_dots(rows, vecs).cpu()
+                return d[:, 0] - (cmax64[rows.to(cmax64.device)].cpu() if cv is None else d[:, 1:].amax(1))
+
+            c = certified_top_k(upper[:, j], k, margins, m_min, first=first)
+            sim = self.exact_dots(c.rows, vecs[:1]).cpu()[:, 0]
+            m32 = c.margin.float()
+            rel = served_relevancy(m32)
+            keep = rel >= threshold
+            out.append(Ranked(c.rows[keep], rel[keep], sim[keep].float(), c.rescored))
+        return out
 
 
 def _float32_on(embeddings: torch.Tensor, device: torch.device, step: int = 1 << 18) -> torch.Tensor:
@@ -197,50 +289,17 @@ def _float32_on(embeddings: torch.Tensor, device: torch.device, step: int = 1 <<
 def rank_reference(
     embeddings: torch.Tensor, canonical: torch.Tensor, query: torch.Tensor, top_k: int, threshold: float = 0.0
 ) -> Ranked:
-    """Exact twin of ``EmbeddingIndex.rank``: embeddings [M,D] (float32), canonical dots [M,C], query [D]."""
-    sim = embeddings.float() @ query.float()
-    m = sim - (canonical.float().amax(1) if canonical.shape[1] else 0.0)
+    """Exact twin of ``EmbeddingIndex.rank`` by brute force in float64: embeddings [M,D], canonical dots
+    [M,C], query [D]."""
+    sim = embeddings.double() @ query.float().double()
+    m = sim - (canonical.float().amax(1).double() if canonical.shape[1] else 0.0)
     rows = torch.arange(len(sim))
-    order = _order(m, rows)[: max(0, min(int(top_k), len(sim)))]
-    rel = torch.sigmoid(TEMPERATURE * m[order])
+    order = order_rows(m, rows)[: max(0, min(int(top_k), len(sim)))]
+    rel = served_relevancy(m[order].float())
     keep = rel >= threshold
-    return Ranked(rows[order][keep], rel[keep], sim[order][keep])
-
-
-def _quantise(embeddings: torch.Tensor, basis: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """int8 coefficients [M,r] and per-basis-vector scales [r] of E B^T (two chunked passes)."""
-    M, r = embeddings.shape[0], basis.shape[0]
-    step = 65536
-    amax = torch.zeros(r)
-    for s in range(0, M, step):  # never a full float32 copy of [M,D]
-        amax = torch.maximum(amax, (embeddings[s : s + step].float() @ basis.T).abs().amax(0))
-    scales = (amax / 127).clamp_min(1e-30)
-    q = torch.empty(M, r, dtype=torch.int8)
-    for s in range(0, M, step):
-        c = embeddings[s : s + step].float() @ basis.T
-        q[s : s + step] = (c / scales).round().clamp(-127, 127).to(torch.int8)
-    return q, scales
+    return Ranked(rows[order][keep], rel[keep], sim[order][keep].float(), len(sim))
 
 
 def int8_dots_reference(coeffs: torch.Tensor, scales: torch.Tensor, basis: torch.Tensor, v: torch.Tensor):
     """Twin of the kernel path of ``EmbeddingIndex.dots``: [M,n] (dequantised coefficients) . (B v)."""
-    return (coeffs.float() * scales) @ (v.float() @ basis.T).T
-
-
-def _order(margin: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
-    """Positions sorting by margin descending, ties by row ascending (reproducible)."""
-    by_row = torch.argsort(rows)
-    return by_row[torch.sort(margin[by_row], descending=True, stable=True).indices]
-
-
-def _basis(embeddings: torch.Tensor, rank: int, sample: int) -> torch.Tensor:
-    """[rank,D] top eigenvectors of E^T E (best rank-r subspace for dot products), from a seeded sample."""
-    M = embeddings.shape[0]
-    if M > sample:
-        g = torch.Generator().manual_seed(0)
-        rows = torch.randperm(M, generator=g)[:sample].sort().values
-        E = embeddings[rows].double()
-    else:
-        E = embeddings.double()
-    _, vecs = torch.linalg.eigh(E.T @ E)  # ascending eigenvalues
-    return vecs[:, -rank:].flip(1).T.float().contiguous()
+    return ((coeffs.double() * scales.double()) @ (v.double() @ basis.T).T).float()

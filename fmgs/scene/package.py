@@ -7,6 +7,9 @@ Layout:
   embeddings.safetensors   selected [M] int64 (indices into the Gaussians), embeddings [M,D] float16
                            (decoded once, unit norm before rounding), canonical [M,C] float32 (the
                            stored embeddings' dot products with the canonical phrases)
+  query_state.safetensors  the compact query state (fmgs.query.state): rank-r int8 codes of the embeddings
+                           and the norms that bound their error, so a server opens the scene without
+                           rebuilding it; absent in packages from before it (built in memory at load)
   field.safetensors        hash-grid keys and table, language head (and DINO head only if asked), so the
                            field can be queried at arbitrary 3D points; absent for the per-Gaussian ablation.
                            Its floating-point tensors are float32, or float16 where the manifest's
@@ -30,6 +33,7 @@ from fmgs.field.model import FeatureField, FieldConfig
 from fmgs.gaussians import GaussianSet
 from fmgs.io.atomic import atomic_dir
 from fmgs.io.tensors import load_gaussians, save_gaussians
+from fmgs.query.state import STATE_FILE, QueryState
 from fmgs.scene.manifest import CANONICAL_PHRASES, FieldInfo, Manifest
 
 FIELD_DTYPES = {"float32": torch.float32, "float16": torch.float16}
@@ -55,6 +59,8 @@ class ScenePackage:
     """[M,C] float32 dot products with the canonical phrases."""
     field: FeatureField | None
     """The field for queries at arbitrary points (None if the package has none)."""
+    query_state: QueryState | None = None
+    """The stored compact query state (loaded with ``mmap``; None when absent or stale)."""
 
     @property
     def encoder_id(self) -> str:
@@ -97,6 +103,7 @@ def export_scene(
     canonical_phrases: tuple[str, ...] = CANONICAL_PHRASES,
     extra: dict | None = None,
     field_dtype: str = "float32",
+    query_rank: int = 64,
 ) -> Path:
     """Write a package to folder ``out`` (replaced atomically) and return it.
 
@@ -104,6 +111,7 @@ def export_scene(
     unit norm); canonical_embeddings [C,D] the encoder's embeddings of ``canonical_phrases``.
     field_dtype: storage of the field's table and heads, "float32" (exact) or "float16" (half the size;
     the stored embeddings are decoded before rounding, so only queries at arbitrary points see it).
+    query_rank: basis size of the stored compact query state (0: none; servers then build it at load).
     """
     out = Path(out)
     check_scene_name(out.name)
@@ -132,6 +140,11 @@ def export_scene(
             },
             str(tmp / "embeddings.safetensors"),
         )
+        if 0 < query_rank < D and M > 0:
+            from fmgs.query.state import build_state, fingerprint, save_state
+
+            state = build_state(emb, query_rank)
+            save_state(state, tmp / STATE_FILE, fingerprint(tmp / "embeddings.safetensors"))
         if field is not None:
             fdt = FIELD_DTYPES[field_dtype]
             state = {
@@ -187,11 +200,17 @@ def load_scene(path: str | Path, device: str | torch.device = "cpu", mmap: bool 
 
     gaussians = load_gaussians(path / "gaussians.safetensors", device)
     gaussians.validate()
-    t = _read_tensors(
-        path / "embeddings.safetensors", ("selected", "canonical", *(() if mmap else ("embeddings",))), device
-    )
-    sel, canon = t["selected"], t["canonical"].float()
-    emb = _mmap_embeddings(path / "embeddings.safetensors") if mmap else t["embeddings"].float()
+    efile = path / "embeddings.safetensors"
+    t = _read_tensors(efile, ("selected", *(() if mmap else ("canonical", "embeddings"))), device)
+    sel = t["selected"]
+    if mmap:  # only the compact state is resident; pose renders page the canonical dots in
+        from fmgs.io.mmap_tensors import mmap_torch
+
+        emb, canon = _mmap_embeddings(efile), mmap_torch(efile, "canonical")
+        if canon.dtype != torch.float32:
+            raise ValidationError(str(efile), f"canonical must be float32, got {canon.dtype}")
+    else:
+        emb, canon = t["embeddings"].float(), t["canonical"].float()
     M = manifest.num_selected
     where = str(path / "embeddings.safetensors")
     if sel.dtype != torch.int64 or sel.shape != (M,):
@@ -202,8 +221,12 @@ def load_scene(path: str | Path, device: str | torch.device = "cpu", mmap: bool 
         raise ValidationError(where, f"canonical must be [{M},{C}], got {list(canon.shape)}")
     if M and (int(sel.min()) < 0 or int(sel.max()) >= gaussians.num):
         raise ValidationError(where, f"selected indices must lie in [0, {gaussians.num})")
-    for s0 in range(0, M, 65536):  # chunked: no float32 copy of a memory map
-        check_finite(f"{where}: embeddings", emb[s0 : s0 + 65536])
+    state = _load_state(path, M, D)
+    if state is None or not mmap:
+        # With a stored state the embeddings are read only where a query rescores them, and checked
+        # there (fmgs.query.index.EmbeddingIndex.exact_dots): opening stays fast.
+        for s0 in range(0, M, 65536):  # chunked: no float32 copy of a memory map
+            check_finite(f"{where}: embeddings", emb[s0 : s0 + 65536])
     check_finite(f"{where}: canonical", canon)
 
     field = None
@@ -214,7 +237,24 @@ def load_scene(path: str | Path, device: str | torch.device = "cpu", mmap: bool 
                 str(path / "manifest.json"),
                 f"field clip_dim {field.cfg.clip_dim} differs from encoder dim {D}",
             )
-    return ScenePackage(manifest.name, manifest, gaussians, sel, emb, canon, field)
+    return ScenePackage(manifest.name, manifest, gaussians, sel, emb, canon, field, state)
+
+
+def _load_state(path: Path, M: int, D: int) -> QueryState | None:
+    """The package's stored query state, or None (absent; or stale or damaged: logged, and the
+    server builds one in memory)."""
+    import logging
+
+    from fmgs.query.state import fingerprint, load_state
+
+    fpath = path / STATE_FILE
+    if not fpath.is_file():
+        return None
+    try:
+        return load_state(fpath, M, D, fingerprint(path / "embeddings.safetensors"))
+    except ValidationError as e:
+        logging.getLogger(__name__).warning("%s; building the query state in memory instead", e)
+        return None
 
 
 def _read_tensors(fpath: Path, keys: tuple[str, ...], device) -> dict[str, torch.Tensor]:
@@ -234,16 +274,12 @@ def _read_tensors(fpath: Path, keys: tuple[str, ...], device) -> dict[str, torch
 
 def _mmap_embeddings(fpath: Path) -> torch.Tensor:
     """[M,D] float16 tensor over a copy-on-write memory map of the stored embeddings."""
-    import numpy as np
+    from fmgs.io.mmap_tensors import mmap_torch
 
-    from fmgs.io.mmap_tensors import mmap_tensor
-
-    a = mmap_tensor(fpath, "embeddings")
-    if a.dtype != np.float16:
+    a = mmap_torch(fpath, "embeddings")
+    if a.dtype != torch.float16:
         raise ValidationError(str(fpath), f"embeddings must be float16, got {a.dtype}")
-    if isinstance(a, np.memmap):  # copy-on-write: writable for torch, never written back
-        a = np.memmap(a.filename, dtype=a.dtype, mode="c", offset=a.offset, shape=a.shape)
-    return torch.from_numpy(a)
+    return a
 
 
 def _load_field(fpath: Path, meta: FieldInfo, device) -> FeatureField:

@@ -1,0 +1,116 @@
+"""Certified top-K: exact answers from approximate scores that carry error bounds.
+
+Every embedded Gaussian i has a served margin m_i = f_i.q - max_n f_i.c_n, computed in float64 from the
+stored embedding (the "exact" score). A compact state gives, for every row, bounds lo_i <= m_i <= hi_i
+at a fraction of the cost. The answer is the exact top K by (margin descending, row ascending) among
+rows with margin >= m_min, found by rescoring exactly only the rows whose upper bound reaches the
+current K-th exact margin:
+
+1. rescore the ``first`` rows of highest upper bound; L = max(m_min, K-th exact margin among them,
+   K-th largest lower bound over all rows);
+2. rescore every other row whose upper bound is >= L.
+
+Any row left unscored has hi_i < L <= the final K-th margin (more rows can only raise it), so it can
+neither enter the answer nor tie with its last row: the answer is exact for any query. How many rows
+were rescored is reported with it.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from typing import NamedTuple
+
+import torch
+
+ExactScorer = Callable[[torch.Tensor], torch.Tensor]
+"""rows [k] int64 (sorted, unique) -> [k] float64 exact margins."""
+
+
+class Certified(NamedTuple):
+    """The exact top rows of one query."""
+
+    rows: torch.Tensor
+    """[K'] int64 rows, best first (K' <= K: fewer when the threshold leaves fewer)."""
+    margin: torch.Tensor
+    """[K'] float64 exact margins."""
+    rescored: int
+    """Rows whose exact margin was computed to certify the answer."""
+
+
+def kth_largest(x: torch.Tensor, k: int) -> float:
+    """The k-th largest value of x [n] (-inf when n < k)."""
+    if k <= 0 or len(x) < k:
+        return -math.inf
+    return float(torch.topk(x, k, sorted=False).values.min())
+
+
+def order_rows(margin: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
+    """Positions sorting by margin descending, ties by row ascending (reproducible)."""
+    by_row = torch.argsort(rows)
+    return by_row[torch.sort(margin[by_row], descending=True, stable=True).indices]
+
+
+def certified_top_k(
+    upper: torch.Tensor,
+    k: int,
+    exact: ExactScorer,
+    m_min: float = -math.inf,
+    lower: torch.Tensor | None = None,
+    first: int = 0,
+) -> Certified:
+    """Exact top ``k`` rows by margin among rows with margin >= m_min (see the module docstring).
+
+    upper [M] (and lower [M], default none) bound every row's exact margin; ``exact`` computes it.
+    """
+    M = len(upper)
+    k = max(0, min(int(k), M))
+    if k == 0:
+        return Certified(torch.zeros(0, dtype=torch.int64), torch.zeros(0, dtype=torch.float64), 0)
+    up = upper.detach().cpu()
+    n1 = min(M, max(int(first), k))
+    rows1 = torch.topk(up, n1, sorted=False).indices.sort().values
+    m1 = exact(rows1)
+    L = max(
+        m_min, kth_largest(m1, k), kth_largest(lower.detach().cpu(), k) if lower is not None else -math.inf
+    )
+    need = up >= L
+    need[rows1] = False
+    rows2 = need.nonzero()[:, 0]
+    rows, margin = rows1, m1
+    if len(rows2):
+        rows, margin = torch.cat([rows1, rows2]), torch.cat([m1, exact(rows2)])
+    keep = margin >= m_min
+    rows, margin = rows[keep], margin[keep]
+    top = order_rows(margin, rows)[:k]
+    return Certified(rows[top], margin[top], len(rows1) + len(rows2))
+
+
+def threshold_margin(threshold: float, relevancy: Callable[[torch.Tensor], torch.Tensor]) -> float:
+    """A margin below which ``relevancy`` (float32 margins -> float32 relevancy, non-decreasing) stays
+    under ``threshold``: rows below it cannot pass the threshold test as served (-inf for threshold <= 0).
+
+    Found by bisection on the served function itself, so float32 rounding near 0 or 1 cannot drop a row
+    that passes.
+    """
+    if threshold <= 0:
+        return -math.inf
+
+    def passes(m: float) -> bool:
+        return bool(relevancy(torch.tensor([m], dtype=torch.float32))[0] >= threshold)
+
+    lo, hi = -1.0, 1.0
+    while passes(lo) and lo > -1e6:
+        lo *= 2
+    if passes(lo):
+        return -math.inf
+    while not passes(hi):
+        if hi > 1e6:
+            return math.inf  # nothing passes (threshold above the largest relevancy)
+        hi *= 2
+    for _ in range(80):  # lo fails, hi passes
+        mid = (lo + hi) / 2
+        if mid in (lo, hi):
+            break
+        lo, hi = (lo, mid) if passes(mid) else (mid, hi)
+    return lo  # every passing margin m has float32(m) > float32(lo), so m > lo

@@ -1,0 +1,155 @@
+"""Certified exact text answers: every query set, both index paths, against the float64 brute force."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from benchmarks.query_sets import QUERY_SETS, query_sets, scene_embeddings
+from fmgs.query.certify import certified_top_k, threshold_margin
+from fmgs.query.index import EmbeddingIndex, IndexConfig, rank_reference, served_relevancy
+from fmgs.query.state import build_state
+from fmgs.vecmath import safe_normalize
+
+M, D = 6000, 96
+
+
+@pytest.fixture(scope="module")
+def scene():
+    emb, copies = scene_embeddings(M, D, seed=4)
+    canon_vecs = safe_normalize(torch.randn(4, D, generator=torch.Generator().manual_seed(5)))
+    canon = emb @ canon_vecs.T
+    return emb, copies, canon, canon_vecs, query_sets(emb, copies, 6)
+
+
+def _indexes(emb, canon):
+    """Both paths on the same scene: the exact one (below exact_below) and the compact one."""
+    exact = EmbeddingIndex.build(emb, canon, IndexConfig(exact_below=M + 1))
+    compact = EmbeddingIndex.build(emb.half(), canon, IndexConfig(rank=16, exact_below=M - 1, rerank=2))
+    assert exact.exact and not compact.exact
+    return {"exact": exact, "compact": compact}
+
+
+def _same(a, ref):
+    """Same rows in the same order; scores equal up to the float32 rounding of float64 values that two
+    summation orders can leave (one float32 step of the margin, amplified at most 2^4 by the sigmoid)."""
+    assert torch.equal(a.rows, ref.rows)
+    assert torch.allclose(a.similarity, ref.similarity, rtol=2**-23, atol=2**-40)
+    assert torch.allclose(a.relevancy, ref.relevancy, rtol=2**-20, atol=0)
+
+
+def test_query_sets_span_the_range(scene):
+    emb, copies, *_, sets = scene
+    best = {k: float((emb @ q.T).amax(0).median()) for k, q in sets.items()}
+    assert best["near"] > 0.95 and 0.7 < best["typical"] < 0.95
+    assert 0.2 <= best["clip"] <= 0.45 and best["absent"] < 0.35
+    assert len(emb.unique(dim=0)) < M - len(copies) // 3  # exact copies: ties
+
+
+@pytest.mark.parametrize("path", ["exact", "compact"])
+@pytest.mark.parametrize("k", [1, 7, 100, 1000, M])
+def test_top_k_equals_brute_force_on_every_query_set(scene, path, k):
+    emb, _, canon, _, sets = scene
+    idx = _indexes(emb, canon)[path]
+    for name in QUERY_SETS:
+        for q in sets[name]:
+            a = idx.rank(q, k)
+            _same(a, rank_reference(emb, canon, q, k))
+            assert k <= a.rescored <= M
+
+
+@pytest.mark.parametrize("path", ["exact", "compact"])
+def test_ties_at_the_kth_place_break_by_row(scene, path):
+    emb, copies, canon, _, _ = scene
+    idx = _indexes(emb, canon)[path]
+    # Rows with exact copies tie; cut the ranking at every place inside such a group.
+    groups = 0
+    for i in copies.tolist()[:40]:
+        group = (emb == emb[i]).all(1).nonzero()[:, 0]
+        if len(group) < 2:
+            continue
+        q = safe_normalize(emb[i][None])[0]
+        full = rank_reference(emb, canon, q, M).rows
+        pos = sorted(int((full == r).nonzero()[0, 0]) for r in group.tolist())
+        assert pos == list(range(pos[0], pos[0] + len(group)))  # the copies sit together, by row
+        for k in range(pos[0] + 1, pos[-1] + 2):
+            _same(idx.rank(q, k), rank_reference(emb, canon, q, k))
+        groups += 1
+    assert groups >= 5
+
+
+@pytest.mark.parametrize("path", ["exact", "compact"])
+def test_threshold_queries_are_certified(scene, path):
+    emb, _, canon, _, sets = scene
+    idx = _indexes(emb, canon)[path]
+    for name in ("clip", "typical", "absent"):
+        for q in sets[name][:3]:
+            ref_all = rank_reference(emb, canon, q, M)
+            for thr in (0.05, float(ref_all.relevancy[min(50, M - 1)]), 0.5, 0.9, 1.0):
+                a = idx.rank(q, M, threshold=thr)
+                _same(a, rank_reference(emb, canon, q, M, threshold=thr))
+                assert bool((a.relevancy >= thr).all())
+
+
+@pytest.mark.parametrize("path", ["exact", "compact"])
+def test_custom_canonical_and_batches(scene, path):
+    emb, _, canon, canon_vecs, sets = scene
+    idx = _indexes(emb, canon)[path]
+    other = safe_normalize(torch.randn(3, D, generator=torch.Generator().manual_seed(8)))
+    q = torch.cat([sets["clip"], sets["near"]])
+    for cv, cdots in ((canon_vecs, canon), (other, emb @ other.T)):
+        batch = idx.rank_many(q, 40, canonical_vectors=cv)
+        for qi, a in zip(q, batch, strict=True):
+            _same(a, rank_reference(emb, cdots, qi, 40))
+    singles = [idx.rank(qi, 40) for qi in q]
+    for a, b in zip(idx.rank_many(q, 40), singles, strict=True):
+        _same(a, b)
+        assert a.rescored == b.rescored
+
+
+def test_compact_bounds_hold_for_every_row(scene):
+    emb, _, canon, _, sets = scene
+    idx = _indexes(emb, canon)["compact"]
+    q = torch.cat([sets[n] for n in QUERY_SETS])
+    up = idx._upper(q, None).double()
+    exact = emb.double() @ q.double().T - canon.amax(1).double()[:, None]
+    assert bool((up >= exact).all())
+    slack = up - exact
+    assert float(slack.min()) >= 0 and float(slack.median()) < 1.0
+
+
+def test_certified_top_k_with_loose_bounds_is_still_exact():
+    g = torch.Generator().manual_seed(0)
+    m = torch.randn(2000, generator=g, dtype=torch.float64)
+    m[100:110] = m[5]  # ties
+    for width in (0.0, 0.01, 1.0, 100.0):
+        up = (m + width * torch.rand(2000, generator=g, dtype=torch.float64)).float() + 1e-6
+        for k in (1, 10, 105, 2000):
+            c = certified_top_k(up, k, lambda r: m[r], first=k)
+            order = sorted(range(2000), key=lambda i: (-float(m[i]), i))[:k]
+            assert c.rows.tolist() == order
+            assert k <= c.rescored <= 2000
+
+
+def test_threshold_margin_never_drops_a_passing_row():
+    rng = np.random.default_rng(0)
+    for thr in (1e-30, 1e-6, 0.3, 0.5, 0.731, 0.999, 0.9999999, 1.0):
+        mm = threshold_margin(thr, served_relevancy)
+        assert math.isfinite(mm) or thr >= 1.0
+        m = torch.from_numpy(rng.normal(mm if math.isfinite(mm) else 0, 1e-3, 20000).astype(np.float32))
+        passing = served_relevancy(m) >= thr
+        assert bool((m[passing].double() > mm).all())
+    assert threshold_margin(0.0, served_relevancy) == -math.inf
+
+
+def test_state_norms_bound_the_decomposition():
+    emb, _ = scene_embeddings(3000, 64, seed=1)
+    st = build_state(emb.half(), 8)
+    c = emb.double() @ st.basis.T
+    deq = st.codes.double() * st.scales.double()
+    assert bool(((c - deq).norm(dim=1) <= st.err_norm.double()).all())
+    assert bool(((emb.double() - c @ st.basis).norm(dim=1) <= st.res_norm.double()).all())
+    assert torch.allclose(st.basis @ st.basis.T, torch.eye(8, dtype=torch.float64), atol=1e-12)

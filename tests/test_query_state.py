@@ -1,0 +1,115 @@
+"""The compact query state saved in the package: written at export, validated and memory-mapped at load,
+refused when stale, rebuilt in memory for packages without it."""
+
+from __future__ import annotations
+
+import logging
+
+import pytest
+import torch
+
+import fmgs.query.index as index_mod
+from benchmarks.query_sets import query_sets, scene_embeddings
+from fmgs.errors import ValidationError
+from fmgs.gaussians import GaussianSet
+from fmgs.query.engine import EngineConfig, SceneEngine
+from fmgs.query.index import IndexConfig, rank_reference
+from fmgs.query.state import STATE_FILE, fingerprint, load_state
+from fmgs.scene.package import export_scene, load_scene
+from fmgs.vecmath import safe_normalize
+
+M, D, R = 3000, 48, 12
+COMPACT = EngineConfig(index=IndexConfig(rank=R, exact_below=0))
+
+
+def _package(tmp_path, name="s", rank=R, seed=2):
+    g = torch.Generator().manual_seed(0)
+    means = torch.rand(M, 3, generator=g)
+    gs = GaussianSet.from_activated(
+        means,
+        torch.tensor([[1.0, 0, 0, 0]]).repeat(M, 1),
+        torch.full((M, 3), 0.01),
+        torch.full((M,), 0.9),
+        sh=torch.zeros(M, 1, 3),
+    )
+    emb, copies = scene_embeddings(M, D, seed=seed, means=means)
+    canon = safe_normalize(torch.randn(4, D, generator=g))
+    p = export_scene(tmp_path / name, gs, torch.arange(M), emb, "test/enc", canon, query_rank=rank)
+    return p, emb, emb @ canon.T, query_sets(emb, copies, 4)
+
+
+def test_export_writes_the_state_and_the_server_uses_it(tmp_path, monkeypatch):
+    p, emb, canon, sets = _package(tmp_path)
+    assert (p / STATE_FILE).is_file()
+    pkg = load_scene(p, mmap=True)
+    assert pkg.query_state is not None and pkg.query_state.rank == R
+
+    def no_build(*a, **k):
+        raise AssertionError("the stored state must be used, not rebuilt")
+
+    monkeypatch.setattr(index_mod, "build_state", no_build)
+    eng = SceneEngine.open(p, COMPACT)
+    assert not eng.index.exact
+    for q in torch.cat(list(sets.values())):
+        a = eng.index.rank(q, 25)
+        ref = rank_reference(emb, canon, q, 25)
+        assert torch.equal(a.rows, ref.rows)
+    # The answer's rescored count reaches the engine's typed answer.
+    assert eng.text_query(sets["clip"][0], 25).rescored >= 25
+
+
+def test_package_without_state_still_loads(tmp_path):
+    p, emb, canon, sets = _package(tmp_path, rank=0)
+    assert not (p / STATE_FILE).exists()
+    eng = SceneEngine.open(p, COMPACT)  # built in memory
+    q = sets["clip"][1]
+    assert torch.equal(eng.index.rank(q, 30).rows, rank_reference(emb, canon, q, 30).rows)
+
+
+def test_other_rank_is_rebuilt_in_memory(tmp_path):
+    p, emb, canon, sets = _package(tmp_path)
+    eng = SceneEngine.open(p, EngineConfig(index=IndexConfig(rank=6, exact_below=0)))
+    assert eng.index.state.rank == 6
+    q = sets["near"][0]
+    assert torch.equal(eng.index.rank(q, 30).rows, rank_reference(emb, canon, q, 30).rows)
+
+
+def test_stale_or_damaged_state_is_refused(tmp_path, caplog):
+    p, *_ = _package(tmp_path)
+    src = fingerprint(p / "embeddings.safetensors")
+    st = load_state(p / STATE_FILE, M, D, src)
+    with pytest.raises(ValidationError, match="other embeddings"):
+        load_state(p / STATE_FILE, M, D, "0" * 64)
+    with pytest.raises(ValidationError, match=r"\[3000,48\]"):
+        load_state(p / STATE_FILE, M + 1, D, src)
+    # Embeddings replaced under the state: the server logs it and rebuilds the state in memory.
+    other, _ = _package(tmp_path, "other", seed=3)[:2]
+    (p / "embeddings.safetensors").unlink()
+    (other / "embeddings.safetensors").rename(p / "embeddings.safetensors")
+    with caplog.at_level(logging.WARNING):
+        pkg = load_scene(p, mmap=True)
+    assert pkg.query_state is None and "stale" in caplog.text
+    # A state file that is not one.
+    (p / STATE_FILE).write_bytes(b"not safetensors")
+    with pytest.raises(ValidationError, match="cannot read"):
+        load_state(p / STATE_FILE, M, D, src)
+    assert st.rank == R
+
+
+def test_state_version_is_checked(tmp_path):
+    from safetensors.torch import load_file, save_file
+
+    p, *_ = _package(tmp_path)
+    f = p / STATE_FILE
+    from safetensors import safe_open
+
+    with safe_open(str(f), framework="pt") as h:
+        meta = dict(h.metadata())
+    save_file(load_file(str(f)), str(f), metadata={**meta, "version": "99"})
+    with pytest.raises(ValidationError, match="version '99'"):
+        load_state(f, M, D, fingerprint(p / "embeddings.safetensors"))
+    bad = load_file(str(f))
+    bad["res_norm"] = -bad["res_norm"].abs() - 1
+    save_file(bad, str(f), metadata=meta)
+    with pytest.raises(ValidationError, match="res_norm must be finite and non-negative"):
+        load_state(f, M, D, fingerprint(p / "embeddings.safetensors"))

@@ -217,7 +217,8 @@ def report(res: dict, info: dict, quick: bool) -> str:
     for key, s in res["sets"].items():
         L.append(
             f"| {key} | {s['best_cosine_median']:.2f} | {s['ours_ms_median']:.1f} ({s['ours_ms_p90']:.1f}) | "
-            f"{s['ours_rescored_median']:,.0f} | {s['ours_recall_mean']:.3f} | {s['faiss_flat_ms_median']:.1f} | "
+            f"{s['ours_rescored_median']:,.0f} | {s['ours_recall_mean']:.3f} | "
+            f"{s['faiss_flat_ms_median']:.1f} | "
             f"{s['faiss_flat_recall_mean']:.3f} | {s['faiss_ivf_sq8_refine_ms_median']:.1f} | "
             f"{s['faiss_ivf_sq8_refine_recall_mean']:.3f} ({s['faiss_ivf_sq8_refine_recall_min']:.2f}) |"
         )

@@ -8,7 +8,9 @@ import numpy as np
 import pytest
 import torch
 
+import fmgs.query.index as index_mod
 from benchmarks.query_sets import QUERY_SETS, query_sets, scene_embeddings
+from fmgs.errors import ValidationError
 from fmgs.query.certify import certified_top_k, threshold_margin
 from fmgs.query.index import EmbeddingIndex, IndexConfig, rank_reference, served_relevancy
 from fmgs.query.state import build_state
@@ -49,11 +51,13 @@ def test_query_sets_span_the_range(scene):
     assert len(emb.unique(dim=0)) < M - len(copies) // 3  # exact copies: ties
 
 
-@pytest.mark.parametrize("path", ["exact", "compact"])
+@pytest.mark.parametrize("path", ["exact", "compact", "compact-refined"])
 @pytest.mark.parametrize("k", [1, 7, 100, 1000, M])
-def test_top_k_equals_brute_force_on_every_query_set(scene, path, k):
+def test_top_k_equals_brute_force_on_every_query_set(scene, path, k, monkeypatch):
     emb, _, canon, _, sets = scene
-    idx = _indexes(emb, canon)[path]
+    if path == "compact-refined":  # every rescoring set goes through the float32 refinement first
+        monkeypatch.setattr(index_mod, "REFINE_ABOVE", 0)
+    idx = _indexes(emb, canon)[path.split("-")[0]]
     for name in QUERY_SETS:
         for q in sets[name]:
             a = idx.rank(q, k)
@@ -81,10 +85,12 @@ def test_ties_at_the_kth_place_break_by_row(scene, path):
     assert groups >= 5
 
 
-@pytest.mark.parametrize("path", ["exact", "compact"])
-def test_threshold_queries_are_certified(scene, path):
+@pytest.mark.parametrize("path", ["exact", "compact", "compact-refined"])
+def test_threshold_queries_are_certified(scene, path, monkeypatch):
     emb, _, canon, _, sets = scene
-    idx = _indexes(emb, canon)[path]
+    if path == "compact-refined":
+        monkeypatch.setattr(index_mod, "REFINE_ABOVE", 0)
+    idx = _indexes(emb, canon)[path.split("-")[0]]
     for name in ("clip", "typical", "absent"):
         for q in sets[name][:3]:
             ref_all = rank_reference(emb, canon, q, M)
@@ -94,10 +100,12 @@ def test_threshold_queries_are_certified(scene, path):
                 assert bool((a.relevancy >= thr).all())
 
 
-@pytest.mark.parametrize("path", ["exact", "compact"])
-def test_custom_canonical_and_batches(scene, path):
+@pytest.mark.parametrize("path", ["exact", "compact", "compact-refined"])
+def test_custom_canonical_and_batches(scene, path, monkeypatch):
     emb, _, canon, canon_vecs, sets = scene
-    idx = _indexes(emb, canon)[path]
+    if path == "compact-refined":
+        monkeypatch.setattr(index_mod, "REFINE_ABOVE", 0)
+    idx = _indexes(emb, canon)[path.split("-")[0]]
     other = safe_normalize(torch.randn(3, D, generator=torch.Generator().manual_seed(8)))
     q = torch.cat([sets["clip"], sets["near"]])
     for cv, cdots in ((canon_vecs, canon), (other, emb @ other.T)):
@@ -108,6 +116,24 @@ def test_custom_canonical_and_batches(scene, path):
     for a, b in zip(idx.rank_many(q, 40), singles, strict=True):
         _same(a, b)
         assert a.rescored == b.rescored
+
+
+def test_refined_bounds_hold_and_damaged_rows_are_named(scene):
+    emb, _, canon, _, sets = scene
+    idx = _indexes(emb, canon)["compact"]
+    q = sets["clip"][:1]
+    rows = torch.arange(M)
+    lo, up = idx._refine(rows, q, True)
+    exact = emb.double() @ q[0].double() - canon.amax(1).double()
+    assert bool((lo <= exact).all() and (exact <= up).all()) and float((up - lo).max()) < 1e-4
+    assert torch.equal(idx.exact_dots(rows, q)[:, 0], idx.exact_dots(rows.flip(0), q)[:, 0].flip(0))
+    bad = emb.half().clone()
+    bad[17, 3] = float("inf")
+    broken = EmbeddingIndex.build(bad, canon, IndexConfig(rank=16, exact_below=0))
+    with pytest.raises(ValidationError, match="row 17 is not finite"):
+        broken._refine(rows, q, True)
+    with pytest.raises(ValidationError, match="row 17 is not finite"):
+        broken.exact_dots(rows, q)
 
 
 def test_compact_bounds_hold_for_every_row(scene):
@@ -128,10 +154,21 @@ def test_certified_top_k_with_loose_bounds_is_still_exact():
     for width in (0.0, 0.01, 1.0, 100.0):
         up = (m + width * torch.rand(2000, generator=g, dtype=torch.float64)).float() + 1e-6
         for k in (1, 10, 105, 2000):
-            c = certified_top_k(up, k, lambda r: m[r], first=k)
             order = sorted(range(2000), key=lambda i: (-float(m[i]), i))[:k]
+            c = certified_top_k(up, k, lambda r: m[r], first=k)
             assert c.rows.tolist() == order
             assert k <= c.rescored <= 2000
+            # With a refinement stage of bounds tighter than the first (and as loose as 0.1).
+            w = torch.rand(2000, generator=g, dtype=torch.float64) * min(width, 0.1)
+            c = certified_top_k(
+                up,
+                k,
+                lambda r: m[r],
+                first=k,
+                refine=lambda r, w=w: (m[r] - w[r], m[r] + w[r]),
+                refine_above=0,
+            )
+            assert c.rows.tolist() == order
 
 
 def test_threshold_margin_never_drops_a_passing_row():

@@ -8,7 +8,9 @@ current K-th exact margin:
 
 1. rescore the ``first`` rows of highest upper bound; L = max(m_min, K-th exact margin among them,
    K-th largest lower bound over all rows);
-2. rescore every other row whose upper bound is >= L.
+2. rescore every other row whose upper bound is >= L; when there are many, first bound them more tightly
+   and cheaply (``refine``: a float32 pass over the stored rows), raise L with the refined lower bounds,
+   and rescore exactly only the rows whose refined upper bound still reaches it.
 
 Any row left unscored has hi_i < L <= the final K-th margin (more rows can only raise it), so it can
 neither enter the answer nor tie with its last row: the answer is exact for any query. How many rows
@@ -25,6 +27,8 @@ import torch
 
 ExactScorer = Callable[[torch.Tensor], torch.Tensor]
 """rows [k] int64 (sorted, unique) -> [k] float64 exact margins."""
+Refiner = Callable[[torch.Tensor], tuple[torch.Tensor, torch.Tensor]]
+"""rows [k] int64 (sorted, unique) -> ([k] lower, [k] upper) float64 tighter bounds, cheaper than exact."""
 
 
 class Certified(NamedTuple):
@@ -58,10 +62,13 @@ def certified_top_k(
     m_min: float = -math.inf,
     lower: torch.Tensor | None = None,
     first: int = 0,
+    refine: Refiner | None = None,
+    refine_above: int = 4096,
 ) -> Certified:
     """Exact top ``k`` rows by margin among rows with margin >= m_min (see the module docstring).
 
-    upper [M] (and lower [M], default none) bound every row's exact margin; ``exact`` computes it.
+    upper [M] (and lower [M], default none) bound every row's exact margin; ``exact`` computes it;
+    ``refine`` (optional) bounds rows tightly, used when more than ``refine_above`` rows remain.
     """
     M = len(upper)
     k = max(0, min(int(k), M))
@@ -78,7 +85,12 @@ def certified_top_k(
     need[rows1] = False
     rows2 = need.nonzero()[:, 0]
     rows, margin = rows1, m1
-    if len(rows2):
+    if refine is not None and len(rows2) > refine_above:
+        lo2, up2 = refine(rows2)
+        L = max(L, kth_largest(torch.cat([m1, lo2]), k))  # k distinct rows have margins >= these
+        rows3 = rows2[up2 >= L]
+        rows, margin = torch.cat([rows1, rows3]), torch.cat([m1, exact(rows3)])
+    elif len(rows2):
         rows, margin = torch.cat([rows1, rows2]), torch.cat([m1, exact(rows2)])
     keep = margin >= m_min
     rows, margin = rows[keep], margin[keep]

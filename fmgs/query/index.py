@@ -30,6 +30,8 @@ from fmgs.query.state import QueryState, build_state
 
 RESCORE_CHUNK = 8192
 """Rows rescored at once: bounds the working memory of a rescoring pass (RESCORE_CHUNK x D x 12 bytes)."""
+REFINE_ABOVE = 4096
+"""More rows than this to rescore are first bounded by a float32 pass (fmgs.query.certify)."""
 _U32 = 2.0**-24
 
 
@@ -65,6 +67,7 @@ class EmbeddingIndex:
         cfg: IndexConfig,
         state: QueryState | None = None,
         read_rows: RowReader | None = None,
+        half: np.ndarray | None = None,
     ) -> None:
         self.table = table
         """[M,D] float32 embeddings on the exact path (None on the compact path)."""
@@ -79,6 +82,8 @@ class EmbeddingIndex:
         ).contiguous()
         """[M] the largest canonical dot per Gaussian (float32, as stored)."""
         self.read_rows = read_rows
+        self.half = half
+        """[M,D] uint16: the stored float16 embeddings' bits (compact path), scored by numba kernels."""
         self.cfg = cfg
         if state is not None:
             self.coeffs = state.codes
@@ -124,13 +129,18 @@ class EmbeddingIndex:
             return cls(embeddings.float().contiguous(), canonical, cfg)
         if state is None or state.rank != cfg.rank or state.num != M:
             state = build_state(embeddings, cfg.rank, cfg.basis_sample)
+        half = (
+            embeddings.view(torch.int16).numpy().view(np.uint16)
+            if embeddings.dtype == torch.float16
+            else None
+        )
         if read_rows is None:
             src = embeddings
 
             def read_rows(rows: np.ndarray) -> torch.Tensor:
                 return src[torch.from_numpy(rows)].float()
 
-        return cls(None, canonical, cfg, state, read_rows)
+        return cls(None, canonical, cfg, state, read_rows, half)
 
     @property
     def exact(self) -> bool:
@@ -212,7 +222,13 @@ class EmbeddingIndex:
         r = rows.cpu().numpy()
         uniq, inv = np.unique(r, return_inverse=True)
         out = torch.empty(len(uniq), len(v64), dtype=torch.float64, device=self.device)
-        for s in range(0, len(uniq), RESCORE_CHUNK):
+        if self.half is not None:  # float64 in a fixed order from the float16 bits (no float64 copy)
+            from fmgs.query.kernels import half_dots64, half_scale_table
+
+            half_dots64(
+                self.half, uniq.astype(np.int64), v64.numpy(), half_scale_table(np.float64), out.numpy()
+            )
+        for s in range(0, len(uniq) if self.half is None else 0, RESCORE_CHUNK):
             part = uniq[s : s + RESCORE_CHUNK]
             if self.state is None:
                 f = self.table[torch.from_numpy(part).to(self.device)]
@@ -223,6 +239,31 @@ class EmbeddingIndex:
             bad = int(uniq[int((~torch.isfinite(out)).any(1).nonzero()[0, 0])])
             raise ValidationError("embeddings", f"row {bad} is not finite: the package is damaged")
         return out[torch.from_numpy(inv).to(self.device)]
+
+    def _refine(
+        self, rows: torch.Tensor, vecs: torch.Tensor, stored: bool
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Float64 lower and upper bounds [k] on the margins of sorted rows [k] from one float32 pass over
+        their float16 embeddings (half_dots: rounding at most (D+4) 2^-24 sum|f_j v_j| per dot);
+        ``stored``: vecs is [query] and the stored canonical maxima apply, else [query, canonical...]."""
+        from fmgs.query.kernels import half_dots, half_scale_table
+
+        r = rows.numpy().astype(np.int64)
+        v = vecs.float().contiguous().numpy()
+        out = np.empty((len(r), len(v)), np.float32)
+        mag = np.empty((len(r), len(v)), np.float32)
+        half_dots(self.half, r, v, half_scale_table(), out, mag)
+        d = torch.from_numpy(out).double()
+        e = torch.from_numpy(mag).double() * ((self.half.shape[1] + 4) * _U32) + 1e-12
+        if not bool(torch.isfinite(d).all()):
+            bad = int(r[int((~torch.isfinite(d)).any(1).nonzero()[0, 0])])
+            raise ValidationError("embeddings", f"row {bad} is not finite: the package is damaged")
+        if stored:
+            m = d[:, 0] - self.canonical_max.double()[rows]
+            return m - e[:, 0], m + e[:, 0]
+        lo = d[:, 0] - e[:, 0] - (d[:, 1:] + e[:, 1:]).amax(1)
+        up = d[:, 0] + e[:, 0] - (d[:, 1:] - e[:, 1:]).amax(1)
+        return lo, up
 
     def rank(
         self,
@@ -268,7 +309,12 @@ class EmbeddingIndex:
                 d = self.exact_dots(rows, vecs).cpu()
                 return d[:, 0] - (cmax64[rows.to(cmax64.device)].cpu() if cv is None else d[:, 1:].amax(1))
 
-            c = certified_top_k(upper[:, j], k, margins, m_min, first=first)
+            refine = (
+                None if self.half is None else (lambda rows, vecs=vecs: self._refine(rows, vecs, cv is None))
+            )
+            c = certified_top_k(
+                upper[:, j], k, margins, m_min, first=first, refine=refine, refine_above=REFINE_ABOVE
+            )
             sim = self.exact_dots(c.rows, vecs[:1]).cpu()[:, 0]
             m32 = c.margin.float()
             rel = served_relevancy(m32)

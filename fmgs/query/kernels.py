@@ -45,3 +45,58 @@ def int8_upper(
             for j in range(r):
                 acc += np.float32(A[i, j]) * W[j, k]
             out[i, k] = acc - shift[i] + err[i] * wn[k] + res[i] * vn[k] + slack
+
+
+def half_scale_table(dtype=np.float32) -> np.ndarray:
+    """[64] the value of one mantissa unit for each (sign, exponent) of a float16 (bits 15..10): x =
+    (mantissa | implicit bit) * table[h >> 10], exact; +-inf for the inf/NaN exponent."""
+    mag = [2.0**-24] + [2.0 ** (e - 25) for e in range(1, 31)] + [np.inf]
+    return np.array(mag + [-x for x in mag], dtype)
+
+
+@numba.njit(parallel=True, fastmath={"reassoc", "contract", "arcp"}, cache=True)
+def half_dots(
+    A: np.ndarray, rows: np.ndarray, V: np.ndarray, P: np.ndarray, out: np.ndarray, mag: np.ndarray
+):  # pragma: no cover
+    """out[t,k] = float32 sum_j A[rows[t],j] V[k,j] and mag[t,k] = sum_j |A V| (any summation order), for
+    A [M,D] float16 bits (uint16), V [n,D] float32, P = half_scale_table(). The rounding error of out is
+    at most (D+4) 2^-24 mag (the bound fmgs.query.index uses)."""
+    m = rows.shape[0]
+    D = A.shape[1]
+    n = V.shape[0]
+    for t in numba.prange(m):
+        r = rows[t]
+        for k in range(n):
+            acc = np.float32(0.0)
+            aab = np.float32(0.0)
+            for j in range(D):
+                h = np.int32(A[r, j])
+                i = h >> 10
+                mant = (h & 1023) | (1024 if (i & 31) != 0 else 0)
+                p = (np.float32(mant) * P[i]) * V[k, j]
+                acc += p
+                aab += abs(p)
+            out[t, k] = acc
+            mag[t, k] = aab
+
+
+@numba.njit(parallel=True, cache=True)
+def half_dots64(
+    A: np.ndarray, rows: np.ndarray, V: np.ndarray, P: np.ndarray, out: np.ndarray
+) -> None:  # pragma: no cover
+    """out[t,k] = sum_j A[rows[t],j] V[k,j] in float64, summed in order j = 0..D-1 (so equal rows give equal
+    sums): the exact score. A [M,D] float16 bits, V [n,D] float64 holding float32 values (each product
+    is exact in float64), P = half_scale_table(np.float64)."""
+    m = rows.shape[0]
+    D = A.shape[1]
+    n = V.shape[0]
+    for t in numba.prange(m):
+        r = rows[t]
+        for k in range(n):
+            acc = 0.0
+            for j in range(D):
+                h = np.int32(A[r, j])
+                i = h >> 10
+                mant = (h & 1023) | (1024 if (i & 31) != 0 else 0)
+                acc += (np.float64(mant) * P[i]) * V[k, j]
+            out[t, k] = acc

@@ -50,12 +50,13 @@ def point_bytes(points: int, texts: int, chunk: int) -> int:
 
 def text_bytes(top_k: int, texts: int, columns: int, embedded: int = 0, dim: int = 0) -> int:
     """Estimated peak working memory of a text query: an upper bound per embedded Gaussian and text
-    (float32) plus a rescoring pass (fmgs.query.index.RESCORE_CHUNK rows, float32 and float64); per
+    (float32), one text's refinement pass over at most every embedded Gaussian (rows, float32 dots and
+    magnitudes, float64 bounds: 64 bytes each), a rescoring chunk (RESCORE_CHUNK rows); per
     answer row the index, scores and asked columns (about 4 bytes each), answers held for every text,
     and their message copies."""
     from fmgs.query.index import RESCORE_CHUNK
 
-    scan = embedded * (4 * texts + 9) + RESCORE_CHUNK * dim * 12
+    scan = embedded * (4 * texts + 64) + RESCORE_CHUNK * dim * 12
     return BASE_BYTES + scan + 2 * texts * top_k * (16 + 4 * columns)
 
 

@@ -123,7 +123,7 @@ def test_refined_bounds_hold_and_damaged_rows_are_named(scene):
     idx = _indexes(emb, canon)["compact"]
     q = sets["clip"][:1]
     rows = torch.arange(M)
-    lo, up = idx._refine(rows, q, True)
+    lo, up = (x[:, 0] for x in idx._refine(rows, q, None))
     exact = emb.double() @ q[0].double() - canon.amax(1).double()
     assert bool((lo <= exact).all() and (exact <= up).all()) and float((up - lo).max()) < 1e-4
     assert torch.equal(idx.exact_dots(rows, q)[:, 0], idx.exact_dots(rows.flip(0), q)[:, 0].flip(0))
@@ -131,7 +131,7 @@ def test_refined_bounds_hold_and_damaged_rows_are_named(scene):
     bad[17, 3] = float("inf")
     broken = EmbeddingIndex.build(bad, canon, IndexConfig(rank=16, exact_below=0))
     with pytest.raises(ValidationError, match="row 17 is not finite"):
-        broken._refine(rows, q, True)
+        broken._refine(rows, q, None)
     with pytest.raises(ValidationError, match="row 17 is not finite"):
         broken.exact_dots(rows, q)
 

@@ -115,13 +115,13 @@ def test_text_query_stops_between_texts(served, caplog, monkeypatch):
     list(stub.TextQuery(pb.TextQueryRequest(scene="f", texts=["red cube"], top_k=5)))  # load
     import fmgs.query.index as index
 
-    slow = index.certified_top_k
+    slow = index.certify_start
 
-    def certified_top_k(*a, **k):  # each text's certification takes 0.2 s
+    def certify_start(*a, **k):  # each text's certification takes 0.2 s
         time.sleep(0.2)
         return slow(*a, **k)
 
-    monkeypatch.setattr(index, "certified_top_k", certified_top_k)
+    monkeypatch.setattr(index, "certify_start", certify_start)
     timeout = 0.5
     t0 = time.monotonic()
     with pytest.raises(grpc.RpcError) as e:

@@ -55,6 +55,62 @@ def order_rows(margin: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
     return by_row[torch.sort(margin[by_row], descending=True, stable=True).indices]
 
 
+class Pending(NamedTuple):
+    """A certification after its first step: the rows rescored, the bound L, the rows still to settle."""
+
+    rows1: torch.Tensor
+    """[n1] rows scored exactly."""
+    m1: torch.Tensor
+    """[n1] their exact margins."""
+    bound: float
+    """L, a lower bound on the k-th exact margin (or m_min): rows whose upper bound is below it are out."""
+    rows2: torch.Tensor
+    """[n2] sorted rows whose upper bound reaches L (not yet scored)."""
+
+
+def certify_start(
+    upper: torch.Tensor,
+    k: int,
+    exact: ExactScorer,
+    m_min: float = -math.inf,
+    first: int = 0,
+    lower: torch.Tensor | None = None,
+) -> Pending:
+    """Step 1: rescore the ``first`` rows of highest upper bound (at least k), find L and what remains."""
+    up = upper.detach().cpu()
+    n1 = min(len(up), max(int(first), k))
+    rows1 = torch.topk(up, n1, sorted=False).indices.sort().values
+    m1 = exact(rows1)
+    low = kth_largest(lower.detach().cpu(), k) if lower is not None else -math.inf
+    L = max(m_min, kth_largest(m1, k), low)
+    need = up >= L
+    need[rows1] = False
+    return Pending(rows1, m1, L, need.nonzero()[:, 0])
+
+
+def certify_finish(
+    p: Pending,
+    k: int,
+    exact: ExactScorer,
+    m_min: float = -math.inf,
+    refined: tuple[torch.Tensor, torch.Tensor] | None = None,
+) -> Certified:
+    """Step 2: settle the remaining rows, optionally through tighter (lower, upper) bounds of p.rows2
+    (raising L with the lower bounds, then rescoring only rows whose upper bound still reaches it)."""
+    rows2 = p.rows2
+    if refined is not None:
+        lo2, up2 = refined
+        L = max(p.bound, kth_largest(torch.cat([p.m1, lo2]), k))  # k distinct rows reach these
+        rows2 = rows2[up2 >= L]
+    rows, margin = p.rows1, p.m1
+    if len(rows2):
+        rows, margin = torch.cat([p.rows1, rows2]), torch.cat([p.m1, exact(rows2)])
+    keep = margin >= m_min
+    rows, margin = rows[keep], margin[keep]
+    top = order_rows(margin, rows)[:k]
+    return Certified(rows[top], margin[top], len(p.rows1) + len(p.rows2))
+
+
 def certified_top_k(
     upper: torch.Tensor,
     k: int,
@@ -70,32 +126,12 @@ def certified_top_k(
     upper [M] (and lower [M], default none) bound every row's exact margin; ``exact`` computes it;
     ``refine`` (optional) bounds rows tightly, used when more than ``refine_above`` rows remain.
     """
-    M = len(upper)
-    k = max(0, min(int(k), M))
+    k = max(0, min(int(k), len(upper)))
     if k == 0:
         return Certified(torch.zeros(0, dtype=torch.int64), torch.zeros(0, dtype=torch.float64), 0)
-    up = upper.detach().cpu()
-    n1 = min(M, max(int(first), k))
-    rows1 = torch.topk(up, n1, sorted=False).indices.sort().values
-    m1 = exact(rows1)
-    L = max(
-        m_min, kth_largest(m1, k), kth_largest(lower.detach().cpu(), k) if lower is not None else -math.inf
-    )
-    need = up >= L
-    need[rows1] = False
-    rows2 = need.nonzero()[:, 0]
-    rows, margin = rows1, m1
-    if refine is not None and len(rows2) > refine_above:
-        lo2, up2 = refine(rows2)
-        L = max(L, kth_largest(torch.cat([m1, lo2]), k))  # k distinct rows have margins >= these
-        rows3 = rows2[up2 >= L]
-        rows, margin = torch.cat([rows1, rows3]), torch.cat([m1, exact(rows3)])
-    elif len(rows2):
-        rows, margin = torch.cat([rows1, rows2]), torch.cat([m1, exact(rows2)])
-    keep = margin >= m_min
-    rows, margin = rows[keep], margin[keep]
-    top = order_rows(margin, rows)[:k]
-    return Certified(rows[top], margin[top], len(rows1) + len(rows2))
+    p = certify_start(upper, k, exact, m_min, first, lower)
+    refined = refine(p.rows2) if refine is not None and len(p.rows2) > refine_above else None
+    return certify_finish(p, k, exact, m_min, refined)
 
 
 def threshold_margin(threshold: float, relevancy: Callable[[torch.Tensor], torch.Tensor]) -> float:

@@ -23,7 +23,7 @@ import numpy as np
 import torch
 
 from fmgs.errors import ValidationError
-from fmgs.query.certify import certified_top_k, order_rows, threshold_margin
+from fmgs.query.certify import certify_finish, certify_start, order_rows, threshold_margin
 from fmgs.query.config import IndexConfig
 from fmgs.query.relevancy import TEMPERATURE
 from fmgs.query.state import QueryState, build_state
@@ -32,6 +32,8 @@ RESCORE_CHUNK = 8192
 """Rows rescored at once: bounds the working memory of a rescoring pass (RESCORE_CHUNK x D x 12 bytes)."""
 REFINE_ABOVE = 4096
 """More rows than this to rescore are first bounded by a float32 pass (fmgs.query.certify)."""
+REFINE_CHUNK = 262144
+"""Rows per refinement pass: bounds its working memory (about 40 bytes per row and text)."""
 _U32 = 2.0**-24
 
 
@@ -240,14 +242,34 @@ class EmbeddingIndex:
             raise ValidationError("embeddings", f"row {bad} is not finite: the package is damaged")
         return out[torch.from_numpy(inv).to(self.device)]
 
+    def _refine_pending(self, pending: list, q: torch.Tensor, cv: torch.Tensor | None) -> dict:
+        """Tighter bounds for the texts with more than REFINE_ABOVE rows left: one float32 pass over the
+        union of those rows for all of them at once. Returns {text: (lower, upper)} aligned with rows2."""
+        big = [j for j, p in enumerate(pending) if len(p.rows2) > REFINE_ABOVE]
+        if self.half is None or not big:
+            return {}
+        union = torch.unique(torch.cat([pending[j].rows2 for j in big]))  # sorted
+        lo = torch.empty(len(union), len(big), dtype=torch.float64)
+        up = torch.empty_like(lo)
+        for s in range(0, len(union), REFINE_CHUNK):  # bounded working memory
+            part = union[s : s + REFINE_CHUNK]
+            lo[s : s + len(part)], up[s : s + len(part)] = self._refine(part, q[big], cv)
+        out = {}
+        for c, j in enumerate(big):
+            pos = torch.searchsorted(union, pending[j].rows2)
+            out[j] = (lo[pos, c], up[pos, c])
+        return out
+
     def _refine(
-        self, rows: torch.Tensor, vecs: torch.Tensor, stored: bool
+        self, rows: torch.Tensor, q: torch.Tensor, cv: torch.Tensor | None
     ) -> tuple[torch.Tensor, torch.Tensor]:
-        """Float64 lower and upper bounds [k] on the margins of sorted rows [k] from one float32 pass over
-        their float16 embeddings (half_dots: rounding at most (D+4) 2^-24 sum|f_j v_j| per dot);
-        ``stored``: vecs is [query] and the stored canonical maxima apply, else [query, canonical...]."""
+        """Float64 lower and upper bounds [k,n] on the margins of sorted rows [k] for queries q [n,D] from
+        one float32 pass over their float16 embeddings (half_dots: rounding at most (D+4) 2^-24
+        sum|f_j v_j| per dot); cv [C,D] custom canonical vectors, or None for the stored maxima."""
         from fmgs.query.kernels import half_dots, half_scale_table
 
+        n = len(q)
+        vecs = q if cv is None else torch.cat([q, cv])
         r = rows.numpy().astype(np.int64)
         v = vecs.float().contiguous().numpy()
         out = np.empty((len(r), len(v)), np.float32)
@@ -258,12 +280,12 @@ class EmbeddingIndex:
         if not bool(torch.isfinite(d).all()):
             bad = int(r[int((~torch.isfinite(d)).any(1).nonzero()[0, 0])])
             raise ValidationError("embeddings", f"row {bad} is not finite: the package is damaged")
-        if stored:
-            m = d[:, 0] - self.canonical_max.double()[rows]
-            return m - e[:, 0], m + e[:, 0]
-        lo = d[:, 0] - e[:, 0] - (d[:, 1:] + e[:, 1:]).amax(1)
-        up = d[:, 0] + e[:, 0] - (d[:, 1:] - e[:, 1:]).amax(1)
-        return lo, up
+        if cv is None:
+            m = d - self.canonical_max.double()[rows][:, None]
+            return m - e, m + e
+        c_hi = (d[:, n:] + e[:, n:]).amax(1, keepdim=True)
+        c_lo = (d[:, n:] - e[:, n:]).amax(1, keepdim=True)
+        return d[:, :n] - e[:, :n] - c_hi, d[:, :n] + e[:, :n] - c_lo
 
     def rank(
         self,
@@ -299,25 +321,27 @@ class EmbeddingIndex:
         m_min = threshold_margin(threshold, served_relevancy)
         first = k if self.state is None else min(M, max(k, self.cfg.rerank * k))
         cmax64 = self.canonical_max.double()
-        out = []
-        for j in range(n):
-            if between is not None:
-                between(j)
+
+        def scorer(j: int):
             vecs = q[j : j + 1] if cv is None else torch.cat([q[j : j + 1], cv])
 
-            def margins(rows: torch.Tensor, vecs=vecs) -> torch.Tensor:
+            def margins(rows: torch.Tensor) -> torch.Tensor:
                 d = self.exact_dots(rows, vecs).cpu()
                 return d[:, 0] - (cmax64[rows.to(cmax64.device)].cpu() if cv is None else d[:, 1:].amax(1))
 
-            refine = (
-                None if self.half is None else (lambda rows, vecs=vecs: self._refine(rows, vecs, cv is None))
-            )
-            c = certified_top_k(
-                upper[:, j], k, margins, m_min, first=first, refine=refine, refine_above=REFINE_ABOVE
-            )
-            sim = self.exact_dots(c.rows, vecs[:1]).cpu()[:, 0]
-            m32 = c.margin.float()
-            rel = served_relevancy(m32)
+            return margins
+
+        pending = []
+        for j in range(n):
+            if between is not None:
+                between(j)
+            pending.append(certify_start(upper[:, j], k, scorer(j), m_min, first))
+        refined = self._refine_pending(pending, q, cv)
+        out = []
+        for j, p in enumerate(pending):
+            c = certify_finish(p, k, scorer(j), m_min, refined.get(j))
+            sim = self.exact_dots(c.rows, q[j : j + 1]).cpu()[:, 0]
+            rel = served_relevancy(c.margin.float())
             keep = rel >= threshold
             out.append(Ranked(c.rows[keep], rel[keep], sim[keep].float(), c.rescored))
         return out

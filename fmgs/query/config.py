@@ -18,8 +18,9 @@ class IndexConfig:
     exact_below: int = 200_000
     """Scenes with fewer embedded Gaussians use the exact path (4*D bytes per Gaussian)."""
     rerank: int = 10
-    """The compact path first rescores the rerank * k (at least k) candidates of highest upper bound, then
-    as many more as the certificate needs: a speed knob, the answer is exact for every value."""
+    """The compact path first rescores the rerank * k candidates of highest upper bound (at least k, at
+    most k + 4096), then as many more as the certificate needs: a speed knob, the answer is exact for
+    every value."""
     basis_sample: int = 100_000
     """Rows used to estimate the basis (a seeded sample; all rows when fewer)."""
     device: str = "cpu"

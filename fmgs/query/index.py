@@ -165,11 +165,11 @@ class EmbeddingIndex:
         return self.coeffs.device
 
     def _weights(self, v: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Kernel weights [r,n] float32 (= scales * B v), |B v| [n] and |v - B^T B v| [n] (float64 maths)."""
+        """Kernel weights [n,r] float32 (= scales * B v), |B v| [n] and |v - B^T B v| [n] (float64 maths)."""
         v64 = v.double()
         w = v64 @ self.basis.T  # [n,r]
         perp = v64 - w @ self.basis
-        W = (v64 @ self._W_basis.T).T.float().contiguous()
+        W = (v64 @ self._W_basis.T).float().contiguous()
         return W, w.norm(dim=1).float(), perp.norm(dim=1).float()
 
     def dots(self, vectors: torch.Tensor, shift: torch.Tensor | None = None) -> torch.Tensor:
@@ -319,7 +319,9 @@ class EmbeddingIndex:
         cv = None if canonical_vectors is None else canonical_vectors.float().to(self.device)
         upper = self._upper(q, cv)
         m_min = threshold_margin(threshold, served_relevancy)
-        first = k if self.state is None else min(M, max(k, self.cfg.rerank * k))
+        # First candidates: rerank * k, but at most REFINE_ABOVE beyond k (a large k would pay float64
+        # rescoring for rows the refinement pass settles more cheaply).
+        first = k if self.state is None else min(M, max(k, min(self.cfg.rerank * k, k + REFINE_ABOVE)))
         cmax64 = self.canonical_max.double()
 
         def scorer(j: int):

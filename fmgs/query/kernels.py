@@ -12,14 +12,15 @@ import numpy as np
 
 @numba.njit(parallel=True, fastmath=True, cache=True)
 def int8_dots(A: np.ndarray, W: np.ndarray, shift: np.ndarray, out: np.ndarray) -> None:  # pragma: no cover
-    """out[i,k] = sum_j A[i,j] W[j,k] - shift[i]; A [M,r] int8, W [r,n] float32, shift [M], out [M,n]."""
+    """out[i,k] = sum_j A[i,j] W[k,j] - shift[i]; A [M,r] int8, W [n,r] float32 (contiguous rows: the
+    inner sum vectorises), shift [M], out [M,n]."""
     M, r = A.shape
-    n = W.shape[1]
+    n = W.shape[0]
     for i in numba.prange(M):
         for k in range(n):
             acc = np.float32(0.0)
             for j in range(r):
-                acc += np.float32(A[i, j]) * W[j, k]
+                acc += np.float32(A[i, j]) * W[k, j]
             out[i, k] = acc - shift[i]
 
 
@@ -35,15 +36,15 @@ def int8_upper(
     slack: float,
     out: np.ndarray,
 ) -> None:  # pragma: no cover
-    """out[i,k] = sum_j A[i,j] W[j,k] - shift[i] + err[i] wn[k] + res[i] vn[k] + slack: an upper bound on
-    every row's margin per column (fmgs.query.state); err, res [M] float32, wn, vn [n]."""
+    """out[i,k] = sum_j A[i,j] W[k,j] - shift[i] + err[i] wn[k] + res[i] vn[k] + slack: an upper bound on
+    every row's margin per column (fmgs.query.state); W [n,r], err, res [M] float32, wn, vn [n]."""
     M, r = A.shape
-    n = W.shape[1]
+    n = W.shape[0]
     for i in numba.prange(M):
         for k in range(n):
             acc = np.float32(0.0)
             for j in range(r):
-                acc += np.float32(A[i, j]) * W[j, k]
+                acc += np.float32(A[i, j]) * W[k, j]
             out[i, k] = acc - shift[i] + err[i] * wn[k] + res[i] * vn[k] + slack
 
 
@@ -54,13 +55,48 @@ def half_scale_table(dtype=np.float32) -> np.ndarray:
     return np.array(mag + [-x for x in mag], dtype)
 
 
-@numba.njit(parallel=True, fastmath={"reassoc", "contract", "arcp"}, cache=True)
 def half_dots(
     A: np.ndarray, rows: np.ndarray, V: np.ndarray, P: np.ndarray, out: np.ndarray, mag: np.ndarray
-):  # pragma: no cover
+):
     """out[t,k] = float32 sum_j A[rows[t],j] V[k,j] and mag[t,k] = sum_j |A V| (any summation order), for
     A [M,D] float16 bits (uint16), V [n,D] float32, P = half_scale_table(). The rounding error of out is
-    at most (D+4) 2^-24 mag (the bound fmgs.query.index uses)."""
+    at most (D+4) 2^-24 mag (the bound fmgs.query.index uses). One column: decoding fused into the sum;
+    several: each row decoded once into a buffer."""
+    (_half_dots_one if V.shape[0] == 1 else _half_dots_many)(A, rows, V, P, out, mag)
+
+
+@numba.njit(parallel=True, fastmath={"reassoc", "contract", "arcp"}, cache=True)
+def _half_dots_many(A, rows, V, P, out, mag):  # pragma: no cover
+    """half_dots for several columns."""
+    m = rows.shape[0]
+    D = A.shape[1]
+    n = V.shape[0]
+    B = 64
+    for b in numba.prange((m + B - 1) // B):
+        buf = np.empty(D, np.float32)
+        for t in range(b * B, min(m, (b + 1) * B)):
+            r = rows[t]
+            for j in range(D):
+                h = np.int32(A[r, j])
+                i = h >> 10
+                mant = (h & 1023) | (1024 if (i & 31) != 0 else 0)
+                buf[j] = np.float32(mant) * P[i]
+            for k in range(n):
+                acc = np.float32(0.0)
+                aab = np.float32(0.0)
+                for j in range(D):
+                    p = buf[j] * V[k, j]
+                    acc += p
+                    aab += abs(p)
+                out[t, k] = acc
+                mag[t, k] = aab
+
+
+@numba.njit(parallel=True, fastmath={"reassoc", "contract", "arcp"}, cache=True)
+def _half_dots_one(
+    A: np.ndarray, rows: np.ndarray, V: np.ndarray, P: np.ndarray, out: np.ndarray, mag: np.ndarray
+):  # pragma: no cover
+    """half_dots for one column (decoding fused into the sum)."""
     m = rows.shape[0]
     D = A.shape[1]
     n = V.shape[0]

@@ -35,6 +35,15 @@ def _indexes(emb, canon):
     return {"exact": exact, "compact": compact}
 
 
+def _index(scene, path, monkeypatch):
+    """The index for ``path``: "exact", "compact", or "compact-refined" (every rescoring set goes
+    through the float32 refinement first)."""
+    emb, _, canon, _, _ = scene
+    if path == "compact-refined":
+        monkeypatch.setattr(index_mod, "REFINE_ABOVE", 0)
+    return _indexes(emb, canon)[path.split("-")[0]]
+
+
 def _same(a, ref):
     """Same rows in the same order; scores equal up to the float32 rounding of float64 values that two
     summation orders can leave (one float32 step of the margin, amplified at most 2^4 by the sigmoid)."""
@@ -55,9 +64,7 @@ def test_query_sets_span_the_range(scene):
 @pytest.mark.parametrize("k", [1, 7, 100, 1000, M])
 def test_top_k_equals_brute_force_on_every_query_set(scene, path, k, monkeypatch):
     emb, _, canon, _, sets = scene
-    if path == "compact-refined":  # every rescoring set goes through the float32 refinement first
-        monkeypatch.setattr(index_mod, "REFINE_ABOVE", 0)
-    idx = _indexes(emb, canon)[path.split("-")[0]]
+    idx = _index(scene, path, monkeypatch)
     for name in QUERY_SETS:
         for q in sets[name]:
             a = idx.rank(q, k)
@@ -88,9 +95,7 @@ def test_ties_at_the_kth_place_break_by_row(scene, path):
 @pytest.mark.parametrize("path", ["exact", "compact", "compact-refined"])
 def test_threshold_queries_are_certified(scene, path, monkeypatch):
     emb, _, canon, _, sets = scene
-    if path == "compact-refined":
-        monkeypatch.setattr(index_mod, "REFINE_ABOVE", 0)
-    idx = _indexes(emb, canon)[path.split("-")[0]]
+    idx = _index(scene, path, monkeypatch)
     for name in ("clip", "typical", "absent"):
         for q in sets[name][:3]:
             ref_all = rank_reference(emb, canon, q, M)
@@ -103,9 +108,7 @@ def test_threshold_queries_are_certified(scene, path, monkeypatch):
 @pytest.mark.parametrize("path", ["exact", "compact", "compact-refined"])
 def test_custom_canonical_and_batches(scene, path, monkeypatch):
     emb, _, canon, canon_vecs, sets = scene
-    if path == "compact-refined":
-        monkeypatch.setattr(index_mod, "REFINE_ABOVE", 0)
-    idx = _indexes(emb, canon)[path.split("-")[0]]
+    idx = _index(scene, path, monkeypatch)
     other = safe_normalize(torch.randn(3, D, generator=torch.Generator().manual_seed(8)))
     q = torch.cat([sets["clip"], sets["near"]])
     for cv, cdots in ((canon_vecs, canon), (other, emb @ other.T)):

@@ -6,8 +6,7 @@ at a fraction of the cost. The answer is the exact top K by (margin descending, 
 rows with margin >= m_min, found by rescoring exactly only the rows whose upper bound reaches the
 current K-th exact margin:
 
-1. rescore the ``first`` rows of highest upper bound; L = max(m_min, K-th exact margin among them,
-   K-th largest lower bound over all rows);
+1. rescore the ``first`` rows of highest upper bound; L = max(m_min, K-th exact margin among them);
 2. rescore every other row whose upper bound is >= L; when there are many, first bound them more tightly
    and cheaply (``refine``: a float32 pass over the stored rows), raise L with the refined lower bounds,
    and rescore exactly only the rows whose refined upper bound still reaches it.
@@ -74,15 +73,13 @@ def certify_start(
     exact: ExactScorer,
     m_min: float = -math.inf,
     first: int = 0,
-    lower: torch.Tensor | None = None,
 ) -> Pending:
     """Step 1: rescore the ``first`` rows of highest upper bound (at least k), find L and what remains."""
     up = upper.detach().cpu()
     n1 = min(len(up), max(int(first), k))
     rows1 = torch.topk(up, n1, sorted=False).indices.sort().values
     m1 = exact(rows1)
-    low = kth_largest(lower.detach().cpu(), k) if lower is not None else -math.inf
-    L = max(m_min, kth_largest(m1, k), low)
+    L = max(m_min, kth_largest(m1, k))
     need = up >= L
     need[rows1] = False
     return Pending(rows1, m1, L, need.nonzero()[:, 0])
@@ -116,20 +113,19 @@ def certified_top_k(
     k: int,
     exact: ExactScorer,
     m_min: float = -math.inf,
-    lower: torch.Tensor | None = None,
     first: int = 0,
     refine: Refiner | None = None,
     refine_above: int = 4096,
 ) -> Certified:
     """Exact top ``k`` rows by margin among rows with margin >= m_min (see the module docstring).
 
-    upper [M] (and lower [M], default none) bound every row's exact margin; ``exact`` computes it;
+    upper [M] bounds every row's exact margin from above; ``exact`` computes it;
     ``refine`` (optional) bounds rows tightly, used when more than ``refine_above`` rows remain.
     """
     k = max(0, min(int(k), len(upper)))
     if k == 0:
         return Certified(torch.zeros(0, dtype=torch.int64), torch.zeros(0, dtype=torch.float64), 0)
-    p = certify_start(upper, k, exact, m_min, first, lower)
+    p = certify_start(upper, k, exact, m_min, first)
     refined = refine(p.rows2) if refine is not None and len(p.rows2) > refine_above else None
     return certify_finish(p, k, exact, m_min, refined)
 

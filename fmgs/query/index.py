@@ -16,6 +16,7 @@ basis vectors describe the scene's embeddings in the query's direction (benchmar
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
 from typing import NamedTuple
 
@@ -59,6 +60,19 @@ def served_relevancy(margin: torch.Tensor) -> torch.Tensor:
     return torch.sigmoid(TEMPERATURE * margin)
 
 
+@functools.lru_cache(maxsize=256)
+def _threshold_margin(threshold: float) -> float:
+    """threshold_margin for the served relevancy (a bisection: computed once per threshold)."""
+    return threshold_margin(threshold, served_relevancy)
+
+
+def _check_finite(values: torch.Tensor, rows: np.ndarray) -> None:
+    """ValidationError naming the first stored row whose scores [k,n] are not finite (a damaged package)."""
+    if not bool(torch.isfinite(values).all()):
+        bad = int(rows[int((~torch.isfinite(values)).any(1).nonzero()[0, 0])])
+        raise ValidationError("embeddings", f"row {bad} is not finite: the package is damaged")
+
+
 class EmbeddingIndex:
     """Scores every embedded Gaussian against query vectors; see the module docstring."""
 
@@ -86,6 +100,10 @@ class EmbeddingIndex:
         self.read_rows = read_rows
         self.half = half
         """[M,D] uint16: the stored float16 embeddings' bits (compact path), scored by numba kernels."""
+        if half is not None:
+            from fmgs.query.kernels import half_scale_table
+
+            self._P32, self._P64 = half_scale_table(), half_scale_table(np.float64)
         self.cfg = cfg
         if state is not None:
             self.coeffs = state.codes
@@ -179,10 +197,13 @@ class EmbeddingIndex:
         if self.state is None:
             d = self.coeffs @ v.T
             return d if shift is None else d - shift[:, None]
+        return self._int8(self._weights(v)[0], shift)
+
+    def _int8(self, W: torch.Tensor, shift: torch.Tensor | None) -> torch.Tensor:
+        """[M,n] compact f.v - shift from kernel weights W [n,r]."""
         from fmgs.query.kernels import int8_dots
 
-        W, _, _ = self._weights(v)
-        out = np.empty((self.num, len(v)), np.float32)
+        out = np.empty((self.num, len(W)), np.float32)
         sh = np.zeros(self.num, np.float32) if shift is None else shift.float().contiguous().numpy()
         int8_dots(self.coeffs.numpy(), W.numpy(), sh, out)
         return torch.from_numpy(out)
@@ -192,9 +213,10 @@ class EmbeddingIndex:
         if self.state is None:
             a = self.dots(v, shift)
             return a, torch.full((1, len(v)), self.slack, device=a.device)
-        _, wn, vn = self._weights(v)
-        a = self.dots(v, shift)
-        return a, self._err[:, None] * wn[None] + self._res[:, None] * vn[None] + self.slack
+        W, wn, vn = self._weights(v.float())
+        return self._int8(W, shift), self._err[:, None] * wn[None] + self._res[:, None] * vn[
+            None
+        ] + self.slack
 
     def _upper(self, q: torch.Tensor, canonical_vectors: torch.Tensor | None) -> torch.Tensor:
         """[M,n] upper bounds on the margins of queries q [n,D]."""
@@ -225,11 +247,9 @@ class EmbeddingIndex:
         uniq, inv = np.unique(r, return_inverse=True)
         out = torch.empty(len(uniq), len(v64), dtype=torch.float64, device=self.device)
         if self.half is not None:  # float64 in a fixed order from the float16 bits (no float64 copy)
-            from fmgs.query.kernels import half_dots64, half_scale_table
+            from fmgs.query.kernels import half_dots64
 
-            half_dots64(
-                self.half, uniq.astype(np.int64), v64.numpy(), half_scale_table(np.float64), out.numpy()
-            )
+            half_dots64(self.half, uniq.astype(np.int64), v64.numpy(), self._P64, out.numpy())
         for s in range(0, len(uniq) if self.half is None else 0, RESCORE_CHUNK):
             part = uniq[s : s + RESCORE_CHUNK]
             if self.state is None:
@@ -237,9 +257,7 @@ class EmbeddingIndex:
             else:
                 f = self.read_rows(part)
             out[s : s + len(part)] = f.double() @ v64.T
-        if not bool(torch.isfinite(out).all()):
-            bad = int(uniq[int((~torch.isfinite(out)).any(1).nonzero()[0, 0])])
-            raise ValidationError("embeddings", f"row {bad} is not finite: the package is damaged")
+        _check_finite(out, uniq)
         return out[torch.from_numpy(inv).to(self.device)]
 
     def _refine_pending(self, pending: list, q: torch.Tensor, cv: torch.Tensor | None) -> dict:
@@ -266,7 +284,7 @@ class EmbeddingIndex:
         """Float64 lower and upper bounds [k,n] on the margins of sorted rows [k] for queries q [n,D] from
         one float32 pass over their float16 embeddings (half_dots: rounding at most (D+4) 2^-24
         sum|f_j v_j| per dot); cv [C,D] custom canonical vectors, or None for the stored maxima."""
-        from fmgs.query.kernels import half_dots, half_scale_table
+        from fmgs.query.kernels import half_dots
 
         n = len(q)
         vecs = q if cv is None else torch.cat([q, cv])
@@ -274,12 +292,10 @@ class EmbeddingIndex:
         v = vecs.float().contiguous().numpy()
         out = np.empty((len(r), len(v)), np.float32)
         mag = np.empty((len(r), len(v)), np.float32)
-        half_dots(self.half, r, v, half_scale_table(), out, mag)
+        half_dots(self.half, r, v, self._P32, out, mag)
         d = torch.from_numpy(out).double()
         e = torch.from_numpy(mag).double() * ((self.half.shape[1] + 4) * _U32) + 1e-12
-        if not bool(torch.isfinite(d).all()):
-            bad = int(r[int((~torch.isfinite(d)).any(1).nonzero()[0, 0])])
-            raise ValidationError("embeddings", f"row {bad} is not finite: the package is damaged")
+        _check_finite(d, r)
         if cv is None:
             m = d - self.canonical_max.double()[rows][:, None]
             return m - e, m + e
@@ -318,7 +334,7 @@ class EmbeddingIndex:
         q = queries.float().to(self.device)
         cv = None if canonical_vectors is None else canonical_vectors.float().to(self.device)
         upper = self._upper(q, cv)
-        m_min = threshold_margin(threshold, served_relevancy)
+        m_min = _threshold_margin(float(threshold))
         # First candidates: rerank * k, but at most REFINE_ABOVE beyond k (a large k would pay float64
         # rescoring for rows the refinement pass settles more cheaply).
         first = k if self.state is None else min(M, max(k, min(self.cfg.rerank * k, k + REFINE_ABOVE)))

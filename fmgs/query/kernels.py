@@ -55,6 +55,15 @@ def half_scale_table(dtype=np.float32) -> np.ndarray:
     return np.array(mag + [-x for x in mag], dtype)
 
 
+@numba.njit(inline="always", cache=True)
+def _half_parts(bits):  # pragma: no cover
+    """A float16's (integer mantissa with its implicit bit, sign-and-exponent index into
+    half_scale_table) from its bits: the value is mantissa * table[index], exactly."""
+    h = np.int32(bits)
+    i = h >> 10
+    return (h & 1023) | (1024 if (i & 31) != 0 else 0), i
+
+
 def half_dots(
     A: np.ndarray, rows: np.ndarray, V: np.ndarray, P: np.ndarray, out: np.ndarray, mag: np.ndarray
 ):
@@ -77,9 +86,7 @@ def _half_dots_many(A, rows, V, P, out, mag):  # pragma: no cover
         for t in range(b * B, min(m, (b + 1) * B)):
             r = rows[t]
             for j in range(D):
-                h = np.int32(A[r, j])
-                i = h >> 10
-                mant = (h & 1023) | (1024 if (i & 31) != 0 else 0)
+                mant, i = _half_parts(A[r, j])
                 buf[j] = np.float32(mant) * P[i]
             for k in range(n):
                 acc = np.float32(0.0)
@@ -106,9 +113,7 @@ def _half_dots_one(
             acc = np.float32(0.0)
             aab = np.float32(0.0)
             for j in range(D):
-                h = np.int32(A[r, j])
-                i = h >> 10
-                mant = (h & 1023) | (1024 if (i & 31) != 0 else 0)
+                mant, i = _half_parts(A[r, j])
                 p = (np.float32(mant) * P[i]) * V[k, j]
                 acc += p
                 aab += abs(p)
@@ -131,8 +136,6 @@ def half_dots64(
         for k in range(n):
             acc = 0.0
             for j in range(D):
-                h = np.int32(A[r, j])
-                i = h >> 10
-                mant = (h & 1023) | (1024 if (i & 31) != 0 else 0)
+                mant, i = _half_parts(A[r, j])
                 acc += (np.float64(mant) * P[i]) * V[k, j]
             out[t, k] = acc

@@ -18,7 +18,6 @@ the embeddings beside it is refused and rebuilt in memory.
 from __future__ import annotations
 
 import hashlib
-import json
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -194,8 +193,3 @@ def load_state(path: Path, num: int, dim: int, source: str) -> QueryState:
     if not np.isfinite(cmax) or cmax < 0:
         raise ValidationError(where, "code_norm_max must be finite and non-negative")
     return QueryState(small["basis"], small["scales"], codes, small["err_norm"], small["res_norm"], cmax)
-
-
-def describe(state: QueryState) -> str:
-    """One line for logs."""
-    return json.dumps({"rank": state.rank, "num": state.num, "bytes_per_row": state.rank + 4})

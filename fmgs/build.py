@@ -80,7 +80,9 @@ def extract_features(ds, cache_dir: Path, spec: TargetSpec, device: str, progres
     from fmgs.features.extract import ExtractConfig, extract_labels, extract_targets, read_label_names
     from fmgs.features.text import load_text_encoder
 
-    ecfg = ExtractConfig(feature_scale=spec.feature_scale, device=device, progress=progress)
+    ecfg = ExtractConfig(
+        feature_scale=spec.feature_scale, feature_side=spec.feature_side, device=device, progress=progress
+    )
     if spec.kind == "labels":
         names = read_label_names(spec.names or ds.root / "scene.json")
         enc = load_text_encoder(spec.text_encoder, device=device)

@@ -7,6 +7,7 @@ import dataclasses
 from dataclasses import dataclass
 
 from fmgs.features.models import DEFAULT_CLIP_ID, DEFAULT_DINO_ID, MINILM_ID
+from fmgs.features.sizes import FEATURE_SIDE, check_feature_scale
 from fmgs.scene.manifest import FIELD_DTYPES, MODELS
 from fmgs.sfm_config import SfMConfig
 from fmgs.train.config import FieldTrainConfig, GSTrainConfig
@@ -32,14 +33,15 @@ class TargetSpec:
     """scene.json (or a folder holding it) with label_names (kind "labels"); default DATA/scene.json."""
     text_encoder: str = MINILM_ID
     """Text encoder id for label names (kind "labels")."""
-    feature_scale: float = 0.25
-    """Feature maps at this fraction of the image resolution."""
+    feature_scale: float | None = None
+    """Feature maps at this fraction of the image resolution; none (default): sized by feature_side."""
+    feature_side: int = FEATURE_SIDE
+    """Longer side of the feature maps in pixels when feature_scale is none (smaller images: full size)."""
 
     def __post_init__(self) -> None:
         if self.kind not in TARGET_KINDS:
             raise ValueError(f"targets kind must be one of {TARGET_KINDS}, got {self.kind!r}")
-        if not 0 < self.feature_scale <= 1:
-            raise ValueError(f"feature_scale must lie in (0, 1], got {self.feature_scale}")
+        check_feature_scale(self.feature_scale, self.feature_side)
 
 
 @dataclass(frozen=True)

@@ -210,6 +210,7 @@ BUILD_ALIASES = {
             "names",
             "text_encoder",
             "feature_scale",
+            "feature_side",
         )
     },
     "field.per_gaussian": "--per-gaussian",

@@ -67,6 +67,11 @@ def test_defaults_are_the_dataclasses():
     tf = _args("train-field", "D", "--gaussians", "g", "--features", "f", "--out", "o", "--device", "cpu")
     assert cli._field_config(tf) == FieldTrainConfig()
     assert cli._target_spec(_args("features", "D", "--out", "O")) == TargetSpec()
+    spec = cli._target_spec(_args("features", "D", "--out", "O", "--feature-side", "640"))
+    assert spec == TargetSpec(feature_side=640) and spec.feature_scale is None
+    spec = cli._target_spec(_args("features", "D", "--out", "O", "--feature-scale", "0.5"))
+    assert spec.feature_scale == 0.5
+    assert cli._target_spec(_args("features", "D", "--out", "O", "--feature-scale", "none")) == TargetSpec()
 
 
 def test_train_gs_short_flags_and_tuples():

@@ -573,6 +573,30 @@ def test_extract_labels_on_synthetic_scene(synth_scene, minilm, tmp_path):
     assert before == {p.name: p.stat().st_mtime_ns for p in (tmp_path / "c").glob("*.safetensors")}
 
 
+def test_map_size_is_a_resolution_in_pixels_by_default():
+    from fmgs.cameras import Camera
+    from fmgs.features.extract import feature_size
+    from fmgs.features.sizes import FEATURE_SIDE, feature_scale_for
+
+    def cam(w, h):
+        K = torch.tensor([[w / 2, 0, w / 2], [0, w / 2, h / 2], [0, 0, 1.0]], dtype=torch.float64)
+        return Camera(K, torch.eye(4, dtype=torch.float64), w, h)
+
+    assert FEATURE_SIDE == 320
+    assert feature_size(cam(64, 48), None) == (48, 64)  # small images: full size, never upsampled
+    assert feature_size(cam(160, 120), None) == (120, 160)  # the 0.25 default made 30x40 here
+    assert feature_size(cam(3840, 2160), None) == (180, 320)  # 4K: 320 on the longer side
+    assert feature_size(cam(1080, 1920), None) == (320, 180)  # portrait
+    assert feature_size(cam(3840, 2160), None, 640) == (360, 640)
+    assert feature_size(cam(160, 120), 0.25) == (30, 40)  # a fixed fraction still wins when given
+    assert feature_scale_for(640, 480, None) == 0.5
+    for bad in (0.0, -0.5, 1.5):
+        with pytest.raises(ValidationError, match="feature_scale"):
+            ExtractConfig(feature_scale=bad)
+    with pytest.raises(ValidationError, match="feature_side"):
+        ExtractConfig(feature_side=0)
+
+
 def test_extract_targets_clip_and_dino(synth_scene, tiny_clip, tiny_vit, tmp_path):
     from fmgs.data.dataset import load_dataset
 

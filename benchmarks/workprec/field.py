@@ -30,13 +30,21 @@ class FieldRun:
         return f"s{self.steps}-f{self.feature_scale}-t{self.log2_table}-l{self.levels}"
 
 
-def field_runs(sz: FieldSizes) -> dict[FieldRun, list[tuple[str, str]]]:
-    """Every run with the (curve, label) pairs it is a point of; defaults: the paper (feature maps at
-    fmgs build's 0.25 of the image)."""
+def default_feature_scale(scene: SceneSizes) -> float:
+    """The feature-map scale fmgs build picks for the scene's images."""
     from fmgs.build import TargetSpec
+    from fmgs.features.sizes import feature_scale_for
+
+    t = TargetSpec()
+    return feature_scale_for(scene.width, scene.height, t.feature_scale, t.feature_side)
+
+
+def field_runs(sz: FieldSizes, fs: float) -> dict[FieldRun, list[tuple[str, str]]]:
+    """Every run with the (curve, label) pairs it is a point of; defaults: the paper's field with
+    fmgs build's feature-map scale ``fs``."""
     from fmgs.field.hashgrid import HashGridConfig
 
-    g, fs = HashGridConfig(), TargetSpec().feature_scale
+    g = HashGridConfig()
     runs: dict[FieldRun, list[tuple[str, str]]] = {}
     for s in sz.steps:
         runs.setdefault(FieldRun(s, fs, g.log2_table, g.levels), []).append(("training steps", f"{s}"))
@@ -51,7 +59,7 @@ def field_runs(sz: FieldSizes) -> dict[FieldRun, list[tuple[str, str]]]:
 
 
 def section(sz: FieldSizes, scene: SceneSizes, work: Path) -> dict:
-    from fmgs.build import TargetSpec, package_from_field
+    from fmgs.build import package_from_field
     from fmgs.data.dataset import load_dataset
     from fmgs.features.extract import ExtractConfig, extract_labels, read_label_names
     from fmgs.features.text import MiniLMTextEncoder
@@ -66,11 +74,11 @@ def section(sz: FieldSizes, scene: SceneSizes, work: Path) -> dict:
     ds, g, enc = load_dataset(data), read_ply(fit.ply), MiniLMTextEncoder()
     names = read_label_names(data)
     _, test = ds.split(8)
-    paper, g0, fs0 = FieldTrainConfig(), HashGridConfig(), TargetSpec().feature_scale
+    paper, g0, fs0 = FieldTrainConfig(), HashGridConfig(), default_feature_scale(scene)
     caches = {}
     points = []
     warm = True
-    for run, memberships in field_runs(sz).items():
+    for run, memberships in field_runs(sz, fs0).items():
         if run.feature_scale not in caches:
             caches[run.feature_scale] = extract_labels(
                 ds,

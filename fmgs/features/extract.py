@@ -1,7 +1,7 @@
 """Drivers that fill a feature cache from a posed dataset (resumable: done images are skipped).
 
-Map sizes follow ``Frame.camera.scaled(feature_scale)``, so a trainer rendering with the same scaled
-camera gets pixel-aligned targets.
+Map sizes follow ``Frame.camera.scaled(scale)`` (``feature_size``), so a trainer rendering with the same
+scaled camera gets pixel-aligned targets.
 """
 
 from __future__ import annotations
@@ -23,6 +23,7 @@ from fmgs.features.clip import ImageEncoder
 from fmgs.features.dino import DinoEncoder
 from fmgs.features.labels import label_embedding_map
 from fmgs.features.pyramid import PyramidConfig, hybrid_map
+from fmgs.features.sizes import FEATURE_SIDE, check_feature_scale, feature_scale_for
 from fmgs.features.text import TextEncoder
 
 
@@ -30,8 +31,11 @@ from fmgs.features.text import TextEncoder
 class ExtractConfig:
     """How target maps are extracted."""
 
-    feature_scale: float = 0.25
-    """Stored maps are this fraction of the full image size per axis (rounded like Camera.scaled)."""
+    feature_scale: float | None = None
+    """Stored maps are this fraction of the full image size per axis (rounded like Camera.scaled);
+    None: the fraction that makes the map's longer side ``feature_side`` pixels (1 for smaller images)."""
+    feature_side: int = FEATURE_SIDE
+    """Longer side of the stored maps in pixels when ``feature_scale`` is None."""
     image_scale: float = 1.0
     """Fraction of the full resolution the CLIP crops and the DINO input are taken from."""
     device: str = "cpu"
@@ -40,13 +44,16 @@ class ExtractConfig:
     """Show a progress bar over images."""
 
     def __post_init__(self) -> None:
-        if not 0.0 < self.feature_scale <= 1.0 or not 0.0 < self.image_scale <= 1.0:
-            raise ValidationError("feature_scale/image_scale", "must lie in (0, 1]")
+        check_feature_scale(self.feature_scale, self.feature_side)
+        if not 0.0 < self.image_scale <= 1.0:
+            raise ValidationError("image_scale", f"must lie in (0, 1], got {self.image_scale}")
 
 
-def feature_size(camera: Camera, feature_scale: float) -> tuple[int, int]:
+def feature_size(
+    camera: Camera, feature_scale: float | None, feature_side: int = FEATURE_SIDE
+) -> tuple[int, int]:
     """(h, w) of the stored maps for a full-resolution ``camera``."""
-    c = camera.scaled(feature_scale)
+    c = camera.scaled(feature_scale_for(camera.width, camera.height, feature_scale, feature_side))
     return c.height, c.width
 
 
@@ -79,7 +86,7 @@ def extract_targets(
             frame = ds.frames[i]
             image, _ = ds.image(i, cfg.image_scale)
             image = image.to(cfg.device)
-            hw = feature_size(frame.camera, cfg.feature_scale)
+            hw = feature_size(frame.camera, cfg.feature_scale, cfg.feature_side)
             clip = hybrid_map(clip_encoder, image, pyramid, hw)
             dino = dino_encoder.dense(image, hw) if dino_encoder is not None else None
             writer.add(frame.name, clip=clip, dino=dino)
@@ -146,6 +153,8 @@ def extract_labels(
         ):
             frame = ds.frames[i]
             lab = read_label_map(label_path(frame), frame.camera.width, frame.camera.height).to(cfg.device)
-            t = label_embedding_map(lab, emb, feature_size(frame.camera, cfg.feature_scale), ignore)
+            t = label_embedding_map(
+                lab, emb, feature_size(frame.camera, cfg.feature_scale, cfg.feature_side), ignore
+            )
             writer.add(frame.name, clip=t.clip, mask=t.mask)
     return FeatureCache.open(cache_dir)

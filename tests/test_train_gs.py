@@ -128,6 +128,7 @@ def test_random_initialisation_is_announced(tiny_scene, caplog):
         g = _init_only(ds, GSTrainConfig(random_init=500))
     assert g.num == 500
     assert any(
-        "no sparse points" in r.getMessage() and "500 random Gaussians" in r.getMessage()
+        "no sparse points" in r.getMessage()
+        and "500 random Gaussians in the cameras' common view" in r.getMessage()
         for r in caplog.records
     )

@@ -18,6 +18,7 @@ import numpy as np
 import torch
 
 from fmgs.data.dataset import PosedDataset
+from fmgs.errors import ValidationError
 from fmgs.gaussians import SH_C0, GaussianSet, num_sh_bases
 from fmgs.io.atomic import atomic_path
 from fmgs.io.ply import write_ply
@@ -57,17 +58,8 @@ def init_params(ds: PosedDataset, cfg: GSTrainConfig, g: torch.Generator) -> dic
             pick = np.random.default_rng(cfg.seed).choice(len(pts), cfg.max_init_points, replace=False)
             pts, cols = pts[pick], cols[pick]
     else:
-        lo, hi = ds.bounds()
-        log.warning(
-            "%s has no sparse points: starting from %d random Gaussians in the box %s..%s, which the cameras "
-            "span; held-out quality can be far lower (13 dB against 31 dB with points on a tabletop capture "
-            "whose cameras all looked down from above it); give the dataset points (COLMAP points3D or a "
-            "transforms.json ply_file_path)",
-            ds.root, cfg.random_init, np.round(lo, 3).tolist(), np.round(hi, 3).tolist(),
-        )  # fmt: skip
-        rng = np.random.default_rng(cfg.seed)
-        pts = rng.uniform(lo, hi, size=(cfg.random_init, 3))
-        cols = rng.uniform(0, 1, size=(cfg.random_init, 3))
+        pts = _viewed_init(ds, cfg)
+        cols = np.random.default_rng(cfg.seed).uniform(0, 1, size=(len(pts), 3))
     d2, _ = cKDTree(pts).query(pts, k=4)
     scale = np.sqrt((d2[:, 1:] ** 2).mean(1)).clip(1e-7)
     n = len(pts)
@@ -81,6 +73,30 @@ def init_params(ds: PosedDataset, cfg: GSTrainConfig, g: torch.Generator) -> dic
         "sh_dc": ((f(cols) - 0.5) / SH_C0)[:, None, :],
         "sh_rest": torch.zeros(n, k - 1, 3),
     }
+
+
+def _viewed_init(ds: PosedDataset, cfg: GSTrainConfig) -> np.ndarray:
+    """[random_init,3] points in the cameras' common view (fmgs.train.viewed), announced; a dataset
+    whose cameras share no view is refused with what to supply."""
+    from fmgs.train.viewed import viewed_points
+
+    try:
+        vol = viewed_points([f.camera for f in ds.frames], cfg.random_init, cfg.seed)
+    except ValidationError as e:
+        raise ValidationError(
+            str(ds.root),
+            f"has no sparse points and no volume to start from: {e.field} {e.reason}; give the dataset "
+            "points (COLMAP points3D, or a transforms.json ply_file_path), or build from the photos so "
+            "that structure from motion makes them",
+        ) from e
+    log.warning(
+        "%s has no sparse points: starting from %d random Gaussians in the cameras' common view "
+        "(around %s, seen by %d-%d of %d cameras); points from structure from motion usually train "
+        "better and faster",
+        ds.root, len(vol.points), np.round(vol.focus, 3).tolist(), int(vol.seen_by.min()),
+        int(vol.seen_by.max()), len(ds.frames),
+    )  # fmt: skip
+    return vol.points
 
 
 def _make_optimizer(params: dict[str, torch.nn.Parameter], cfg: GSTrainConfig, extent: float):

@@ -153,6 +153,10 @@ def cmd_info(client: FmgsClient, args: argparse.Namespace) -> int:
 
 def _print_answer(a: TextAnswer, rows: int) -> None:
     print(f"{a.text!r}: {len(a)} Gaussians, {a.elapsed_ms:.1f} ms")
+    p = a.presence
+    if p is not None:
+        verdict = "found" if p.found else f"NOT FOUND (the scene has {p.rival!r} there)"
+        print(f"presence {p.score:.3f}: {verdict}")
     n = min(rows, len(a))
     if n:
         table = []

@@ -22,6 +22,7 @@ from fmgs_client.types import (
     Instance,
     Pixel,
     PointResult,
+    Presence,
     RenderResult,
     SceneInfo,
     SegmentResult,
@@ -146,6 +147,7 @@ def assemble_text_answers(
                 raise ChunkError(f"text[{i}].{n}: {len(arr)} rows for {st.rows} indices")
         try:
             instances = tuple(Instance.from_proto(m) for m in st.first.instances)
+            presence = Presence.from_proto(st.first.presence) if st.first.HasField("presence") else None
         except ValueError as e:
             raise ChunkError(f"text[{i}]: {e}") from None
         answers.append(
@@ -157,6 +159,7 @@ def assemble_text_answers(
                 instances=instances,
                 elapsed_ms=float(st.first.elapsed_ms),
                 rescored=int(st.first.rescored),
+                presence=presence,
             )
         )
     return answers

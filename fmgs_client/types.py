@@ -141,6 +141,28 @@ class Instance:
         )
 
 
+@dataclass(frozen=True)
+class Presence:
+    """Is the queried thing in the scene? (server-side: fmgs.query.presence)"""
+
+    score: float
+    """In [0,1]: sigmoid(10 * margin)."""
+    found: bool
+    """False is the "not found" answer: at the query's best Gaussians some name the query does not
+    mean (``rival``) fits better than the query."""
+    margin: float
+    """Best f.q - max f.n over the query's best Gaussians."""
+    rival: str
+    """The name that decided the margin at the best Gaussian."""
+
+    @classmethod
+    def from_proto(cls, m: pb.Presence) -> Presence:
+        """Convert a wire ``Presence``; a score outside [0,1] or a non-finite margin is refused."""
+        if not (0.0 <= m.score <= 1.0) or not math.isfinite(m.margin):
+            raise ValueError(f"presence: score {m.score} must lie in [0,1] and margin {m.margin} be finite")
+        return cls(float(m.score), bool(m.found), float(m.margin), str(m.rival))
+
+
 @dataclass(frozen=True, eq=False)
 class TextAnswer:
     """The answer to one text: K Gaussians, most relevant first, and optional per-Gaussian arrays.
@@ -175,6 +197,14 @@ class TextAnswer:
     rescored: int = 0
     """Gaussians the server scored exactly to certify that this is the exact top-k (0 from servers that
     do not report it)."""
+    presence: Presence | None = None
+    """Whether the queried thing is in the scene (None when the server does not say: older servers, or
+    its text encoder is not available there)."""
+
+    @property
+    def found(self) -> bool | None:
+        """``presence.found``, or None when the server did not say."""
+        return None if self.presence is None else self.presence.found
 
     def __len__(self) -> int:
         return len(self.index)

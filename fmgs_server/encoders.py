@@ -15,11 +15,15 @@ from fmgs_server.errors import FailedPrecondition
 class EncoderCache:
     """``embed(encoder_id, texts) -> [n,D]`` float32 unit rows; ``factory(id)`` loads an encoder."""
 
+    MAX_NEGATIVE_SETS = 64
+    """Presence negative sets kept (one per encoder and label-name list, ~0.5 MB each at 512-D)."""
+
     def __init__(self, factory: Callable[[str], object], max_texts: int = 4096) -> None:
         self.factory = factory
         self.max_texts = max_texts
         self._encoders: dict[str, object] = {}
         self._cache: dict[str, OrderedDict[str, torch.Tensor]] = {}
+        self._negatives: dict[tuple[str, tuple[str, ...]], torch.Tensor] = {}
         self._lock = threading.Lock()
         self._load_lock = threading.Lock()
 
@@ -34,6 +38,27 @@ class EncoderCache:
                 self._encoders[encoder_id] = enc
                 self._cache[encoder_id] = OrderedDict()
             return enc
+
+    def negatives(self, encoder_id: str, names: tuple[str, ...]) -> torch.Tensor | None:
+        """[V,D] embeddings of a scene's presence negatives (fmgs.query.presence.negative_names), kept
+        per encoder and name list apart from the query cache (a scene asks for the same list each time);
+        None when the encoder is not available here."""
+        key = (encoder_id, names)
+        with self._lock:
+            hit = self._negatives.get(key)
+        if hit is not None:
+            return hit
+        try:
+            enc = self.encoder(encoder_id)
+        except FailedPrecondition:
+            return None
+        with torch.no_grad():
+            vecs = enc.encode_text(list(names)).float().cpu()
+        with self._lock:
+            self._negatives[key] = vecs
+            while len(self._negatives) > self.MAX_NEGATIVE_SETS:
+                self._negatives.pop(next(iter(self._negatives)))
+        return vecs
 
     def embed(self, encoder_id: str, texts: list[str]) -> torch.Tensor:
         enc = self.encoder(encoder_id)

@@ -57,9 +57,17 @@ def scene_info(slot: SceneSlot, manifest: Manifest | None) -> pb.SceneInfo:
 
 
 def text_chunks(
-    engine: SceneEngine, i: int, text: str, a: TextAnswer, fields: set[int], ms: float, chunk_bytes: int
+    engine: SceneEngine,
+    i: int,
+    text: str,
+    a: TextAnswer,
+    fields: set[int],
+    ms: float,
+    chunk_bytes: int,
+    negatives: tuple[str, ...] = (),
 ) -> Iterator[pb.TextQueryChunk]:
-    """The chunks of text ``i``'s answer: index and relevancy always, the asked-for columns."""
+    """The chunks of text ``i``'s answer: index and relevancy always, the asked-for columns, presence
+    (its rival named from ``negatives``) when it was computed."""
     idx = a.index
     cols: dict[str, np.ndarray] = {"index": idx.numpy(), "relevancy": a.relevancy.numpy()}
     if pb.GAUSSIAN_FIELD_SIMILARITY in fields:
@@ -74,6 +82,12 @@ def text_chunks(
         if n == 0:
             chunk.text, chunk.total, chunk.elapsed_ms = text, len(idx), ms
             chunk.rescored = a.rescored
+            if a.presence is not None:
+                p = a.presence
+                rival = negatives[p.rival] if 0 <= p.rival < len(negatives) else ""
+                chunk.presence.CopyFrom(
+                    pb.Presence(score=p.score, found=p.found, margin=p.margin, rival=rival)
+                )
             chunk.instances.extend(convert.instance(j, x) for j, x in enumerate(a.instances))
         for name, c in cols.items():
             getattr(chunk, name).CopyFrom(to_tensor(c[s:e]))

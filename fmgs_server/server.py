@@ -14,6 +14,7 @@ from grpc_health.v1 import health, health_pb2, health_pb2_grpc
 from grpc_reflection.v1alpha import reflection
 
 from fmgs.query.engine import EngineConfig, SceneEngine
+from fmgs.query.presence import negative_names
 from fmgs_server.auth import TokenAuth, read_tokens
 from fmgs_server.config import ServerConfig
 from fmgs_server.encoders import EncoderCache
@@ -168,6 +169,7 @@ def start_server(cfg: ServerConfig, encoder_factory=None) -> RunningServer:
             try:
                 engine = repo.get(slot.name)
                 encoders.encoder(engine.encoder_id)
+                encoders.negatives(engine.encoder_id, tuple(negative_names(engine.manifest.label_names)))
                 log.info("scene %s: kernels warmed up in %.1f s", slot.name, engine.warm_up())
             except Exception as e:  # reported per scene in the listing and health
                 log.warning("preload of %s failed: %s", slot.name, e)

@@ -15,6 +15,7 @@ import torch
 from fmgs.errors import FmgsError
 from fmgs.query.points import query_points
 from fmgs.query.pose import render_pose
+from fmgs.query.presence import negative_names
 from fmgs.query.segment import segment
 from fmgs.scene.manifest import Manifest
 from fmgs_server import budget, convert, responses
@@ -106,14 +107,16 @@ class FmgsService(pb_grpc.FmgsServicer):
             else:
                 q = self.encoders.embed(engine.encoder_id, values)
             canon = self._canonical(engine, request.canonical_phrases)
+            names = tuple(negative_names(engine.manifest.label_names))
+            negs = self.encoders.negatives(engine.encoder_id, names)
             n = len(values)
             t0 = time.perf_counter()
             between = lambda i: stop_if_gone(context, f"text {i} of {n}")  # noqa: E731
-            many = engine.text_query_many(q, k, thr, canon, inst_cfg, between)  # one pass for all texts
+            many = engine.text_query_many(q, k, thr, canon, inst_cfg, between, negs)  # one pass for all texts
             ms = (time.perf_counter() - t0) * 1e3 / max(1, len(values))
             answers = [(i, text, a, ms) for i, (text, a) in enumerate(zip(values, many, strict=True))]
         for i, text, a, ms in answers:
-            yield from responses.text_chunks(engine, i, text, a, fields, ms, cfg.chunk_bytes)
+            yield from responses.text_chunks(engine, i, text, a, fields, ms, cfg.chunk_bytes, names)
 
     # ------------------------------------------------------------------ render
 

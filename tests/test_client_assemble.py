@@ -78,6 +78,18 @@ def test_text_answer_errors():
     # A field asked for but missing from a non-empty answer.
     with pytest.raises(ChunkError, match=r"text\[0\]\.opacity: 0 rows for 5"):
         assemble_text_answers(good, ["a"], ["opacity"])
+    # Presence: absent (an older server) is None; a score outside [0,1] or a NaN margin is refused.
+    (plain,) = assemble_text_answers(good, ["a"])
+    assert plain.presence is None and plain.found is None
+    ok = pb.TextQueryChunk()
+    ok.CopyFrom(good[0])
+    ok.presence.CopyFrom(pb.Presence(score=0.2, found=False, margin=-0.14, rival="mug"))
+    (a,) = assemble_text_answers([ok, *good[1:]], ["a"])
+    assert a.found is False and a.presence.rival == "mug" and a.presence.margin == -0.14
+    for score, margin in ((1.5, 0.1), (0.5, float("nan")), (-0.1, 0.0)):
+        ok.presence.CopyFrom(pb.Presence(score=score, found=True, margin=margin, rival="x"))
+        with pytest.raises(ChunkError, match=r"text\[0\]: presence"):
+            assemble_text_answers([ok, *good[1:]], ["a"])
 
 
 def test_render_chunks_by_rows():

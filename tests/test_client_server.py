@@ -9,10 +9,11 @@ import numpy as np
 import pytest
 
 from fmgs.query.engine import SceneEngine
+from fmgs.query.presence import negative_names
 from fmgs_client import cli
 from fmgs_client.client import FmgsClient, FmgsError
 from fmgs_client.ply import read_ply
-from fmgs_client.types import CameraSpec
+from fmgs_client.types import CameraSpec, Presence
 from fmgs_server.config import ServerConfig
 from fmgs_server.server import start_server
 from fmgs_wire.images import decode_png
@@ -92,6 +93,15 @@ def test_query_matches_engine(client, models):
         assert np.linalg.norm(top.centroid - CENTRES[k].numpy()) < 0.2
         assert np.all(np.abs(top.aabb.center - top.centroid) < top.aabb.extent)
         assert (a.instance == top.id).sum() == top.num_members
+    # Presence as the engine computes it with the scene's negatives (vocabulary and label names).
+    names = negative_names(eng.manifest.label_names)
+    negs = FakeEncoder().encode_text(names)
+    texts = [*CLASS_NAMES, "laptop", "giraffe"]
+    got = client.query("blobs", texts, top_k=3)
+    for a, text, v in zip(got, texts, FakeEncoder().encode_text(texts), strict=True):
+        p = eng.text_query(v, 3, negatives=negs).presence
+        assert a.presence == Presence(p.score, p.found, p.margin, names[p.rival]) and a.found == p.found
+        assert a.found == (text in CLASS_NAMES)
     # Precomputed embeddings instead of texts.
     emb = vecs.numpy().astype(np.float32)
     again = client.query("blobs", ["x", "y", "z"], top_k=5, embeddings=emb, encoder_id=ENCODER_ID)
@@ -175,7 +185,10 @@ def test_cli(server, tmp_path, capsys):
         == 0
     )
     out = capsys.readouterr().out
-    assert "'red cube': 60 Gaussians" in out and "instances:" in out
+    assert "'red cube': 60 Gaussians" in out and "instances:" in out and ": found" in out
+    assert cli.main([*base, "query", "blobs", "laptop", "--top-k", "3"]) == 0
+    out = capsys.readouterr().out
+    assert "NOT FOUND (the scene has '" in out and "'laptop': 3 Gaussians" in out
     pc = read_ply(ply)
     assert pc.points.shape == (60, 3)
     assert np.mean(np.linalg.norm(pc.points - CENTRES[0].numpy(), axis=1) < 0.5) > 0.9  # mostly the red cube

@@ -20,6 +20,7 @@ from fmgs.errors import ValidationError
 from fmgs.gaussians import SH_C0
 from fmgs.query.index import EmbeddingIndex, IndexConfig
 from fmgs.query.instances import Instance, InstanceConfig, default_eps, group_instances
+from fmgs.query.presence import Presence, PresenceConfig, presence
 from fmgs.scene.package import ScenePackage, load_scene
 from fmgs.vecmath import safe_normalize
 
@@ -55,6 +56,14 @@ class TextAnswer(NamedTuple):
     """[K] int32 instance of each Gaussian (-1 none), or None unless instances were asked for."""
     rescored: int = 0
     """Gaussians scored exactly to certify the ranking (fmgs.query.certify)."""
+    presence: Presence | None = None
+    """Is the queried thing in the scene (fmgs.query.presence); None unless negatives were given."""
+
+
+PRESENCE = PresenceConfig()
+"""The default presence settings."""
+NO_GAUSSIANS = Presence(0.0, False, -2.0, -1)
+"""The presence of any query in a scene without embedded Gaussians (-2: the least margin of unit vectors)."""
 
 
 class SceneEngine:
@@ -130,9 +139,21 @@ class SceneEngine:
         threshold: float = 0.0,
         canonical: torch.Tensor | None = None,
         instances: InstanceConfig | None = None,
+        negatives: torch.Tensor | None = None,
+        presence_cfg: PresenceConfig = PRESENCE,
     ) -> TextAnswer:
-        """Rank the embedded Gaussians for query [D]; canonical [C,D] replaces the scene's phrases."""
-        return self.text_query_many(query[None], top_k, threshold, canonical, instances)[0]
+        """Rank the embedded Gaussians for query [D]; canonical [C,D] replaces the scene's phrases;
+        negatives [V,D] (the scene's text encoder's embeddings of ``presence.negative_names``) add a
+        presence score."""
+        return self.text_query_many(
+            query[None],
+            top_k,
+            threshold,
+            canonical,
+            instances,
+            negatives=negatives,
+            presence_cfg=presence_cfg,
+        )[0]
 
     @torch.no_grad()
     def text_query_many(
@@ -143,13 +164,24 @@ class SceneEngine:
         canonical: torch.Tensor | None = None,
         instances: InstanceConfig | None = None,
         between: Callable[[int], None] | None = None,
+        negatives: torch.Tensor | None = None,
+        presence_cfg: PresenceConfig = PRESENCE,
     ) -> list[TextAnswer]:
         """``text_query`` for queries [n,D], scored in one pass over the query state; ``between(j)`` runs
         before text j is ranked (a deadline check may raise there)."""
         q = self.unit(queries)
         c = None if canonical is None else self.unit(canonical, "canonical embeddings")
+        neg = None if negatives is None else self.unit(negatives, "negative embeddings")
+        # Presence needs the best presence_cfg.rows rows: one ranking serves both unless a threshold
+        # cuts the answer shorter.
+        k = top_k if neg is None or threshold > 0 else max(top_k, presence_cfg.rows)
+        ranked = self.index.rank_many(q, k, threshold, c, between)
+        found = [None] * len(q) if neg is None else self._presence(q, ranked, c, neg, presence_cfg)
         out = []
-        for r in self.index.rank_many(q, top_k, threshold, c, between):
+        for r, pres in zip(ranked, found, strict=True):
+            r = r._replace(
+                rows=r.rows[:top_k], relevancy=r.relevancy[:top_k], similarity=r.similarity[:top_k]
+            )
             idx = self.selected[r.rows]
             inst, ids = [], None
             if instances is not None:
@@ -158,7 +190,26 @@ class SceneEngine:
                 opac = g.opacities[idx].detach().cpu().double().numpy()
                 eps = instances.eps or self._eps_for(instances)
                 inst, ids = group_instances(means, r.relevancy.numpy(), opac, instances, eps)
-            out.append(TextAnswer(idx, r.relevancy, r.similarity, inst, ids, r.rescored))
+            out.append(TextAnswer(idx, r.relevancy, r.similarity, inst, ids, r.rescored, pres))
+        return out
+
+    def _presence(self, q, ranked, canonical, negatives, cfg: PresenceConfig) -> list[Presence]:
+        """Presence of each unit query [n,D] from the first cfg.rows rows of its ranking (ranked again
+        without the threshold where the threshold left fewer)."""
+        short = [j for j, r in enumerate(ranked) if len(r.rows) < min(cfg.rows, self.num_embedded)]
+        best = [r.rows[: cfg.rows] for r in ranked]
+        if short:
+            again = self.index.rank_many(q[short], cfg.rows, 0.0, canonical)
+            for j, r in zip(short, again, strict=True):
+                best[j] = r.rows
+        out = []
+        for j, rows in enumerate(best):
+            if len(rows) == 0:
+                out.append(NO_GAUSSIANS)
+                continue
+            dots = self.index.exact_dots(rows, torch.cat([q[j : j + 1], negatives]))  # [T,1+V] float64
+            qn = negatives.double() @ q[j].double()
+            out.append(presence(dots[:, 0], dots[:, 1:], qn, cfg))
         return out
 
     def gaussian_columns(self, index: torch.Tensor, names) -> dict[str, np.ndarray]:

@@ -217,7 +217,7 @@ class Instance(_message.Message):
     def __init__(self, id: _Optional[int] = ..., centroid: _Optional[_Iterable[float]] = ..., aabb: _Optional[_Union[Box, _Mapping]] = ..., obb: _Optional[_Union[Box, _Mapping]] = ..., score: _Optional[float] = ..., num_members: _Optional[int] = ...) -> None: ...
 
 class TextQueryChunk(_message.Message):
-    __slots__ = ("text_index", "text", "total", "instances", "start", "index", "relevancy", "similarity", "mean", "opacity", "scale", "rotation", "color", "instance", "elapsed_ms", "rescored")
+    __slots__ = ("text_index", "text", "total", "instances", "start", "index", "relevancy", "similarity", "mean", "opacity", "scale", "rotation", "color", "instance", "elapsed_ms", "rescored", "presence")
     TEXT_INDEX_FIELD_NUMBER: _ClassVar[int]
     TEXT_FIELD_NUMBER: _ClassVar[int]
     TOTAL_FIELD_NUMBER: _ClassVar[int]
@@ -234,6 +234,7 @@ class TextQueryChunk(_message.Message):
     INSTANCE_FIELD_NUMBER: _ClassVar[int]
     ELAPSED_MS_FIELD_NUMBER: _ClassVar[int]
     RESCORED_FIELD_NUMBER: _ClassVar[int]
+    PRESENCE_FIELD_NUMBER: _ClassVar[int]
     text_index: int
     text: str
     total: int
@@ -250,7 +251,20 @@ class TextQueryChunk(_message.Message):
     instance: Tensor
     elapsed_ms: float
     rescored: int
-    def __init__(self, text_index: _Optional[int] = ..., text: _Optional[str] = ..., total: _Optional[int] = ..., instances: _Optional[_Iterable[_Union[Instance, _Mapping]]] = ..., start: _Optional[int] = ..., index: _Optional[_Union[Tensor, _Mapping]] = ..., relevancy: _Optional[_Union[Tensor, _Mapping]] = ..., similarity: _Optional[_Union[Tensor, _Mapping]] = ..., mean: _Optional[_Union[Tensor, _Mapping]] = ..., opacity: _Optional[_Union[Tensor, _Mapping]] = ..., scale: _Optional[_Union[Tensor, _Mapping]] = ..., rotation: _Optional[_Union[Tensor, _Mapping]] = ..., color: _Optional[_Union[Tensor, _Mapping]] = ..., instance: _Optional[_Union[Tensor, _Mapping]] = ..., elapsed_ms: _Optional[float] = ..., rescored: _Optional[int] = ...) -> None: ...
+    presence: Presence
+    def __init__(self, text_index: _Optional[int] = ..., text: _Optional[str] = ..., total: _Optional[int] = ..., instances: _Optional[_Iterable[_Union[Instance, _Mapping]]] = ..., start: _Optional[int] = ..., index: _Optional[_Union[Tensor, _Mapping]] = ..., relevancy: _Optional[_Union[Tensor, _Mapping]] = ..., similarity: _Optional[_Union[Tensor, _Mapping]] = ..., mean: _Optional[_Union[Tensor, _Mapping]] = ..., opacity: _Optional[_Union[Tensor, _Mapping]] = ..., scale: _Optional[_Union[Tensor, _Mapping]] = ..., rotation: _Optional[_Union[Tensor, _Mapping]] = ..., color: _Optional[_Union[Tensor, _Mapping]] = ..., instance: _Optional[_Union[Tensor, _Mapping]] = ..., elapsed_ms: _Optional[float] = ..., rescored: _Optional[int] = ..., presence: _Optional[_Union[Presence, _Mapping]] = ...) -> None: ...
+
+class Presence(_message.Message):
+    __slots__ = ("score", "found", "margin", "rival")
+    SCORE_FIELD_NUMBER: _ClassVar[int]
+    FOUND_FIELD_NUMBER: _ClassVar[int]
+    MARGIN_FIELD_NUMBER: _ClassVar[int]
+    RIVAL_FIELD_NUMBER: _ClassVar[int]
+    score: float
+    found: bool
+    margin: float
+    rival: str
+    def __init__(self, score: _Optional[float] = ..., found: _Optional[bool] = ..., margin: _Optional[float] = ..., rival: _Optional[str] = ...) -> None: ...
 
 class RenderRequest(_message.Message):
     __slots__ = ("scene", "camera", "text", "outputs", "encoding", "canonical_phrases", "sequence")

@@ -1,0 +1,119 @@
+"""Is the queried thing in this scene? A presence score from the scene's best Gaussians for the query.
+
+Relevancy contrasts a query with four generic phrases, so the most similar thing in any scene scores
+above 0.5 ("laptop" finds a mug at 0.53). Presence contrasts it with named things instead: at each of
+the query's best Gaussians (the first ``PresenceConfig.rows`` of its ranking), the query must beat every
+negative it is not a paraphrase of:
+
+    margin(f) = f.q - max_{n in N \\ S(q)} f.n,    presence = sigmoid(t * max_f margin(f)),
+
+where N is the scene's negatives (``VOCABULARY``, a broad list of everyday things, plus the scene's own
+label names when it was built from label targets) embedded by the scene's text encoder, and S(q) the
+``exclude`` negatives nearest to q by text similarity: a query may mean the same as its nearest names
+("coffee cup" and "mug"), so those cannot speak against it. The query is found when presence > 0.5: some
+best Gaussian is closer to the query than to any name the query does not mean. A mug's Gaussians are
+closer to "mug" than to "laptop", so "laptop" is not found there.
+
+Calibration is per scene through N: the scene's own names take part. What it cannot do: tell apart
+queries the text encoder itself barely separates (a "blue cube" where the scene has a "red cube": their
+MiniLM similarity is 0.79); on label-target scenes open vocabulary means text similarity of the label
+names, nothing more.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import torch
+
+from fmgs.query.vocabulary import VOCABULARY
+
+__all__ = ["VOCABULARY", "Presence", "PresenceConfig", "negative_names", "presence", "presence_reference"]
+
+
+@dataclass(frozen=True)
+class PresenceConfig:
+    """How presence is decided."""
+
+    rows: int = 64
+    """Best Gaussians of the query's ranking that are contrasted (more: slower, likelier found)."""
+    exclude: int = 8
+    """Negatives nearest to the query (text similarity) that are taken as possible paraphrases."""
+    temperature: float = 10.0
+    """Sharpness of the score (the relevancy's); the found/not-found decision does not depend on it."""
+
+    def __post_init__(self) -> None:
+        if self.rows < 1 or self.exclude < 0 or not self.temperature > 0:
+            raise ValueError(f"presence: rows >= 1, exclude >= 0 and temperature > 0 required, got {self}")
+
+
+class Presence(NamedTuple):
+    """The presence of one query."""
+
+    score: float
+    """In [0,1]: sigmoid(temperature * margin)."""
+    found: bool
+    """margin > 0: some best Gaussian is closer to the query than to any negative it does not mean."""
+    margin: float
+    """Best f.q - max f.n over the contrasted Gaussians (float64)."""
+    rival: int
+    """Index into the negatives of the one that decided the margin at the best Gaussian."""
+
+
+def negative_names(label_names: tuple[str, ...] | list[str] = ()) -> list[str]:
+    """``VOCABULARY`` plus the scene's label names not already in it (order kept, case-insensitive)."""
+    seen = {v.lower() for v in VOCABULARY}
+    out = list(VOCABULARY)
+    for n in label_names:
+        if n.strip() and n.lower() not in seen:
+            seen.add(n.lower())
+            out.append(n)
+    return out
+
+
+def presence(
+    fq: torch.Tensor, fn: torch.Tensor, qn: torch.Tensor, cfg: PresenceConfig = PresenceConfig()
+) -> Presence:
+    """Presence from dots, computed in float64: f.q [T] and f.n [T,V] of the query's best Gaussians
+    (T >= 1) and the query's text similarity to each negative q.n [V] (V > cfg.exclude)."""
+    fq, fn, qn = fq.double().reshape(-1), fn.double(), qn.double().reshape(-1)
+    T, V = fn.shape if fn.ndim == 2 else (-1, -1)
+    if T < 1 or len(fq) != T or len(qn) != V or V <= cfg.exclude:
+        raise ValueError(
+            f"presence needs f.q [T>=1], f.n [T,V] and q.n [V] with V > {cfg.exclude}; got "
+            f"{list(fq.shape)}, {list(fn.shape)}, {list(qn.shape)}"
+        )
+    keep = torch.ones(V, dtype=torch.bool)
+    if cfg.exclude:
+        keep[torch.topk(qn, cfg.exclude).indices] = False
+    kept = torch.nonzero(keep).reshape(-1)
+    rival_dot, rival = fn[:, kept].max(1)
+    margins = fq - rival_dot
+    b = int(torch.argmax(margins))
+    m = float(margins[b])
+    return Presence(_sigmoid(cfg.temperature * m), m > 0, m, int(kept[rival[b]]))
+
+
+def _sigmoid(x: float) -> float:
+    return float(torch.sigmoid(torch.tensor(x, dtype=torch.float64)))
+
+
+def presence_reference(
+    query: torch.Tensor, best: torch.Tensor, negatives: torch.Tensor, cfg: PresenceConfig = PresenceConfig()
+) -> Presence:
+    """Twin of ``presence`` from the vectors: unit query [D], best Gaussians' embeddings [T,D] and unit
+    negatives [V,D], one Gaussian and one negative at a time (sorting for the exclusion)."""
+    q = [float(x) for x in query.double().reshape(-1)]
+    dot = lambda a, b: sum(x * y for x, y in zip(a, b, strict=True))  # noqa: E731
+    negs = [[float(x) for x in row] for row in negatives.double()]
+    order = sorted(range(len(negs)), key=lambda i: (-dot(negs[i], q), i))
+    excluded = set(order[: cfg.exclude])
+    best_m, best_r = None, -1
+    for row in best.double():
+        f = [float(x) for x in row]
+        r = max((i for i in range(len(negs)) if i not in excluded), key=lambda i: (dot(f, negs[i]), -i))
+        m = dot(f, q) - dot(f, negs[r])
+        if best_m is None or m > best_m:
+            best_m, best_r = m, r
+    return Presence(_sigmoid(cfg.temperature * best_m), best_m > 0, best_m, best_r)

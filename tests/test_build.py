@@ -94,6 +94,10 @@ def test_rebuild_skips_complete_stages(built, capsys):
     out = capsys.readouterr().out
     assert "[2/5] geometry: given" in out and "[4/5] field: complete" in out
     assert "held-out PSNR" in out and " dB, SSIM " in out  # the geometry is scored, given or trained
+    scores = json.loads((tmp / "models" / ".work" / "toy" / "geometry.json").read_text())
+    assert (
+        f"held-out PSNR {scores['psnr']:.2f} dB" in out and scores["views"] >= 1 and 0 < scores["ssim"] <= 1
+    )
     assert (tmp / "models" / ".work" / "toy" / "field" / "field_train.json").stat().st_mtime_ns == stamp
     again = json.loads((tmp / "models" / ".work" / "toy" / "features" / "manifest.json").read_text())
     assert again == manifest

@@ -58,8 +58,7 @@ def init_params(ds: PosedDataset, cfg: GSTrainConfig, g: torch.Generator) -> dic
             pick = np.random.default_rng(cfg.seed).choice(len(pts), cfg.max_init_points, replace=False)
             pts, cols = pts[pick], cols[pick]
     else:
-        pts = _viewed_init(ds, cfg)
-        cols = np.random.default_rng(cfg.seed).uniform(0, 1, size=(len(pts), 3))
+        pts, cols = _viewed_init(ds, cfg)
     d2, _ = cKDTree(pts).query(pts, k=4)
     scale = np.sqrt((d2[:, 1:] ** 2).mean(1)).clip(1e-7)
     n = len(pts)
@@ -75,28 +74,58 @@ def init_params(ds: PosedDataset, cfg: GSTrainConfig, g: torch.Generator) -> dic
     }
 
 
-def _viewed_init(ds: PosedDataset, cfg: GSTrainConfig) -> np.ndarray:
-    """[random_init,3] points in the cameras' common view (fmgs.train.viewed), announced; a dataset
+def _no_volume(ds: PosedDataset, e: ValidationError) -> ValidationError:
+    return ValidationError(
+        str(ds.root),
+        f"has no sparse points and no volume to start from: {e.field} {e.reason}; give the dataset "
+        "points (COLMAP points3D, or a transforms.json ply_file_path), or build from the photos so "
+        "that structure from motion makes them",
+    )
+
+
+INIT_IMAGES = 32
+"""Training images (evenly spread, at most INIT_IMAGE_SIDE pixels on the longer side) that colour and
+carve points-free initial Gaussians."""
+INIT_IMAGE_SIDE = 160
+
+
+def _viewed_init(ds: PosedDataset, cfg: GSTrainConfig) -> tuple[np.ndarray, np.ndarray]:
+    """[random_init,3] points in the cameras' common view (outside a declared background) and their
+    mean colours in [0,1] over INIT_IMAGES training images (fmgs.train.viewed), announced; a dataset
     whose cameras share no view is refused with what to supply."""
-    from fmgs.train.viewed import viewed_points
+    from fmgs.train.viewed import focus_point, viewed_points
 
     try:
-        vol = viewed_points([f.camera for f in ds.frames], cfg.random_init, cfg.seed)
+        focus_point([f.camera for f in ds.frames])  # refuse before reading any image
     except ValidationError as e:
-        raise ValidationError(
-            str(ds.root),
-            f"has no sparse points and no volume to start from: {e.field} {e.reason}; give the dataset "
-            "points (COLMAP points3D, or a transforms.json ply_file_path), or build from the photos so "
-            "that structure from motion makes them",
-        ) from e
+        raise _no_volume(ds, e) from e
+    train, _ = ds.split(cfg.holdout_every)
+    pick = [
+        train[i] for i in np.linspace(0, len(train) - 1, min(INIT_IMAGES, len(train))).round().astype(int)
+    ]
+    images, cams = [], []
+    for i in dict.fromkeys(pick):
+        c = ds.frames[i].camera
+        img, cam = ds.image(i, min(1.0, INIT_IMAGE_SIDE / max(c.width, c.height)))
+        images.append(img.numpy())
+        cams.append(cam)
+    bg = declared_background(ds)
+    try:
+        vol = viewed_points(
+            [f.camera for f in ds.frames], cfg.random_init, cfg.seed, images=images, image_cameras=cams,
+            background=bg,
+        )  # fmt: skip
+    except ValidationError as e:
+        raise _no_volume(ds, e) from e
     log.warning(
-        "%s has no sparse points: starting from %d random Gaussians in the cameras' common view "
-        "(around %s, seen by %d-%d of %d cameras); points from structure from motion usually train "
-        "better and faster",
-        ds.root, len(vol.points), np.round(vol.focus, 3).tolist(), int(vol.seen_by.min()),
-        int(vol.seen_by.max()), len(ds.frames),
+        "%s has no sparse points: starting from %d random Gaussians in the cameras' common view%s "
+        "(around %s, seen by %d-%d of %d cameras), coloured from the images; points from structure from "
+        "motion usually train better and faster",
+        ds.root, len(vol.points), ", outside the declared background" if bg is not None else "",
+        np.round(vol.focus, 3).tolist(),
+        int(vol.seen_by.min()), int(vol.seen_by.max()), len(ds.frames),
     )  # fmt: skip
-    return vol.points
+    return vol.points, vol.colours
 
 
 def _make_optimizer(params: dict[str, torch.nn.Parameter], cfg: GSTrainConfig, extent: float):
@@ -266,14 +295,19 @@ def to_gaussian_set(params: dict[str, torch.Tensor]) -> GaussianSet:
     )
 
 
-def dataset_background(ds: PosedDataset) -> tuple[float, float, float]:
-    """The background colour a transforms.json declares (synthetic scenes do), else black."""
+def declared_background(ds: PosedDataset) -> tuple[float, float, float] | None:
+    """The background colour a transforms.json declares (synthetic scenes do), else None."""
     meta = ds.root / "transforms.json"
     if meta.is_file():
         bg = json.loads(meta.read_text()).get("background")
         if bg and len(bg) == 3:
             return tuple(float(x) for x in bg)
-    return (0.0, 0.0, 0.0)
+    return None
+
+
+def dataset_background(ds: PosedDataset) -> tuple[float, float, float]:
+    """The background colour a transforms.json declares (synthetic scenes do), else black."""
+    return declared_background(ds) or (0.0, 0.0, 0.0)
 
 
 def config_record(cfg: GSTrainConfig) -> dict:

@@ -7,8 +7,8 @@ The scene comes from ``fmgs synth`` (labelled objects, 2D and 3D boxes) and its 
 own 3DGS fit of the rendered images (``benchmarks/gs.py``). Targets are label masks embedded with the
 offline MiniLM text encoder; queries are the object names. Held-out views (every 8th) are never trained on.
 Variants: the paper's field; per-Gaussian features instead of the hash grid; and, where the targets
-carry DINO maps, no dotsim. Writes OUT/field.json and OUT/FIELD.md (``--report`` also writes
-benchmarks/FIELD.md).
+carry DINO maps, no dotsim. Writes OUT/field.json and OUT/FIELD_ABLATION.md (``--report`` also writes
+benchmarks/FIELD_ABLATION.md).
 """
 
 from __future__ import annotations
@@ -148,7 +148,7 @@ def main() -> int:
     ap.add_argument("--feature-scale", type=float, default=0.5)
     ap.add_argument("--quick", action="store_true", help="small scene and run (CI)")
     ap.add_argument("--variants", default="field,per-gaussian")
-    ap.add_argument("--report", action="store_true", help="also write benchmarks/FIELD.md")
+    ap.add_argument("--report", action="store_true", help="also write benchmarks/FIELD_ABLATION.md")
     ap.add_argument("--check", action="store_true", help="exit 1 when a threshold is missed")
     ap.add_argument("--merge", nargs="+", help="only write the report from these field.json files")
     ap.add_argument("--rescore", action="store_true", help="with --merge: re-evaluate the saved packages")
@@ -167,9 +167,9 @@ def main() -> int:
         data = args.data or (recorded[0] if recorded else "?")  # the scene the runs were made on
         text = report(rows, runs[0]["machine"], args, Path(data))
         Path(args.out).mkdir(parents=True, exist_ok=True)
-        (Path(args.out) / "FIELD.md").write_text(text)
+        (Path(args.out) / "FIELD_ABLATION.md").write_text(text)
         if args.report:
-            (ROOT / "benchmarks" / "FIELD.md").write_text(text)
+            (ROOT / "benchmarks" / "FIELD_ABLATION.md").write_text(text)
         print(text)
         return 0
 
@@ -223,9 +223,9 @@ def main() -> int:
     info = machine()
     (out / "field.json").write_text(json.dumps({"machine": info, "rows": rows}, indent=1))
     text = report(rows, info, args, data)
-    (out / "FIELD.md").write_text(text)
+    (out / "FIELD_ABLATION.md").write_text(text)
     if args.report:
-        (ROOT / "benchmarks" / "FIELD.md").write_text(text)
+        (ROOT / "benchmarks" / "FIELD_ABLATION.md").write_text(text)
     print(text)
     missed = [
         (r["variant"], k) for r in rows if r["variant"] == "field" for k in THRESHOLDS if r[k] < THRESHOLDS[k]

@@ -164,9 +164,51 @@ def test_selection_applies_opacity_and_radius():
     cam = Camera(
         Camera.intrinsics(50, 50, 32, 24), look_at(torch.tensor([0.0, 0.0, -4.0]), torch.zeros(3)), 64, 48
     )
-    sel = select_gaussians(gs, [cam], SelectConfig(opacity_min=0.25, radius_min=2.0))
+    sel = select_gaussians(gs, [cam], SelectConfig(rule="paper", opacity_min=0.25, radius_min=2.0))
     # 1 is too transparent, 2 is sub-pixel.
     assert sel.index.tolist() == [0, 3] and sel.total == 4 and sel.fraction == 0.5
+
+
+@pytest.mark.parametrize("coverage", [0.3, 0.9, 1.0])
+def test_coverage_selection_equals_one_pixel_at_a_time(coverage):
+    from fmgs.field.select import covering, covering_reference
+
+    s = random_scene(5, 300, 4, 23, 17, 20.0)
+    m, q, sc, o, _, cam = s.args(torch.float64)
+    vw = view_weights(m, q, sc, o, cam)
+    fast, ref = covering(vw, coverage), covering_reference(vw, coverage)
+    assert torch.equal(fast, ref) and len(fast) > 0
+    assert coverage < 1.0 or set(fast.tolist()) == set(vw.gaussians.tolist())  # all: every contributor
+
+
+def test_coverage_keeps_a_thin_object_the_paper_rule_drops():
+    """A sub-pixel-wide, opaque stick in front of a large backdrop: the paper's radius test drops its
+    Gaussians, so its pixels would show the backdrop's feature; coverage keeps them."""
+    from fmgs.cameras import Camera
+    from tests.helpers.scenes import look_at
+
+    xs = torch.linspace(-0.5, 0.5, 21)
+    stick = torch.stack([xs, torch.zeros(21), torch.zeros(21)], 1)
+    means = torch.cat([stick, torch.tensor([[0.0, 0.0, 1.0]])])
+    log_scales = torch.log(
+        torch.cat([torch.tensor([[0.03, 0.004, 0.004]]).repeat(21, 1), torch.tensor([[2.0, 2.0, 0.01]])])
+    )
+    n = len(means)
+    opac = torch.full((n,), 0.95)
+    gs = GaussianSet(
+        means, torch.tensor([[1.0, 0, 0, 0]] * n), log_scales, torch.logit(opac), torch.zeros(n, 1, 3)
+    )
+    cam = Camera(
+        Camera.intrinsics(50, 50, 32, 24), look_at(torch.tensor([0.0, 0.0, -4.0]), torch.zeros(3)), 64, 48
+    )
+    paper = select_gaussians(gs, [cam], SelectConfig(rule="paper"))
+    cover = select_gaussians(gs, [cam], SelectConfig())
+    assert paper.index.tolist() == [21]  # only the backdrop
+    assert set(range(21)) <= set(cover.index.tolist()) and 21 in cover.index.tolist()
+    with pytest.raises(ValueError, match="rule"):
+        SelectConfig(rule="all")
+    with pytest.raises(ValueError, match="coverage"):
+        SelectConfig(coverage=0.0)
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])

@@ -82,11 +82,27 @@ class FieldConfig:
         return cls(**d)
 
 
+SELECT_RULES = ("coverage", "paper")
+
+
 @dataclass(frozen=True)
 class SelectConfig:
-    """Selection thresholds (defaults: the FMGS reference code)."""
+    """Which Gaussians carry features (fmgs.field.select)."""
 
+    rule: str = "coverage"
+    """"coverage": in every pixel of every training view (at the target-map resolution), the Gaussians
+    that make up the first ``coverage`` of its blending weight, heaviest first; "paper": the FMGS
+    reference code's opacity and radius tests, which left a thin object's Gaussians (a pencil, IoU 0.00)
+    without features."""
+    coverage: float = 0.9
+    """Share of each pixel's blending weight the kept Gaussians make up at least (rule "coverage")."""
     opacity_min: float = 0.25
-    """Keep Gaussians with opacity above this."""
+    """Rule "paper": keep Gaussians with opacity above this ..."""
     radius_min: float = 2.0
     """... whose projected 3-sigma radius exceeds this many pixels in at least one training view."""
+
+    def __post_init__(self) -> None:
+        if self.rule not in SELECT_RULES:
+            raise ValueError(f"select rule must be one of {SELECT_RULES}, got {self.rule!r}")
+        if not 0.0 < self.coverage <= 1.0:
+            raise ValueError(f"coverage must lie in (0, 1], got {self.coverage}")

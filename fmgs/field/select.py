@@ -1,4 +1,11 @@
-"""Which Gaussians carry features: opaque ones that cover more than a couple of pixels in some view."""
+"""Which Gaussians carry features.
+
+Rule "coverage" (default): in every pixel of every training view, sort the Gaussians that blend into it
+by weight and keep the heaviest until they make up ``coverage`` of the pixel's weight; a Gaussian is
+kept if any pixel keeps it. Every pixel's colour is then mostly made of Gaussians with features, so
+its rendered feature says what it shows rather than what lies behind a featureless thin object.
+Rule "paper": opaque Gaussians that cover more than a couple of pixels in some view (the FMGS code).
+"""
 
 from __future__ import annotations
 
@@ -11,6 +18,7 @@ from fmgs.field.config import SelectConfig
 from fmgs.gaussians import GaussianSet
 from fmgs.render.projection import project
 from fmgs.render.types import RasterConfig
+from fmgs.render.weights import ViewWeights, view_weights
 
 
 class Selection(NamedTuple):
@@ -30,7 +38,15 @@ class Selection(NamedTuple):
 def select_gaussians(
     gaussians: GaussianSet, cameras: list[Camera], cfg: SelectConfig = SelectConfig()
 ) -> Selection:
-    """Apply the opacity and radius tests over ``cameras`` (the training views, at training resolution)."""
+    """Apply ``cfg.rule`` over ``cameras`` (the training views; for "coverage" at the resolution the
+    features are trained at)."""
+    if cfg.rule == "coverage":
+        keep = torch.zeros(gaussians.num, dtype=torch.bool)
+        g = gaussians
+        for cam in cameras:
+            vw = view_weights(g.means, g.quats, g.scales, g.opacities, cam)
+            keep[covering(vw, cfg.coverage).cpu()] = True
+        return Selection(torch.nonzero(keep).squeeze(1), gaussians.num)
     opac = gaussians.opacities
     keep_opacity = opac > cfg.opacity_min
     big = torch.zeros_like(keep_opacity)
@@ -41,3 +57,38 @@ def select_gaussians(
         proj = project(g.means, g.quats, g.scales, g.opacities, cam, rc)
         big[idx] |= proj.visible & (proj.radii > cfg.radius_min)
     return Selection(torch.nonzero(keep_opacity & big).squeeze(1), len(opac))
+
+
+def covering(vw: ViewWeights, coverage: float) -> torch.Tensor:
+    """[K] int64 global indices of the Gaussians that, heaviest first, make up the first ``coverage``
+    of some pixel's blending weight in view ``vw`` (a Gaussian is kept while the weight before it is
+    below coverage x the pixel's total; ties by column order)."""
+    csr = vw.matrix.csr
+    crow, val = csr.crow_indices(), csr.values().double()
+    col = csr.col_indices()
+    rows = torch.repeat_interleave(torch.arange(len(crow) - 1, device=val.device), crow[1:] - crow[:-1])
+    # Within each row, heaviest first: a stable sort by weight, then a stable sort by row.
+    order = torch.argsort(-val, stable=True)
+    order = order[torch.argsort(rows[order], stable=True)]
+    r, v, c = rows[order], val[order], col[order]
+    cum = torch.cumsum(v, 0)
+    start = crow[:-1].to(cum.device)
+    offset = torch.where(start > 0, cum[(start - 1).clamp_min(0)], torch.zeros_like(cum[: len(start)]))
+    before = cum - v - offset[r]  # weight of the heavier Gaussians of the same pixel
+    total = torch.zeros(len(crow) - 1, dtype=torch.float64, device=val.device).index_add_(0, rows, val)
+    return vw.gaussians[torch.unique(c[before < coverage * total[r]])]
+
+
+def covering_reference(vw: ViewWeights, coverage: float) -> torch.Tensor:
+    """Twin of ``covering``, one pixel at a time from the dense matrix."""
+    dense = vw.matrix.csr.to_dense().double()
+    kept = set()
+    for row in dense:
+        nz = [(-float(row[j]), j) for j in range(len(row)) if row[j] != 0]
+        total = -sum(w for w, _ in nz)
+        acc = 0.0
+        for w, j in sorted(nz):
+            if acc < coverage * total:
+                kept.add(j)
+            acc += -w
+    return vw.gaussians[torch.tensor(sorted(kept), dtype=torch.int64)]

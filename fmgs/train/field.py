@@ -178,9 +178,12 @@ def _train(
     dino_dim = cache.targets["dino"].dim if "dino" in cache.targets else 0
     fcfg = replace(cfg.field, clip_dim=clip_dim, dino_dim=dino_dim)
 
-    selection = select_gaussians(gaussians, [ds.frames[i].camera for i in train], cfg.select)
+    cams = [ds.frames[i].camera for i in train]
+    if cfg.select.rule == "coverage":  # at the resolution the features are trained at
+        cams = [c.resized(*reversed(cache.size(ds.frames[i].name))) for c, i in zip(cams, train, strict=True)]
+    selection = select_gaussians(gaussians, cams, cfg.select)
     if len(selection.index) == 0:
-        raise ValidationError("gaussians", "no Gaussian passes the opacity and radius selection")
+        raise ValidationError("gaussians", f"no Gaussian passes the {cfg.select.rule!r} selection")
     g = gaussians.subset(selection.index).to(dev)
 
     if cfg.per_gaussian:

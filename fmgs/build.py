@@ -162,6 +162,14 @@ def build_scene(source: str | Path, cfg: BuildConfig, progress: bool = True) -> 
             r = run_sfm(source, work / "sfm", cfg.sfm)
             data = Path(r.dataset_dir)
     ds = load_dataset(data)
+    if not cfg.ply and (ds.points is None or len(ds.points) < 4) and not cfg.allow_random_init:
+        raise ValidationError(
+            str(data),
+            "has no sparse points to start the 3DGS stage from (random starts trained 6 dB below points on "
+            "a synthetic tabletop); give the dataset points (COLMAP points3D, or a transforms.json "
+            "ply_file_path), build from the photos so that structure from motion makes them, pass a 3DGS "
+            "scene trained elsewhere with --ply, or accept random Gaussians with --allow-random-init",
+        )
 
     if cfg.ply:
         _stage(2, "geometry", f"given {cfg.ply}")

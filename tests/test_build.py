@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 import json
+import shutil
 
 import pytest
 import torch
 
 from fmgs.cli import main
+from tests.helpers.scenes import surface_ply
 
 
 @pytest.fixture(scope="module")
@@ -16,7 +18,7 @@ def built(tmp_path_factory):
 
     tmp = tmp_path_factory.mktemp("build")
     generate(tmp / "scene", SynthConfig(views=16, width=48, height=36, points=4000, supersample=1))
-    _surface_ply(tmp / "scene", tmp / "surface.ply")
+    surface_ply(tmp / "scene", tmp / "surface.ply")
     (tmp / "extra.json").write_text(json.dumps({"description": "toy scene", "source": "test"}))
     args = [
         "build",
@@ -42,24 +44,6 @@ def built(tmp_path_factory):
     ]
     assert main(args) == 0
     return tmp, args
-
-
-def _surface_ply(scene, out) -> None:
-    """A '3DGS scene trained elsewhere': small opaque Gaussians on the generator's surface samples.
-    (Geometry training is tested in test_train_gs; this keeps the end-to-end test fast.)"""
-    import torch
-
-    from fmgs.data.dataset import load_dataset
-    from fmgs.gaussians import GaussianSet
-    from fmgs.io.ply import write_ply
-
-    ds = load_dataset(scene)
-    pts = torch.from_numpy(ds.points).float()
-    cols = torch.from_numpy(ds.colors).float() / 255
-    n = len(pts)
-    quats = torch.tensor([[1.0, 0.0, 0.0, 0.0]]).repeat(n, 1)
-    g = GaussianSet.from_activated(pts, quats, torch.full((n, 3), 0.04), torch.full((n,), 0.9), cols)
-    write_ply(g, out)
 
 
 def test_build_writes_a_package_that_answers_queries(built):
@@ -119,7 +103,7 @@ def test_geometry_settings_reach_3dgs_and_a_change_retrains(tmp_path, monkeypatc
 
     def fake_train(ds, out, cfg, progress=True, resume=True):  # a stand-in fit: the surface samples
         calls.append((cfg, resume))
-        _surface_ply(tmp_path / "scene", out / "point_cloud.ply")
+        surface_ply(tmp_path / "scene", out / "point_cloud.ply")
         (out / "train.json").write_text(json.dumps({"steps": cfg.steps, "config": gs_mod.config_record(cfg)}))
 
     monkeypatch.setattr(gs_mod, "train_gaussians", fake_train)
@@ -136,6 +120,34 @@ def test_geometry_settings_reach_3dgs_and_a_change_retrains(tmp_path, monkeypatc
     assert "[2/5] geometry: 3DGS, 12 steps" in capsys.readouterr().out
     cfg, resume = calls[-1]
     assert cfg.sh_degree == 1 and not resume  # a finished run with other settings starts over
+
+
+def test_a_dataset_without_points_stops_unless_random_gaussians_are_allowed(tmp_path, monkeypatch, capsys):
+    from fmgs.synth import SynthConfig, generate
+    from fmgs.train import gaussians as gs_mod
+
+    generate(tmp_path / "scene", SynthConfig(views=9, width=32, height=24, points=800, supersample=1))
+    surface_ply(tmp_path / "scene", tmp_path / "fit.ply")  # made while the dataset still lists points
+    meta = json.loads((tmp_path / "scene" / "transforms.json").read_text())
+    del meta["ply_file_path"]
+    (tmp_path / "scene" / "transforms.json").write_text(json.dumps(meta))
+    calls = []
+
+    def fake_train(ds, out, cfg, progress=True, resume=True):
+        calls.append(ds.points)
+        out.mkdir(parents=True, exist_ok=True)
+        shutil.copy(tmp_path / "fit.ply", out / "point_cloud.ply")
+        (out / "train.json").write_text(json.dumps({"steps": cfg.steps, "config": gs_mod.config_record(cfg)}))
+
+    monkeypatch.setattr(gs_mod, "train_gaussians", fake_train)
+    args = ["build", str(tmp_path / "scene"), "--name", "g", "--models", str(tmp_path / "m")]
+    args += ["--targets", "labels", "--gs-steps", "12", "--field-steps", "3", "--device", "cpu"]
+    assert main(args) == 2
+    err = capsys.readouterr().err
+    assert "has no sparse points" in err and "--allow-random-init" in err and "ply_file_path" in err
+    assert not calls and not (tmp_path / "m" / "g").exists()  # stopped before any work
+    assert main([*args, "--allow-random-init"]) == 0
+    assert calls == [None]  # the geometry stage ran on the points-free dataset
 
 
 def test_build_rejects_a_bad_extra_file(tmp_path, capsys):

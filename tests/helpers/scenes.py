@@ -94,3 +94,20 @@ def random_scene(
     t = lambda a: torch.from_numpy(np.asarray(a))  # noqa: E731
     bg = t(rng.normal(size=d)) if background else None
     return RandomScene(t(means), t(quats), t(scales), t(opac), t(feats), cam, bg)
+
+
+def surface_ply(scene, out, scale: float = 0.04) -> None:
+    """A '3DGS scene trained elsewhere' for a generated dataset: small opaque Gaussians on its surface
+    samples, coloured like them. (Geometry training is tested in test_train_gs; this keeps end-to-end
+    tests fast.)"""
+    from fmgs.data.dataset import load_dataset
+    from fmgs.gaussians import GaussianSet
+    from fmgs.io.ply import write_ply
+
+    ds = load_dataset(scene)
+    pts = torch.from_numpy(ds.points).float()
+    cols = torch.from_numpy(ds.colors).float() / 255
+    n = len(pts)
+    quats = torch.tensor([[1.0, 0.0, 0.0, 0.0]]).repeat(n, 1)
+    g = GaussianSet.from_activated(pts, quats, torch.full((n, 3), scale), torch.full((n,), 0.9), cols)
+    write_ply(g, out)

@@ -1,0 +1,54 @@
+"""A CI-sized unseen scene built at the defaults: segmentation and presence floors (benchmarks/unseen.py
+holds the full-size report, benchmarks/FIELD.md)."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from fmgs.cli import main
+from tests.helpers.scenes import surface_ply
+
+# Measured on this CI-sized scene when the floors were set (see the test's assertion messages); the
+# floors sit below so that run-to-run noise passes and a real regression does not.
+MIOU_FLOOR = 0.55
+PRESENT_FLOOR = 0.80
+ABSENT_UNRELATED_FLOOR = 0.90
+
+
+@pytest.fixture(scope="module")
+def unseen(tmp_path_factory):
+    from fmgs.synth import SynthConfig, generate
+
+    tmp = tmp_path_factory.mktemp("unseen")
+    data = tmp / "scene"
+    generate(
+        data, SynthConfig(views=24, width=64, height=48, objects=10, seed=7, points=8000, preset="cluttered")
+    )
+    surface_ply(data, tmp / "surface.ply", scale=0.03)
+    args = ["build", str(data), "--name", "u", "--models", str(tmp / "models"), "--targets", "labels"]
+    assert main([*args, "--ply", str(tmp / "surface.ply"), "--field-steps", "600", "--device", "cpu"]) == 0
+    return tmp, data
+
+
+def test_unseen_scene_meets_the_floors(unseen):
+    from benchmarks.unseen import presence_rates, score_presence
+    from fmgs.data.dataset import load_dataset
+    from fmgs.features.text import MiniLMTextEncoder
+    from fmgs.query.engine import SceneEngine
+    from fmgs.train.evaluate_field import evaluate_field
+
+    tmp, data = unseen
+    engine = SceneEngine.open(tmp / "models" / "u")
+    ds = load_dataset(data)
+    enc = MiniLMTextEncoder()
+    q = evaluate_field(engine, ds, enc, ds.split(8)[1], data / "scene.json")
+    names = json.loads((data / "scene.json").read_text())["label_names"]
+    rates = presence_rates(score_presence(engine, enc, names))
+    present = (rates["name"][0] + rates["paraphrase"][0]) / (rates["name"][1] + rates["paraphrase"][1])
+    unrelated = rates["unrelated"][0] / rates["unrelated"][1]
+    seen = f"mIoU {q.miou:.3f} {q.per_class_iou}, presence {rates}"
+    assert q.miou >= MIOU_FLOOR, seen
+    assert present >= PRESENT_FLOOR and unrelated >= ABSENT_UNRELATED_FLOOR, seen
+    assert rates["absent object"][1] == 3 and rates["colour swap"][1] == 7  # every kind was asked

@@ -10,11 +10,14 @@ import pytest
 from fmgs.cli import main
 from tests.helpers.scenes import surface_ply
 
-# Measured on this CI-sized scene when the floors were set (see the test's assertion messages); the
-# floors sit below so that run-to-run noise passes and a real regression does not.
-MIOU_FLOOR = 0.55
-PRESENT_FLOOR = 0.80
-ABSENT_UNRELATED_FLOOR = 0.90
+# Measured on this scene when the floors were set (2026-11-23): mIoU 0.599 (floor 0.94 ... white ring
+# 0.30, the 0.8-pixel-wide pencil 0.00), 2D 92%, 3D 90%; presence: names 10/10 and paraphrases 10/11
+# found, absent objects 3/3 and unrelated things 10/10 not found, colour swaps 2/7 not found (the
+# sentence encoder barely separates them; not floored). The floors sit below so that noise passes and
+# a real regression does not.
+MIOU_FLOOR = 0.50
+PRESENT_FLOOR = 0.85
+ABSENT_FLOOR = 0.90
 
 
 @pytest.fixture(scope="module")
@@ -47,8 +50,11 @@ def test_unseen_scene_meets_the_floors(unseen):
     names = json.loads((data / "scene.json").read_text())["label_names"]
     rates = presence_rates(score_presence(engine, enc, names))
     present = (rates["name"][0] + rates["paraphrase"][0]) / (rates["name"][1] + rates["paraphrase"][1])
-    unrelated = rates["unrelated"][0] / rates["unrelated"][1]
+    absent = (rates["absent object"][0] + rates["unrelated"][0]) / (
+        rates["absent object"][1] + rates["unrelated"][1]
+    )
     seen = f"mIoU {q.miou:.3f} {q.per_class_iou}, presence {rates}"
     assert q.miou >= MIOU_FLOOR, seen
-    assert present >= PRESENT_FLOOR and unrelated >= ABSENT_UNRELATED_FLOOR, seen
+    assert present >= PRESENT_FLOOR and absent >= ABSENT_FLOOR, seen
+    assert q.localisation_2d >= 0.8 and q.localisation_3d >= 0.8, seen
     assert rates["absent object"][1] == 3 and rates["colour swap"][1] == 7  # every kind was asked

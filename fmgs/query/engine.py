@@ -176,9 +176,9 @@ class SceneEngine:
         # cuts the answer shorter.
         k = top_k if neg is None or threshold > 0 else max(top_k, presence_cfg.rows)
         ranked = self.index.rank_many(q, k, threshold, c, between)
-        found = [None] * len(q) if neg is None else self._presence(q, ranked, c, neg, presence_cfg)
+        presences = [None] * len(q) if neg is None else self._presence(q, ranked, c, neg, presence_cfg)
         out = []
-        for r, pres in zip(ranked, found, strict=True):
+        for r, pres in zip(ranked, presences, strict=True):
             r = r._replace(
                 rows=r.rows[:top_k], relevancy=r.relevancy[:top_k], similarity=r.similarity[:top_k]
             )

@@ -23,6 +23,7 @@ from fmgs.errors import ValidationError
 from fmgs.gaussians import GaussianSet
 from fmgs.io.atomic import atomic_path
 from fmgs.train.field import FieldTrainResult
+from fmgs.train.threads import auto_threads
 
 log = logging.getLogger(__name__)
 
@@ -142,6 +143,9 @@ def build_scene(source: str | Path, cfg: BuildConfig, progress: bool = True) -> 
 
     check_scene_name(cfg.name)
     source = Path(source)
+    # "auto" threads are counted once, before any stage: counted at each stage, the load of the build's
+    # own 3DGS stage left its field stage one thread on an otherwise idle 2-core machine.
+    threads = auto_threads()
     if not source.is_dir():
         raise ValidationError("source", f"{source} is not a folder (photos or a posed dataset)")
     work = Path(cfg.work) if cfg.work else Path(cfg.models) / ".work" / cfg.name
@@ -177,7 +181,7 @@ def build_scene(source: str | Path, cfg: BuildConfig, progress: bool = True) -> 
     else:
         from fmgs.train.gaussians import config_record, train_gaussians
 
-        gcfg = replace(cfg.gs, device=cfg.device)
+        gcfg = replace(cfg.gs, device=cfg.device, threads=cfg.gs.threads or threads)
         ply = work / "gs" / "point_cloud.ply"
         done = work / "gs" / "train.json"
         record = json.loads(done.read_text()) if ply.is_file() and done.is_file() else {}
@@ -195,7 +199,7 @@ def build_scene(source: str | Path, cfg: BuildConfig, progress: bool = True) -> 
     cache = extract_features(ds, cache_dir, cfg.targets, cfg.device, progress)
     cache = FeatureCache.open(cache_dir)
 
-    fcfg = replace(cfg.field, device=cfg.device)
+    fcfg = replace(cfg.field, device=cfg.device, threads=cfg.field.threads or threads)
     done = work / "field" / "field_train.json"
     complete = done.is_file() and json.loads(done.read_text()).get("steps") == fcfg.steps
     _stage(

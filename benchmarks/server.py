@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import datetime as dt
+import hashlib
 import json
 import statistics
 import sys
@@ -65,7 +66,11 @@ def fieldlike(
 
 
 class TableEncoder:
-    """Texts 'q<i>' map to fixed query vectors (the embedding cost is not what is measured)."""
+    """Texts 'q<i>' map to fixed query vectors (the embedding cost is not what is measured).
+
+    Any other text (the presence score's vocabulary of negatives) gets a random unit vector seeded
+    by the text's bytes, so the server's whole text path runs, presence included.
+    """
 
     id, dim = ENC, D
 
@@ -73,8 +78,15 @@ class TableEncoder:
         self.table = {f"q{i}": v for i, v in enumerate(queries)}
         self.table.update(zip(("object", "stuff", "things", "texture"), canonical, strict=True))
 
+    def _vector(self, text: str) -> torch.Tensor:
+        if text not in self.table:
+            seed = int.from_bytes(hashlib.blake2b(text.encode(), digest_size=8).digest(), "little")
+            g = torch.Generator().manual_seed(seed)
+            self.table[text] = safe_normalize(torch.randn(self.dim, generator=g))
+        return self.table[text]
+
     def encode_text(self, texts):
-        return torch.stack([self.table[t] for t in texts])
+        return torch.stack([self._vector(t) for t in texts])
 
 
 def make_queries(emb: torch.Tensor, n: int, seed: int = 1) -> torch.Tensor:

@@ -100,10 +100,6 @@ class EmbeddingIndex:
         self.read_rows = read_rows
         self.half = half
         """[M,D] uint16: the stored float16 embeddings' bits (compact path), scored by numba kernels."""
-        if half is not None:
-            from fmgs.query.kernels import half_scale_table
-
-            self._P32, self._P64 = half_scale_table(), half_scale_table(np.float64)
         self.cfg = cfg
         if state is not None:
             self.coeffs = state.codes
@@ -249,7 +245,7 @@ class EmbeddingIndex:
         if self.half is not None:  # float64 in a fixed order from the float16 bits (no float64 copy)
             from fmgs.query.kernels import half_dots64
 
-            half_dots64(self.half, uniq.astype(np.int64), v64.numpy(), self._P64, out.numpy())
+            half_dots64(self.half, uniq.astype(np.int64), v64.numpy(), out.numpy())
         for s in range(0, len(uniq) if self.half is None else 0, RESCORE_CHUNK):
             part = uniq[s : s + RESCORE_CHUNK]
             if self.state is None:
@@ -292,7 +288,7 @@ class EmbeddingIndex:
         v = vecs.float().contiguous().numpy()
         out = np.empty((len(r), len(v)), np.float32)
         mag = np.empty((len(r), len(v)), np.float32)
-        half_dots(self.half, r, v, self._P32, out, mag)
+        half_dots(self.half, r, v, out, mag)
         d = torch.from_numpy(out).double()
         e = torch.from_numpy(mag).double() * ((self.half.shape[1] + 4) * _U32) + 1e-12
         _check_finite(d, r)

@@ -1,7 +1,8 @@
-"""numba kernel for the compact query state: int8 coefficients times float32 weights (imported lazily).
+"""numba kernels for text queries (imported lazily): the compact state's int8 coefficients times float32
+weights, and dots of the float16 embeddings decoded exactly.
 
-Twin: ``int8_dots_reference`` (torch, float32). Rounding order differs (fastmath lets the compiler
-reassociate the sum of r products), so results agree to a few float32 ulps of the sum's magnitude.
+Twins: ``int8_dots_reference`` (torch, float32; fastmath lets the compiler reassociate the sum of r
+products, so results agree to a few float32 ulps of the sum's magnitude) and ``half_dots_reference``.
 """
 
 from __future__ import annotations
@@ -48,46 +49,106 @@ def int8_upper(
             out[i, k] = acc - shift[i] + err[i] * wn[k] + res[i] * vn[k] + slack
 
 
-def half_scale_table(dtype=np.float32) -> np.ndarray:
-    """[64] the value of one mantissa unit for each (sign, exponent) of a float16 (bits 15..10): x =
-    (mantissa | implicit bit) * table[h >> 10], exact; +-inf for the inf/NaN exponent."""
-    mag = [2.0**-24] + [2.0 ** (e - 25) for e in range(1, 31)] + [np.inf]
-    return np.array(mag + [-x for x in mag], dtype)
+_TWO_M24 = np.float32(2.0**-24)
+"""One mantissa unit of a float16 subnormal."""
+_REBIAS = np.uint32(112 << 23)
+"""float32 exponent bias (127) minus float16's (15), in place: adding it to a normal float16's
+exponent-and-mantissa bits shifted to float32's layout gives the float32 bits of the same value."""
 
 
 @numba.njit(inline="always", cache=True)
-def _half_parts(bits):  # pragma: no cover
-    """A float16's (integer mantissa with its implicit bit, sign-and-exponent index into
-    half_scale_table) from its bits: the value is mantissa * table[index], exactly."""
-    h = np.int32(bits)
-    i = h >> 10
-    return (h & 1023) | (1024 if (i & 31) != 0 else 0), i
+def _normal_bits(h):  # pragma: no cover
+    """float32 bits of a float16 with bits h (uint32) read as a normal number: exact for exponents 1..30
+    (subnormals, zeros, inf and NaN are fixed by _fix_special). Integer work only: it vectorises."""
+    return (((h & np.uint32(0x7FFF)) << np.uint32(13)) + _REBIAS) | ((h & np.uint32(0x8000)) << np.uint32(16))
+
+
+@numba.njit(inline="always", cache=True)
+def _fix_special(h, x):  # pragma: no cover
+    """The value of the float16 with bits h given x = its _normal_bits as float32: x itself for exponents
+    1..30, mantissa * 2^-24 (signed) for zeros and subnormals (a normal float32: no flush to zero), +inf
+    for inf and NaN (a damaged row is reported as not finite)."""
+    e = h & np.uint32(0x7C00)
+    sub = np.float32(h & np.uint32(0x3FF)) * _TWO_M24
+    if h & np.uint32(0x8000):
+        sub = -sub
+    return sub if e == 0 else (np.float32(np.inf) if e == np.uint32(0x7C00) else x)
+
+
+@numba.njit(inline="always", cache=True)
+def _decode_row(A, r, bits, buf):  # pragma: no cover
+    """buf[j] = float16 A[r,j] as float32, exactly (bits: a uint32 scratch row, buf: its float32 view)."""
+    D = A.shape[1]
+    for j in range(D):
+        bits[j] = _normal_bits(np.uint32(A[r, j]))
+    for j in range(D):
+        buf[j] = _fix_special(np.uint32(A[r, j]), buf[j])
+
+
+@numba.njit(parallel=True, cache=True)
+def half_decode(A: np.ndarray, out: np.ndarray) -> None:  # pragma: no cover
+    """out [M,D] float32 = the float16 values whose bits are A [M,D] uint16 (inf for inf and NaN); the
+    decoding every kernel here uses, exposed for its test against numpy's float16."""
+    for r in numba.prange(A.shape[0]):
+        bits = np.empty(A.shape[1], np.uint32)
+        buf = bits.view(np.float32)
+        _decode_row(A, r, bits, buf)
+        out[r] = buf
+
+
+_POW112 = np.float32(2.0**112)
+"""2^(127-15): float16 bits shifted into float32's layout read 2^112 times too small (subnormals too)."""
+SUBNORMAL_PROBE = np.array([1], np.uint32).view(np.float32)
+"""The smallest float32 subnormal: ``half_dots`` checks in every thread that it survives scaling."""
 
 
 def half_dots(
-    A: np.ndarray, rows: np.ndarray, V: np.ndarray, P: np.ndarray, out: np.ndarray, mag: np.ndarray
-):
+    A: np.ndarray,
+    rows: np.ndarray,
+    V: np.ndarray,
+    out: np.ndarray,
+    mag: np.ndarray,
+    probe: np.ndarray = SUBNORMAL_PROBE,
+) -> bool:
     """out[t,k] = float32 sum_j A[rows[t],j] V[k,j] and mag[t,k] = sum_j |A V| (any summation order), for
-    A [M,D] float16 bits (uint16), V [n,D] float32, P = half_scale_table(). The rounding error of out is
-    at most (D+4) 2^-24 mag (the bound fmgs.query.index uses). One column: decoding fused into the sum;
-    several: each row decoded once into a buffer."""
-    (_half_dots_one if V.shape[0] == 1 else _half_dots_many)(A, rows, V, P, out, mag)
+    A [M,D] float16 bits (uint16), V [n,D] float32. The rounding error of out is at most (D+4) 2^-24 mag
+    (the bound fmgs.query.index uses). Twin: ``half_dots_reference``.
+
+    Fast decoding: a float16's bits shifted into float32's layout, times 2^112 (four integer operations
+    and a product per value, twice as fast as decoding the fields). Float16 subnormals then pass through
+    float32 subnormals, which a thread with flush-to-zero (e.g. after ``torch.set_flush_denormal(True)``)
+    would zero: each block of rows checks ``probe`` (the smallest subnormal) the same way, and if any
+    thread flushed it, the call is redone with the field decoding (``_decode_row``), exact everywhere.
+    Returns whether it was redone.
+    """
+    flushed = np.zeros(1, np.uint8)
+    _half_dots_scaled(A, rows, V, out, mag, probe, flushed)
+    if flushed[0]:
+        _half_dots(A, rows, V, out, mag)
+    return bool(flushed[0])
 
 
 @numba.njit(parallel=True, fastmath={"reassoc", "contract", "arcp"}, cache=True)
-def _half_dots_many(A, rows, V, P, out, mag):  # pragma: no cover
-    """half_dots for several columns."""
+def _half_dots_scaled(A, rows, V, out, mag, probe, flushed):  # pragma: no cover
     m = rows.shape[0]
     D = A.shape[1]
     n = V.shape[0]
     B = 64
     for b in numba.prange((m + B - 1) // B):
-        buf = np.empty(D, np.float32)
+        if probe[0] * _POW112 == np.float32(0.0):
+            flushed[0] = 1
+        bits = np.empty(D, np.uint32)
+        buf = bits.view(np.float32)
         for t in range(b * B, min(m, (b + 1) * B)):
             r = rows[t]
             for j in range(D):
-                mant, i = _half_parts(A[r, j])
-                buf[j] = np.float32(mant) * P[i]
+                h = np.uint32(A[r, j])
+                bits[j] = ((h & np.uint32(0x7FFF)) << np.uint32(13)) | (
+                    (h & np.uint32(0x8000)) << np.uint32(16)
+                )
+            for j in range(D):
+                x = buf[j] * _POW112
+                buf[j] = np.float32(np.inf) if abs(x) >= np.float32(65536.0) else x  # inf/NaN exponent
             for k in range(n):
                 acc = np.float32(0.0)
                 aab = np.float32(0.0)
@@ -100,34 +161,57 @@ def _half_dots_many(A, rows, V, P, out, mag):  # pragma: no cover
 
 
 @numba.njit(parallel=True, fastmath={"reassoc", "contract", "arcp"}, cache=True)
-def _half_dots_one(
-    A: np.ndarray, rows: np.ndarray, V: np.ndarray, P: np.ndarray, out: np.ndarray, mag: np.ndarray
-):  # pragma: no cover
-    """half_dots for one column (decoding fused into the sum)."""
+def _half_dots(A, rows, V, out, mag):  # pragma: no cover
+    """half_dots with the field decoding (no float32 subnormal on the way)."""
     m = rows.shape[0]
     D = A.shape[1]
     n = V.shape[0]
-    for t in numba.prange(m):
-        r = rows[t]
-        for k in range(n):
-            acc = np.float32(0.0)
-            aab = np.float32(0.0)
-            for j in range(D):
-                mant, i = _half_parts(A[r, j])
-                p = (np.float32(mant) * P[i]) * V[k, j]
-                acc += p
-                aab += abs(p)
-            out[t, k] = acc
-            mag[t, k] = aab
+    B = 64
+    for b in numba.prange((m + B - 1) // B):
+        bits = np.empty(D, np.uint32)
+        buf = bits.view(np.float32)
+        for t in range(b * B, min(m, (b + 1) * B)):
+            _decode_row(A, rows[t], bits, buf)
+            for k in range(n):
+                acc = np.float32(0.0)
+                aab = np.float32(0.0)
+                for j in range(D):
+                    p = buf[j] * V[k, j]
+                    acc += p
+                    aab += abs(p)
+                out[t, k] = acc
+                mag[t, k] = aab
+
+
+@numba.njit(inline="always", cache=True)
+def _half_parts(bits):  # pragma: no cover
+    """A float16's (integer mantissa with its implicit bit, sign-and-exponent index into
+    half_scale_table) from its bits: the value is mantissa * table[index], exactly."""
+    h = np.int32(bits)
+    i = h >> 10
+    return (h & 1023) | (1024 if (i & 31) != 0 else 0), i
+
+
+def half_scale_table() -> np.ndarray:
+    """[64] float64 value of one mantissa unit for each (sign, exponent) of a float16 (bits 15..10): x =
+    (mantissa | implicit bit) * table[h >> 10], exact; +-inf for the inf/NaN exponent."""
+    mag = [2.0**-24] + [2.0 ** (e - 25) for e in range(1, 31)] + [np.inf]
+    return np.array(mag + [-x for x in mag], np.float64)
+
+
+_P64 = half_scale_table()
+
+
+def half_dots64(A: np.ndarray, rows: np.ndarray, V: np.ndarray, out: np.ndarray) -> None:
+    """out[t,k] = sum_j A[rows[t],j] V[k,j] in float64, summed in order j = 0..D-1 (so equal rows give equal
+    sums): the exact score. A [M,D] float16 bits, V [n,D] float64 holding float32 values (each product
+    is exact in float64). A scalar loop (the order is fixed), so the decoding is fused into it: mantissa
+    times a table entry per (sign, exponent). Twin: ``half_dots_reference``."""
+    _half_dots64(A, rows, V, _P64, out)
 
 
 @numba.njit(parallel=True, cache=True)
-def half_dots64(
-    A: np.ndarray, rows: np.ndarray, V: np.ndarray, P: np.ndarray, out: np.ndarray
-) -> None:  # pragma: no cover
-    """out[t,k] = sum_j A[rows[t],j] V[k,j] in float64, summed in order j = 0..D-1 (so equal rows give equal
-    sums): the exact score. A [M,D] float16 bits, V [n,D] float64 holding float32 values (each product
-    is exact in float64), P = half_scale_table(np.float64)."""
+def _half_dots64(A, rows, V, P, out):  # pragma: no cover
     m = rows.shape[0]
     D = A.shape[1]
     n = V.shape[0]
@@ -139,3 +223,14 @@ def half_dots64(
                 mant, i = _half_parts(A[r, j])
                 acc += (np.float64(mant) * P[i]) * V[k, j]
             out[t, k] = acc
+
+
+def half_dots_reference(A: np.ndarray, rows: np.ndarray, V: np.ndarray) -> np.ndarray:
+    """Twin of half_dots and half_dots64: [m,n] float64 dots of the float16 rows (numpy's decoding, inf
+    for inf and NaN) with V, summed in order j = 0..D-1."""
+    f = A[rows].view(np.float16).astype(np.float64)
+    f[~np.isfinite(f)] = np.inf
+    out = np.zeros((len(rows), len(V)))
+    for j in range(A.shape[1]):  # in order, as half_dots64
+        out += f[:, j : j + 1] * np.asarray(V, np.float64)[None, :, j]
+    return out

@@ -1,0 +1,77 @@
+"""The float16 kernels of the text query against their float64 twin: exact decoding of every bit
+pattern, the float32 pass within its stated rounding bound, the float64 pass equal to the ordered sum."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+kernels = pytest.importorskip("fmgs.query.kernels")
+
+
+def _numpy_decode(bits: np.ndarray) -> np.ndarray:
+    f = bits.view(np.float16).astype(np.float32)
+    f[~np.isfinite(f)] = np.inf
+    return f
+
+
+def test_every_float16_bit_pattern_decodes_exactly():
+    allbits = np.arange(65536, dtype=np.uint32).astype(np.uint16).reshape(256, 256)
+    out = np.empty((256, 256), np.float32)
+    kernels.half_decode(allbits, out)
+    ref = _numpy_decode(allbits)
+    assert np.array_equal(out.view(np.uint32), ref.view(np.uint32))  # signed zeros and subnormals too
+
+
+def _rows_with_extremes(M: int = 300, D: int = 67, seed: int = 0) -> np.ndarray:
+    """[M,D] float16 bits: unit-scale rows, then rows of subnormals, signed zeros, the largest finite
+    values and mixtures (D odd: no kernel may assume a multiple of the vector width)."""
+    rng = np.random.default_rng(seed)
+    f = (rng.standard_normal((M, D)) / np.sqrt(D)).astype(np.float16)
+    f[1] = (rng.integers(1, 1024, D) * 2.0**-24).astype(np.float16) * rng.choice([-1, 1], D)  # subnormal
+    f[2] = np.float16(-0.0)
+    f[3] = rng.choice([65504.0, -65504.0, 6.1e-5, -(2.0**-24)], D).astype(np.float16)
+    f[4, ::3] = (rng.integers(1, 1024, len(f[4, ::3])) * 2.0**-24).astype(np.float16)  # mixed
+    return f.view(np.uint16)
+
+
+@pytest.mark.parametrize("n", [1, 3, 8])
+@pytest.mark.parametrize("flush", [False, True])
+def test_float32_pass_is_within_its_bound(n, flush):
+    A = _rows_with_extremes()
+    rng = np.random.default_rng(n)
+    V = rng.standard_normal((n, A.shape[1])).astype(np.float32)
+    V /= np.linalg.norm(V, axis=1, keepdims=True)
+    rows = np.array([0, 1, 2, 3, 4, *rng.choice(np.arange(5, len(A)), 100, replace=False)], np.int64)
+    out = np.empty((len(rows), n), np.float32)
+    mag = np.empty_like(out)
+    # A zero probe reads as a thread that flushes subnormals: the call must fall back to field decoding.
+    probe = np.zeros(1, np.float32) if flush else kernels.SUBNORMAL_PROBE
+    assert kernels.half_dots(A, rows, V, out, mag, probe) is flush
+    ref = kernels.half_dots_reference(A, rows, V)
+    absref = np.abs(_numpy_decode(A[rows]).astype(np.float64)) @ np.abs(V.astype(np.float64)).T
+    bound = (A.shape[1] + 4) * 2.0**-24 * mag
+    assert np.all(np.abs(out - ref) <= bound)
+    assert np.all(np.abs(mag - absref) <= bound)  # mag is the sum of |products| it claims to be
+    assert np.all(out[1] != 0)  # subnormal rows are not flushed to zero
+
+
+def test_float32_pass_reports_a_damaged_row_as_not_finite():
+    A = _rows_with_extremes(M=8)
+    A[5, 7] = np.float16(np.inf).view(np.uint16)
+    A[6, 0] = np.float16(np.nan).view(np.uint16)
+    V = np.ones((2, A.shape[1]), np.float32) / np.sqrt(A.shape[1])
+    rows = np.arange(8, dtype=np.int64)
+    out, mag = np.empty((8, 2), np.float32), np.empty((8, 2), np.float32)
+    kernels.half_dots(A, rows, V, out, mag)
+    assert not np.isfinite(out[5]).any() and not np.isfinite(out[6]).any()
+    assert np.isfinite(out[[0, 1, 2, 3, 4, 7]]).all()
+
+
+def test_float64_pass_equals_the_ordered_sum():
+    A = _rows_with_extremes()
+    V = np.random.default_rng(3).standard_normal((2, A.shape[1])).astype(np.float32).astype(np.float64)
+    rows = np.arange(len(A), dtype=np.int64)[::-1].copy()
+    out = np.empty((len(rows), 2))
+    kernels.half_dots64(A, rows, V, out)
+    assert np.array_equal(out, kernels.half_dots_reference(A, rows, V))

@@ -15,6 +15,12 @@ from fmgs_server.errors import Cancelled, DeadlineExceeded, ServiceError
 
 log = logging.getLogger("fmgs_server")
 
+STREAM_END_GRACE_S = 0.05
+"""When a client's request stream ends, how long a request-streaming handler waits for a cancellation
+to land before calling the end normal. grpc reports a client's cancel to the server as the end of its
+request stream first and as a cancellation a moment later; without the wait a cancelled pose stream
+could be logged OK (the client saw CANCELLED). Paid once, at the end of a stream."""
+
 
 def status_of(e: BaseException) -> tuple[grpc.StatusCode, str]:
     """The status code and message for an exception raised while answering (README "Errors")."""
@@ -85,6 +91,13 @@ def rpc(fn):
     return wrapper
 
 
+def _settle(context, grace_s: float | None = None) -> None:
+    """Wait up to ``grace_s`` (default STREAM_END_GRACE_S) while the call is still active."""
+    end = time.monotonic() + (STREAM_END_GRACE_S if grace_s is None else grace_s)
+    while context.is_active() and time.monotonic() < end:
+        time.sleep(0.005)
+
+
 def rpc_stream(fn):
     """Streaming handler: as ``rpc`` for generators; stops quietly when the client has gone (logged as
     CANCELLED, or DEADLINE_EXCEEDED when its deadline ended the call)."""
@@ -100,6 +113,8 @@ def rpc_stream(fn):
                     return
                 n += 1
                 yield msg
+            if isinstance(request, Iterator):
+                _settle(context)
             code = seen_by_client(context, code)
         except GeneratorExit:  # the transport closed the stream: the client left or its deadline passed
             code = seen_by_client(context, grpc.StatusCode.CANCELLED)

@@ -142,3 +142,29 @@ def test_scene_info_from_the_manifest_or_the_engine(engine, tmp_path):
     assert loaded.state == pb.SCENE_STATE_READY and loaded.resident_bytes == engine.nbytes() > 0
     assert responses.scene_info(SceneSlot("x", UNLOADED), None).num_gaussians == 0  # unreadable manifest
     assert FmgsService.__name__ == "FmgsService" and isinstance(m, Manifest)
+
+
+def test_a_request_stream_ended_by_a_late_cancel_is_logged_cancelled(caplog):
+    """grpc ends a cancelled client's request stream before it marks the call inactive: the handler's
+    normal end must wait briefly for that mark before reporting OK."""
+    import logging
+    import threading
+
+    from fmgs_server.calls import rpc_stream
+
+    class Svc:
+        @rpc_stream
+        def Stream(self, requests, context):
+            for _ in requests:
+                yield "frame"
+
+    def poses(ctx, cancelled: bool):
+        yield "pose"
+        if cancelled:  # the cancellation lands 10 ms after the request stream ended
+            threading.Timer(0.01, lambda: setattr(ctx, "active", False)).start()
+
+    caplog.set_level(logging.INFO, logger="fmgs_server")
+    for cancelled, expected in ((True, "CANCELLED"), (False, "OK")):
+        ctx = Ctx()
+        assert list(Svc().Stream(poses(ctx, cancelled), ctx)) == ["frame"]
+        assert f" {expected} 1 msgs" in caplog.records[-1].getMessage()

@@ -168,6 +168,12 @@ def presence_rates(rows: list[dict]) -> dict[str, tuple[int, int]]:
     return out
 
 
+def _note(scene: dict) -> str:
+    """A run's remark on its build time (``build_note`` in unseen.json: e.g. stages resumed from an
+    interrupted run, whose time is not in the figure)."""
+    return f" ({scene['build_note']})" if scene.get("build_note") else ""
+
+
 def report(scenes: list[dict], info: dict, cmd: str) -> str:
     import numpy as np
 
@@ -204,7 +210,8 @@ def report(scenes: list[dict], info: dict, cmd: str) -> str:
         worst = min(s["class_iou"].items(), key=lambda kv: kv[1])
         lines.append(
             f"| {s['seed']} | {s['psnr']:.2f} dB | {s['gaussians']:,} ({s['embedded']:,}) | "
-            f"{s['build_seconds'] / 60:.1f} min | {s['localisation_2d']:.1%} | {s['localisation_3d']:.1%} | "
+            f"{s['build_seconds'] / 60:.1f} min{_note(s)} | {s['localisation_2d']:.1%} | "
+            f"{s['localisation_3d']:.1%} | "
             f"{s['miou']:.3f} | {worst[0]} {worst[1]:.2f} |"
         )
     mean = lambda k: float(np.mean([s[k] for s in scenes]))  # noqa: E731

@@ -91,9 +91,9 @@ def rpc(fn):
     return wrapper
 
 
-def _settle(context, grace_s: float | None = None) -> None:
-    """Wait up to ``grace_s`` (default STREAM_END_GRACE_S) while the call is still active."""
-    end = time.monotonic() + (STREAM_END_GRACE_S if grace_s is None else grace_s)
+def _settle(context) -> None:
+    """Wait up to STREAM_END_GRACE_S while the call is still active."""
+    end = time.monotonic() + STREAM_END_GRACE_S
     while context.is_active() and time.monotonic() < end:
         time.sleep(0.005)
 

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-kernels = pytest.importorskip("fmgs.query.kernels")
+from fmgs.query import kernels
 
 
 def _numpy_decode(bits: np.ndarray) -> np.ndarray:

@@ -109,69 +109,54 @@ def half_dots(
     out: np.ndarray,
     mag: np.ndarray,
     probe: np.ndarray = SUBNORMAL_PROBE,
+    scaled: bool = True,
 ) -> bool:
     """out[t,k] = float32 sum_j A[rows[t],j] V[k,j] and mag[t,k] = sum_j |A V| (any summation order), for
     A [M,D] float16 bits (uint16), V [n,D] float32. The rounding error of out is at most (D+4) 2^-24 mag
     (the bound fmgs.query.index uses). Twin: ``half_dots_reference``.
 
-    Fast decoding: a float16's bits shifted into float32's layout, times 2^112 (four integer operations
-    and a product per value, twice as fast as decoding the fields). Float16 subnormals then pass through
-    float32 subnormals, which a thread with flush-to-zero (e.g. after ``torch.set_flush_denormal(True)``)
-    would zero: each block of rows checks ``probe`` (the smallest subnormal) the same way, and if any
-    thread flushed it, the call is redone with the field decoding (``_decode_row``), exact everywhere.
-    Returns whether it was redone.
+    Fast decoding (``scaled``): a float16's bits shifted into float32's layout, times 2^112 (four integer
+    operations and a product per value, twice as fast as decoding the fields). Float16 subnormals then
+    pass through float32 subnormals, which a thread with flush-to-zero (e.g. after
+    ``torch.set_flush_denormal(True)``) would zero: each block of rows checks ``probe`` (the smallest
+    subnormal) the same way, and if any thread flushed it, the call is redone with the field decoding
+    (``_decode_row``), exact everywhere. Returns whether it was redone.
     """
     flushed = np.zeros(1, np.uint8)
-    _half_dots_scaled(A, rows, V, out, mag, probe, flushed)
+    _half_dots(A, rows, V, out, mag, scaled, probe, flushed)
     if flushed[0]:
-        _half_dots(A, rows, V, out, mag)
+        _half_dots(A, rows, V, out, mag, False, probe, flushed)
     return bool(flushed[0])
 
 
+@numba.njit(inline="always", cache=True)
+def _decode_row_scaled(A, r, bits, buf):  # pragma: no cover
+    """buf[j] = float16 A[r,j] as float32 by shifting and scaling (exact unless subnormals are flushed)."""
+    D = A.shape[1]
+    for j in range(D):
+        h = np.uint32(A[r, j])
+        bits[j] = ((h & np.uint32(0x7FFF)) << np.uint32(13)) | ((h & np.uint32(0x8000)) << np.uint32(16))
+    for j in range(D):
+        x = buf[j] * _POW112
+        buf[j] = np.float32(np.inf) if abs(x) >= np.float32(65536.0) else x  # inf/NaN exponent
+
+
 @numba.njit(parallel=True, fastmath={"reassoc", "contract", "arcp"}, cache=True)
-def _half_dots_scaled(A, rows, V, out, mag, probe, flushed):  # pragma: no cover
+def _half_dots(A, rows, V, out, mag, scaled, probe, flushed):  # pragma: no cover
     m = rows.shape[0]
     D = A.shape[1]
     n = V.shape[0]
     B = 64
     for b in numba.prange((m + B - 1) // B):
-        if probe[0] * _POW112 == np.float32(0.0):
+        if scaled and probe[0] * _POW112 == np.float32(0.0):
             flushed[0] = 1
         bits = np.empty(D, np.uint32)
         buf = bits.view(np.float32)
         for t in range(b * B, min(m, (b + 1) * B)):
-            r = rows[t]
-            for j in range(D):
-                h = np.uint32(A[r, j])
-                bits[j] = ((h & np.uint32(0x7FFF)) << np.uint32(13)) | (
-                    (h & np.uint32(0x8000)) << np.uint32(16)
-                )
-            for j in range(D):
-                x = buf[j] * _POW112
-                buf[j] = np.float32(np.inf) if abs(x) >= np.float32(65536.0) else x  # inf/NaN exponent
-            for k in range(n):
-                acc = np.float32(0.0)
-                aab = np.float32(0.0)
-                for j in range(D):
-                    p = buf[j] * V[k, j]
-                    acc += p
-                    aab += abs(p)
-                out[t, k] = acc
-                mag[t, k] = aab
-
-
-@numba.njit(parallel=True, fastmath={"reassoc", "contract", "arcp"}, cache=True)
-def _half_dots(A, rows, V, out, mag):  # pragma: no cover
-    """half_dots with the field decoding (no float32 subnormal on the way)."""
-    m = rows.shape[0]
-    D = A.shape[1]
-    n = V.shape[0]
-    B = 64
-    for b in numba.prange((m + B - 1) // B):
-        bits = np.empty(D, np.uint32)
-        buf = bits.view(np.float32)
-        for t in range(b * B, min(m, (b + 1) * B)):
-            _decode_row(A, rows[t], bits, buf)
+            if scaled:
+                _decode_row_scaled(A, rows[t], bits, buf)
+            else:
+                _decode_row(A, rows[t], bits, buf)
             for k in range(n):
                 acc = np.float32(0.0)
                 aab = np.float32(0.0)

@@ -322,6 +322,20 @@ def _build_config(args: argparse.Namespace):
     return cfg
 
 
+def cmd_shard(args: argparse.Namespace) -> int:
+    """Split a scene package into spatial shards (each a package) with a shard manifest."""
+    from fmgs.scene.shards import ShardManifest, write_shards
+
+    src = Path(args.package)
+    out = Path(args.out) if args.out else src.parent / f"{src.name}-{args.shards}shards"
+    t0 = time.perf_counter()
+    write_shards(src, out, args.shards)
+    sm = ShardManifest.read(out)
+    rows = [f"  {s.folder}: {s.num_gaussians} Gaussians, {s.num_selected} embedded" for s in sm.shards]
+    print(f"{out}: {len(sm.shards)} shards of {sm.name} in {time.perf_counter() - t0:.1f} s", *rows, sep="\n")
+    return 0
+
+
 def cmd_build(args: argparse.Namespace) -> int:
     """Photos (or a posed dataset, or a .ply with its posed images) to a scene package in models/."""
     from fmgs.build import build_scene
@@ -477,6 +491,16 @@ def build_parser() -> argparse.ArgumentParser:
     flags.add_flags(g, BuildConfig, aliases=BUILD_ALIASES, defaults=AUTO_DEVICE, skip=_BUILD_STAGE_OWNED)
     _no_dotsim(g)
     b.set_defaults(func=cmd_build)
+
+    sh = sub.add_parser(
+        "shard",
+        help="split a scene package into K spatial shards (a balanced k-d split of the means) for serving "
+        "a scene bigger than one node on a Ray cluster",
+    )
+    sh.add_argument("package", help="scene package folder, e.g. models/NAME")
+    sh.add_argument("--shards", type=int, required=True, help="number of shards K (1..4096)")
+    sh.add_argument("--out", help="folder for the sharded scene (default: PACKAGE-Kshards beside it)")
+    sh.set_defaults(func=cmd_shard)
 
     sub.add_parser(
         "serve",

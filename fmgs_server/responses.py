@@ -72,7 +72,9 @@ def text_chunks(
     cols: dict[str, np.ndarray] = {"index": idx.numpy(), "relevancy": a.relevancy.numpy()}
     if pb.GAUSSIAN_FIELD_SIMILARITY in fields:
         cols["similarity"] = a.similarity.numpy()
-    cols.update(engine.gaussian_columns(idx, [n for f, n in COLUMNS.items() if f in fields]))
+    names = [n for f, n in COLUMNS.items() if f in fields]
+    carried = a.columns
+    cols.update(engine.gaussian_columns(idx, names) if carried is None else {n: carried[n] for n in names})
     if pb.GAUSSIAN_FIELD_INSTANCE in fields:
         ids = a.instance_ids if a.instance_ids is not None else np.full(len(idx), -1, np.int32)
         cols["instance"] = ids.astype(np.int32)

@@ -58,6 +58,8 @@ class TextAnswer(NamedTuple):
     """Gaussians scored exactly to certify the ranking (fmgs.query.certify)."""
     presence: Presence | None = None
     """Is the queried thing in the scene (fmgs.query.presence); None unless negatives were given."""
+    columns: dict[str, np.ndarray] | None = None
+    """Gaussian columns carried with the answer (sharded scenes); None: ask the engine."""
 
 
 PRESENCE = PresenceConfig()

@@ -49,6 +49,8 @@ class Ranked(NamedTuple):
     """[K] float32 f.q."""
     rescored: int = 0
     """Rows scored exactly to certify the answer."""
+    margin: torch.Tensor | None = None
+    """[K] float64 exact margins (what the ranking orders by; shard answers merge on it)."""
 
 
 RowReader = Callable[[np.ndarray], torch.Tensor]
@@ -56,8 +58,10 @@ RowReader = Callable[[np.ndarray], torch.Tensor]
 
 
 def served_relevancy(margin: torch.Tensor) -> torch.Tensor:
-    """Relevancy as served from float32 margins."""
-    return torch.sigmoid(TEMPERATURE * margin)
+    """Relevancy as served from float32 margins: float32 of a float64 sigmoid. A float32 sigmoid takes
+    a vector path for most elements and a scalar one for the rest, which can differ in the last bit,
+    so a row's relevancy would depend on where it sits in the batch (shards would not merge exactly)."""
+    return torch.sigmoid(TEMPERATURE * margin.double()).float()
 
 
 @functools.lru_cache(maxsize=256)
@@ -99,7 +103,8 @@ class EmbeddingIndex:
         """[M] the largest canonical dot per Gaussian (float32, as stored)."""
         self.read_rows = read_rows
         self.half = half
-        """[M,D] uint16: the stored float16 embeddings' bits (compact path), scored by numba kernels."""
+        """[M,D] uint16: the stored float16 embeddings' bits (None for float32 input), rescored by numba
+        kernels on both paths."""
         self.cfg = cfg
         if state is not None:
             self.coeffs = state.codes
@@ -141,15 +146,17 @@ class EmbeddingIndex:
         dev = torch.device(cfg.device)
         if dev.type != "cpu":
             return cls(_float32_on(embeddings, dev), canonical.float().to(dev), cfg)
-        if cfg.rank == 0 or cfg.rank >= D or M < cfg.exact_below:
-            return cls(embeddings.float().contiguous(), canonical, cfg)
-        if state is None or state.rank != cfg.rank or state.num != M:
-            state = build_state(embeddings, cfg.rank, cfg.basis_sample)
+        # Stored float16 rows are rescored by the fixed-order float64 kernel on both paths, so a row's
+        # exact margin never depends on which other rows were scored with it (shards merge bit for bit).
         half = (
             embeddings.view(torch.int16).numpy().view(np.uint16)
             if embeddings.dtype == torch.float16
             else None
         )
+        if cfg.rank == 0 or cfg.rank >= D or M < cfg.exact_below:
+            return cls(embeddings.float().contiguous(), canonical, cfg, half=half)
+        if state is None or state.rank != cfg.rank or state.num != M:
+            state = build_state(embeddings, cfg.rank, cfg.basis_sample)
         if read_rows is None:
             src = embeddings
 
@@ -364,7 +371,7 @@ class EmbeddingIndex:
             sim = self.exact_dots(c.rows, q[j : j + 1]).cpu()[:, 0]
             rel = served_relevancy(c.margin.float())
             keep = rel >= threshold
-            out.append(Ranked(c.rows[keep], rel[keep], sim[keep].float(), c.rescored))
+            out.append(Ranked(c.rows[keep], rel[keep], sim[keep].float(), c.rescored, c.margin[keep]))
         return out
 
 
@@ -388,7 +395,7 @@ def rank_reference(
     order = order_rows(m, rows)[: max(0, min(int(top_k), len(sim)))]
     rel = served_relevancy(m[order].float())
     keep = rel >= threshold
-    return Ranked(rows[order][keep], rel[keep], sim[order][keep].float(), len(sim))
+    return Ranked(rows[order][keep], rel[keep], sim[order][keep].float(), len(sim), m[order][keep])
 
 
 def int8_dots_reference(coeffs: torch.Tensor, scales: torch.Tensor, basis: torch.Tensor, v: torch.Tensor):

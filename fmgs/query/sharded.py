@@ -1,0 +1,215 @@
+"""Text queries on a sharded scene: each shard ranks its own rows, the merge is the exact top K.
+
+A shard answers with its best rows under the served ranking (margin descending), their float64
+margins, and what the merge needs to finish the answer as the unsharded engine would (presence dots of
+its best rows, the means and opacities that instance grouping reads, the asked-for Gaussian columns).
+Margins are computed per row from stored bits in a fixed order (fmgs.query.index), so a row scores the
+same in its shard as in the source, and ordering the union by (margin descending, source row
+ascending) gives the source's answer bit for bit: the K best overall are among the K best of each shard.
+
+``shard_text`` runs where the shard is held (in-process, or in a Ray replica); ``merge_text`` wherever
+the request arrived. Both are plain data in, plain data out (numpy), so the parts can travel.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import NamedTuple
+
+import numpy as np
+import torch
+
+from fmgs.query.certify import order_rows
+from fmgs.query.engine import PRESENCE, EngineConfig, SceneEngine, TextAnswer
+from fmgs.query.instances import InstanceConfig, group_instances
+from fmgs.query.presence import Presence, PresenceConfig, presence
+from fmgs.scene.shards import ShardManifest, read_shard_ids, shard_folders
+from fmgs.vecmath import safe_normalize
+
+
+class ShardPart(NamedTuple):
+    """One shard's best rows for one text (numpy, source indices)."""
+
+    rows: np.ndarray
+    """[k] int64 source rows (into the source's embedded Gaussians), best first."""
+    index: np.ndarray
+    """[k] int64 source Gaussian indices."""
+    margin: np.ndarray
+    """[k] float64 exact margins."""
+    relevancy: np.ndarray
+    """[k] float32."""
+    similarity: np.ndarray
+    """[k] float32."""
+    rescored: int
+    presence_dots: np.ndarray | None
+    """[min(k,T),1+V] float64 f.[q, negatives] of the first rows (None without negatives)."""
+    means: np.ndarray | None
+    """[k,3] float64 (None unless instances are asked for)."""
+    opacity: np.ndarray | None
+    """[k] float64 (None unless instances are asked for)."""
+    columns: dict[str, np.ndarray]
+    """Asked-for Gaussian columns (SceneEngine.gaussian_columns), [k,...] float32."""
+
+
+@dataclass(frozen=True)
+class ShardQuery:
+    """What every shard is asked (the same for all of them)."""
+
+    queries: np.ndarray
+    """[n,D] float32 query embeddings (normalised by each shard as the engine does)."""
+    top_k: int
+    threshold: float = 0.0
+    canonical: np.ndarray | None = None
+    """[C,D] float32 replacement canonical embeddings, or None."""
+    negatives: np.ndarray | None = None
+    """[V,D] float32 presence negatives, or None."""
+    instances: bool = False
+    columns: tuple[str, ...] = ()
+    presence_rows: int = PRESENCE.rows
+
+
+def _t(a: np.ndarray | None) -> torch.Tensor | None:
+    return None if a is None else torch.from_numpy(np.ascontiguousarray(a, np.float32))
+
+
+@torch.no_grad()
+def shard_text(engine: SceneEngine, rows_map: torch.Tensor, gauss_map: torch.Tensor, sq: ShardQuery):
+    """This shard's parts for every query ([n] ShardPart). rows_map [m] / gauss_map [n_g] int64: source
+    row of each local row and source index of each local Gaussian (fmgs.scene.shards.read_shard_ids)."""
+    q = engine.unit(_t(sq.queries))
+    c = None if sq.canonical is None else engine.unit(_t(sq.canonical), "canonical embeddings")
+    neg = None if sq.negatives is None else engine.unit(_t(sq.negatives), "negative embeddings")
+    # Without a threshold cut, presence reads the unthresholded best rows: rank that many, cut later.
+    k = sq.top_k if neg is None else max(sq.top_k, sq.presence_rows)
+    thr = sq.threshold if neg is None else 0.0
+    ranked = engine.index.rank_many(q, k, thr, c)
+    out = []
+    for j, r in enumerate(ranked):
+        local = engine.selected[r.rows]
+        pd = None
+        if neg is not None:
+            first = r.rows[: sq.presence_rows]
+            pd = engine.index.exact_dots(first, torch.cat([q[j : j + 1], neg])).cpu().numpy()
+        means = opac = None
+        if sq.instances:
+            g = engine.gaussians
+            means = g.means[local].detach().cpu().double().numpy()
+            opac = g.opacities[local].detach().cpu().double().numpy()
+        out.append(
+            ShardPart(
+                rows_map[r.rows].numpy(),
+                gauss_map[local].numpy(),
+                r.margin.cpu().numpy(),
+                r.relevancy.numpy(),
+                r.similarity.numpy(),
+                int(r.rescored),
+                pd,
+                means,
+                opac,
+                engine.gaussian_columns(local, sq.columns),
+            )
+        )
+    return out
+
+
+def merge_text(
+    parts: Sequence[ShardPart],
+    sq: ShardQuery,
+    query: np.ndarray,
+    instances: InstanceConfig | None,
+    means_box: Sequence[float],
+    presence_cfg: PresenceConfig = PRESENCE,
+) -> TextAnswer:
+    """One text's answer from every shard's part for it: the exact top K of the union, presence from the
+    best presence_cfg.rows rows, instances grouped after the merge. query [D] the text's embedding."""
+    rows = np.concatenate([p.rows for p in parts])
+    margin = torch.from_numpy(np.concatenate([p.margin for p in parts]))
+    order = order_rows(margin, torch.from_numpy(rows)).numpy()
+    pres = None if sq.negatives is None else _merged_presence(parts, order, query, sq, presence_cfg)
+    rel_all = np.concatenate([p.relevancy for p in parts])
+    keep = order[: sq.top_k]
+    keep = keep[rel_all[keep] >= sq.threshold]  # a prefix: relevancy falls with the margin
+
+    def cat(name: str) -> np.ndarray:
+        return np.concatenate([getattr(p, name) for p in parts])[keep]
+
+    rel = rel_all[keep]
+    cols = {name: np.concatenate([p.columns[name] for p in parts])[keep] for name in sq.columns}
+    inst, ids = [], None
+    if instances is not None:
+        box = np.asarray(means_box, np.float64)
+        eps = instances.eps or max(float(np.linalg.norm(box[3:] - box[:3]) * instances.eps_fraction), 1e-9)
+        inst, ids = group_instances(cat("means"), rel, cat("opacity"), instances, eps)
+    return TextAnswer(
+        torch.from_numpy(cat("index")),
+        torch.from_numpy(rel),
+        torch.from_numpy(cat("similarity")),
+        inst,
+        ids,
+        sum(p.rescored for p in parts),
+        pres,
+        cols,
+    )
+
+
+def _merged_presence(parts, order, query, sq: ShardQuery, cfg: PresenceConfig) -> Presence:
+    dots = [p.presence_dots for p in parts]
+    have = np.concatenate([np.arange(len(p.rows)) < len(d) for p, d in zip(parts, dots, strict=True)])
+    first = order[: cfg.rows]
+    if len(first) == 0:
+        from fmgs.query.engine import NO_GAUSSIANS
+
+        return NO_GAUSSIANS
+    if not have[first].all():  # cannot happen: the best T overall are among each shard's best T
+        raise RuntimeError("a shard left out presence dots of a row among the best")
+    # Position of each row's dots in the concatenation of the shards' dot blocks.
+    starts = np.cumsum([0] + [len(p.rows) for p in parts[:-1]])
+    dstarts = np.cumsum([0] + [len(d) for d in dots[:-1]])
+    shard = np.searchsorted(starts, first, side="right") - 1
+    pos = dstarts[shard] + (first - starts[shard])
+    d = torch.from_numpy(np.concatenate(dots)[pos])
+    q = safe_normalize(torch.from_numpy(np.asarray(query, np.float32))[None].float())[0]
+    neg = safe_normalize(torch.from_numpy(np.asarray(sq.negatives, np.float32)).float())
+    qn = neg.double() @ q.double()
+    return presence(d[:, 0], d[:, 1:], qn, cfg)
+
+
+class ShardedScene:
+    """A sharded scene held in one process (every shard an engine): the exact twin of serving the
+    shards on many replicas, and what tests compare against the unsharded engine."""
+
+    def __init__(self, folder: str | Path, cfg: EngineConfig | None = None) -> None:
+        cfg = cfg or EngineConfig()
+        self.folder = Path(folder)
+        self.manifest = ShardManifest.read(self.folder)
+        self.engines, self.maps = [], []
+        for info, path in zip(self.manifest.shards, shard_folders(self.folder), strict=True):
+            e = SceneEngine.open(path, cfg)
+            self.engines.append(e)
+            self.maps.append(read_shard_ids(path, info.num_gaussians, info.num_selected))
+
+    def text_query_many(
+        self,
+        queries: torch.Tensor,
+        top_k: int,
+        threshold: float = 0.0,
+        canonical: torch.Tensor | None = None,
+        instances: InstanceConfig | None = None,
+        negatives: torch.Tensor | None = None,
+        columns: tuple[str, ...] = (),
+    ) -> list[TextAnswer]:
+        """As SceneEngine.text_query_many, the shards scored one after another here."""
+        np32 = lambda t: None if t is None else t.detach().float().cpu().numpy()  # noqa: E731
+        sq = ShardQuery(
+            np32(queries), int(top_k), float(threshold), np32(canonical), np32(negatives),
+            instances is not None, tuple(columns),
+        )  # fmt: skip
+        per_shard = [
+            shard_text(e, rows, gi, sq) for e, (gi, rows) in zip(self.engines, self.maps, strict=True)
+        ]
+        return [
+            merge_text([p[j] for p in per_shard], sq, sq.queries[j], instances, self.manifest.means_box)
+            for j in range(len(sq.queries))
+        ]

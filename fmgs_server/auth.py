@@ -43,6 +43,36 @@ class TokenAuth(grpc.ServerInterceptor):
         self.read, self.admin = read, admin
         self.health_open, self.scene_health_open = health_open, scene_health_open
 
+    def refusal(self, method: str, token: bytes) -> tuple[grpc.StatusCode, str] | None:
+        """Why a call of ``method`` (full name) with bearer ``token`` (b"" for none) is refused, or None.
+        Health calls are checked by ``health_refusal`` (it needs the service asked about)."""
+        if not (self.read or self.admin):
+            return None
+        if method in ADMIN_METHODS:
+            if not token:
+                return grpc.StatusCode.UNAUTHENTICATED, "missing bearer token"
+            if not self.admin or not _matches(token, self.admin):
+                known = _matches(token, self.read)
+                code = grpc.StatusCode.PERMISSION_DENIED if known else grpc.StatusCode.UNAUTHENTICATED
+                return code, "admin token required" if known else "invalid bearer token"
+            return None
+        if not token:
+            return grpc.StatusCode.UNAUTHENTICATED, "missing bearer token"
+        if not (_matches(token, self.read) | _matches(token, self.admin)):
+            return grpc.StatusCode.UNAUTHENTICATED, "invalid bearer token"
+        return None
+
+    def health_refusal(self, service: str, token: bytes) -> tuple[grpc.StatusCode, str] | None:
+        """As ``refusal`` for a health check of ``service``."""
+        if not (self.read or self.admin):
+            return None
+        if not self.health_open:
+            return self.refusal(HEALTH_PREFIX + "Check", token)
+        known = bool(token) and (_matches(token, self.read) | _matches(token, self.admin))
+        if "/" in service and not (self.scene_health_open or known):
+            return grpc.StatusCode.UNAUTHENTICATED, "a scene's health needs a bearer token"
+        return None
+
     def intercept_service(self, continuation, details):
         handler = continuation(details)
         if handler is None:
@@ -50,28 +80,23 @@ class TokenAuth(grpc.ServerInterceptor):
         method = details.method
         if not (self.read or self.admin):
             return handler
-        token = b""
-        for key, value in details.invocation_metadata or ():
-            if key == "authorization":
-                v = value.encode() if isinstance(value, str) else value
-                if v[:7].lower() == b"bearer ":
-                    token = v[7:].strip()
+        token = bearer_token(details.invocation_metadata)
         if self.health_open and method.startswith(HEALTH_PREFIX):
             known = bool(token) and (_matches(token, self.read) | _matches(token, self.admin))
             return handler if self.scene_health_open or known else _server_health_only(handler)
-        if method in ADMIN_METHODS:
-            if not token:
-                return _deny(handler, grpc.StatusCode.UNAUTHENTICATED, "missing bearer token")
-            if not self.admin or not _matches(token, self.admin):
-                known = _matches(token, self.read)
-                code = grpc.StatusCode.PERMISSION_DENIED if known else grpc.StatusCode.UNAUTHENTICATED
-                return _deny(handler, code, "admin token required" if known else "invalid bearer token")
-            return handler
-        if not token:
-            return _deny(handler, grpc.StatusCode.UNAUTHENTICATED, "missing bearer token")
-        if not (_matches(token, self.read) | _matches(token, self.admin)):
-            return _deny(handler, grpc.StatusCode.UNAUTHENTICATED, "invalid bearer token")
-        return handler
+        refused = self.refusal(method, token)
+        return handler if refused is None else _deny(handler, *refused)
+
+
+def bearer_token(metadata) -> bytes:
+    """The bearer token of a call's metadata (b"" when there is none)."""
+    token = b""
+    for key, value in metadata or ():
+        if key == "authorization":
+            v = value.encode() if isinstance(value, str) else value
+            if v[:7].lower() == b"bearer ":
+                token = v[7:].strip()
+    return token
 
 
 def _server_health_only(handler):

@@ -9,7 +9,9 @@ from __future__ import annotations
 import argparse
 import sys
 
-from fmgs.flags import add_flags, config_from
+from fmgs.flags import _UNSET as UNSET
+from fmgs.flags import add_flags, build, config_from
+from fmgs_server.cluster.config import ClusterConfig
 from fmgs_server.config import MiB, ServerConfig
 
 
@@ -26,7 +28,24 @@ def build_parser(prog: str = "fmgs-server") -> argparse.ArgumentParser:
         help="the same as --memory-budget-bytes, in MiB",
     )
     add_flags(p, ServerConfig)
+    p.add_argument(
+        "--ray",
+        nargs="?",
+        const="local",
+        metavar="ADDRESS",
+        help="serve on a Ray cluster through Ray Serve's gRPC proxy (needs fmgs[ray]): ADDRESS of a "
+        "running cluster ('auto' finds the local node's), or none to start a local one",
+    )
+    add_flags(p.add_argument_group("Ray cluster (with --ray; flags only)"), ClusterConfig, prefix="ray.")
     return p
+
+
+def cluster_config_from_args(a: argparse.Namespace) -> ClusterConfig:
+    """The ClusterConfig of the --ray-* flags; ValueError names a bad setting."""
+    given = {k.split(".", 1)[1]: v for k, v in vars(a).items() if k.startswith("ray.") and v is not UNSET}
+    cc = build(ClusterConfig, given, "flags")
+    cc.validate()
+    return cc
 
 
 def config_from_args(a: argparse.Namespace) -> ServerConfig:
@@ -42,10 +61,27 @@ def main(argv: list[str] | None = None, prog: str = "fmgs-server") -> int:
     a = build_parser(prog).parse_args(argv)
     try:
         cfg = config_from_args(a)
+        cc = cluster_config_from_args(a)
     except ValueError as e:
         print(f"{prog}: error: {e}", file=sys.stderr)
         return 2
     import logging
+
+    if a.ray is not None:
+        logging.basicConfig(
+            level=a.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s"
+        )
+        from fmgs_server.cluster.launch import serve_ray
+
+        try:
+            serve_ray(cfg, cc, None if a.ray == "local" else a.ray)
+        except ImportError as e:
+            print(f"{prog}: error: --ray needs Ray Serve: pip install 'fmgs[ray]' ({e})", file=sys.stderr)
+            return 2
+        except ValueError as e:
+            print(f"{prog}: error: {e}", file=sys.stderr)
+            return 2
+        return 0
 
     from fmgs_server.server import serve
 

@@ -104,6 +104,21 @@ def _text_encoder(device: str):
     return load
 
 
+def make_service(cfg: ServerConfig, encoder_factory=None, on_change=None) -> FmgsService:
+    """The service over ``cfg.models`` with its repository and text-encoder cache (no transport): what
+    ``start_server`` serves, and what each Ray replica holds (fmgs_server.cluster)."""
+    ecfg = EngineConfig(cfg.index, device=cfg.device)
+    repo = SceneRepository(
+        cfg.models,
+        lambda p: SceneEngine.open(p, ecfg),
+        cfg.memory_budget_bytes,
+        cfg.reload_check_s,
+        on_change,
+    )
+    encoders = EncoderCache(encoder_factory or _text_encoder(cfg.device), cfg.text_cache)
+    return FmgsService(cfg, repo, encoders)
+
+
 def start_server(cfg: ServerConfig, encoder_factory=None) -> RunningServer:
     """Build and start a server for ``cfg`` (port 0 picks a free port; see ``RunningServer.port``)."""
     cfg.validate()
@@ -118,16 +133,8 @@ def start_server(cfg: ServerConfig, encoder_factory=None) -> RunningServer:
         )
         health_servicer.set(scene_health_name(name), status)
 
-    ecfg = EngineConfig(cfg.index, device=cfg.device)
-    repo = SceneRepository(
-        cfg.models,
-        lambda p: SceneEngine.open(p, ecfg),
-        cfg.memory_budget_bytes,
-        cfg.reload_check_s,
-        on_change,
-    )
-    encoders = EncoderCache(encoder_factory or _text_encoder(cfg.device), cfg.text_cache)
-    service = FmgsService(cfg, repo, encoders)
+    service = make_service(cfg, encoder_factory, on_change)
+    repo, encoders = service.repo, service.encoders
 
     auth = TokenAuth(read, admin, cfg.health_open, cfg.scene_health_open)
     interceptors = [auth] if (read or admin) else []

@@ -1,0 +1,342 @@
+"""The ``fmgs.v1.Fmgs`` service as a Ray Serve application: an ingress behind Serve's gRPC proxy, and
+scene replicas multiplexed by scene name.
+
+- ``FmgsIngress`` has one method per RPC (Serve's proxy calls the method named like the RPC), plus
+  ``Check``/``Watch`` for grpc.health.v1. It checks bearer tokens (fmgs_server.auth rules) and request
+  sizes, forwards each call to the scene replica that holds the scene (``multiplexed_model_id`` = the
+  scene name; a shard is ``scene/shard-NNN``), and turns a forwarded ``Status`` into the call's code.
+  Text queries on sharded scenes are planned on the scene's replica, scattered to the shards' replicas
+  at once, and merged there (fmgs_server.cluster.host).
+- ``SceneHost`` replicas each hold a ``HostCore``: the same service ``fmgs serve`` runs, on the shared
+  scene repository path. Scenes load on first use; Ray's multiplexer routes a scene's requests to the
+  replicas that hold it and evicts least recently used scenes beyond ``scenes_per_replica``.
+
+Answers pass through the ingress as serialized bytes (``Raw``): no second parse.
+"""
+
+from __future__ import annotations
+
+import asyncio
+
+import grpc
+from grpc_health.v1 import health_pb2
+from ray import serve
+
+from fmgs_server.auth import TokenAuth, bearer_token, read_tokens
+from fmgs_server.cluster.config import ClusterConfig
+from fmgs_server.cluster.host import HostCore, Status, missing
+from fmgs_server.config import ServerConfig
+from fmgs_wire.proto.fmgs.v1 import fmgs_pb2 as pb
+
+SERVICE = "fmgs.v1.Fmgs"
+SERVICER_FUNCTIONS = [
+    "fmgs_wire.proto.fmgs.v1.fmgs_pb2_grpc.add_FmgsServicer_to_server",
+    "grpc_health.v1.health_pb2_grpc.add_HealthServicer_to_server",
+]
+"""What Serve's gRPC proxy registers (import paths; the proxy imports them on every node)."""
+REPLICA_KEY = "fmgs-replica"
+"""Trailing metadata naming the scene replica that answered (Ray only; clients may ignore it)."""
+RESPONSE_TYPES = {m.name: m.output_type.name for m in pb.DESCRIPTOR.services_by_name["Fmgs"].methods}
+
+
+class CallFailed(Exception):
+    """Ends a streaming call whose code is already set on its context (Serve's proxy applies a code set
+    by a stream only with a message or an exception)."""
+
+
+class Raw:
+    """An already serialized message: Serve's replica calls SerializeToString on what a method yields."""
+
+    __slots__ = ("data",)
+
+    def __init__(self, data: bytes) -> None:
+        self.data = data
+
+    def SerializeToString(self) -> bytes:
+        return self.data
+
+
+class _Held:
+    """A scene (or shard) a replica holds for Ray's multiplexer; eviction unloads it from the replica."""
+
+    def __init__(self, core: HostCore, scene: str) -> None:
+        self.core, self.scene = core, scene
+
+    def __del__(self) -> None:
+        self.core.unload(self.scene)
+
+
+def build_app(cfg: ServerConfig, cc: ClusterConfig, encoder_factory=None):
+    """The bound Serve application (``serve.run(build_app(...))``); ``encoder_factory`` replaces the
+    text encoder loader (tests), and must be picklable."""
+    cfg.validate()
+    cc.validate()
+    autoscaling = {
+        "min_replicas": cc.min_replicas,
+        "max_replicas": cc.max_replicas,
+        "target_ongoing_requests": cc.target_ongoing_requests,
+    }
+
+    @serve.deployment(
+        name="SceneHost",
+        autoscaling_config=autoscaling,
+        max_ongoing_requests=cc.max_ongoing_requests,
+        max_queued_requests=cc.max_queued_requests,
+        ray_actor_options={"num_cpus": cc.replica_cpus, "num_gpus": cc.replica_gpus},
+    )
+    class SceneHost:
+        def __init__(self) -> None:
+            self.core = HostCore(cfg, encoder_factory)
+            self.replica = serve.get_replica_context().replica_id.unique_id
+            """Sent back as trailing metadata (REPLICA_KEY): which replica answered."""
+
+        @serve.multiplexed(max_num_models_per_replica=cc.scenes_per_replica)
+        async def held(self, scene: str) -> _Held:
+            return _Held(self.core, scene)
+
+        async def _hold(self) -> None:
+            scene = serve.get_multiplexed_model_id()
+            if scene:
+                await self.held(scene)
+
+        async def unary(self, method: str, request: bytes):
+            await self._hold()
+            return self.replica, await asyncio.to_thread(self.core.unary, method, request)
+
+        async def stream(self, method: str, request: bytes):
+            await self._hold()
+            yield self.replica
+            for item in await asyncio.to_thread(self.core.stream, method, request):
+                yield item
+
+        async def plan_text(self, scene: str, request: bytes):
+            await self._hold()
+            return await asyncio.to_thread(self.core.plan_sharded_text, scene, request)
+
+        async def shard_text(self, scene: str, folder: str, query):
+            await self._hold()
+            return await asyncio.to_thread(self.core.shard_text, scene, folder, query)
+
+        async def finish_text(self, plan, parts):
+            await self._hold()
+            return await asyncio.to_thread(self.core.finish_sharded_text, plan, parts)
+
+        async def is_sharded(self, scene: str) -> bool:
+            return self.core.is_sharded(scene)
+
+    @serve.deployment(
+        name="FmgsIngress",
+        num_replicas=cc.ingress_replicas,
+        max_ongoing_requests=max(64, cfg.max_concurrent_rpcs),
+        ray_actor_options={"num_cpus": 0},
+    )
+    class FmgsIngress:
+        def __init__(self, host) -> None:
+            self.host = host
+            read, admin = read_tokens(cfg.token_file), read_tokens(cfg.admin_token_file)
+            self.auth = TokenAuth(read, admin, cfg.health_open, cfg.scene_health_open)
+
+        # -------------------------------------------------------------- plumbing
+
+        def _refused(self, method: str, request, grpc_context) -> bool:
+            """Set the call's code and return True when the token or the request size refuses it."""
+            token = bearer_token(grpc_context.invocation_metadata())
+            refused = self.auth.refusal(f"/{SERVICE}/{method}", token)
+            if refused is None and request is not None and request.ByteSize() > cfg.max_receive_bytes:
+                refused = (
+                    grpc.StatusCode.RESOURCE_EXHAUSTED,
+                    f"request of {request.ByteSize()} bytes is over max_receive_bytes "
+                    f"({cfg.max_receive_bytes})",
+                )
+            if refused is None:
+                return False
+            grpc_context.set_code(refused[0])
+            grpc_context.set_details(refused[1])
+            return True
+
+        @staticmethod
+        def _fail(status: Status, grpc_context) -> None:
+            grpc_context.set_code(getattr(grpc.StatusCode, status.code))
+            grpc_context.set_details(status.details)
+
+        async def _unary(self, method: str, request, grpc_context, scene: str = ""):
+            empty = getattr(pb, RESPONSE_TYPES[method])()
+            if self._refused(method, request, grpc_context):
+                return empty
+            h = self.host.options(multiplexed_model_id=scene) if scene else self.host
+            replica, out = await h.unary.remote(method, request.SerializeToString())
+            grpc_context.set_trailing_metadata([(REPLICA_KEY, replica)])
+            if isinstance(out, Status):
+                self._fail(out, grpc_context)
+                return empty
+            return Raw(out)
+
+        async def _stream(self, method: str, request, grpc_context):
+            if self._refused(method, request, grpc_context):
+                raise CallFailed(grpc_context.details())
+            scene = request.scene
+            if method == "TextQuery" and await self.host.is_sharded.remote(scene):
+                items = await self._sharded_text(scene, request)
+            else:
+                h = self.host.options(multiplexed_model_id=scene, stream=True)
+                items = h.stream.remote(method, request.SerializeToString())
+            async for item in _aiter(items):
+                if isinstance(item, str):
+                    grpc_context.set_trailing_metadata([(REPLICA_KEY, item)])
+                    continue
+                if isinstance(item, Status):
+                    self._fail(item, grpc_context)
+                    raise CallFailed(item.details)
+                yield Raw(item)
+
+        async def _sharded_text(self, scene: str, request) -> list:
+            at = self.host.options(multiplexed_model_id=scene)
+            plan = await at.plan_text.remote(scene, request.SerializeToString())
+            if isinstance(plan, Status):
+                return [plan]
+            calls = [
+                self.host.options(multiplexed_model_id=f"{scene}/{f}").shard_text.remote(scene, f, plan.query)
+                for f in plan.shards
+            ]
+            parts = await asyncio.gather(*calls)
+            return await at.finish_text.remote(plan, parts)
+
+        # -------------------------------------------------------------- fmgs.v1.Fmgs
+
+        async def ListScenes(self, request, grpc_context):
+            return await self._unary("ListScenes", request, grpc_context)
+
+        async def GetScene(self, request, grpc_context):
+            return await self._unary("GetScene", request, grpc_context, request.scene)
+
+        async def LoadScene(self, request, grpc_context):
+            return await self._unary("LoadScene", request, grpc_context, request.scene)
+
+        async def UnloadScene(self, request, grpc_context):
+            return await self._unary("UnloadScene", request, grpc_context, request.scene)
+
+        async def ReloadScene(self, request, grpc_context):
+            return await self._unary("ReloadScene", request, grpc_context, request.scene)
+
+        async def PointQuery(self, request, grpc_context):
+            return await self._unary("PointQuery", request, grpc_context, request.scene)
+
+        async def TextQuery(self, request, grpc_context):
+            async for m in self._stream("TextQuery", request, grpc_context):
+                yield m
+
+        async def Render(self, request, grpc_context):
+            async for m in self._stream("Render", request, grpc_context):
+                yield m
+
+        async def Segment(self, request, grpc_context):
+            async for m in self._stream("Segment", request, grpc_context):
+                yield m
+
+        async def StreamRender(self, request_stream, grpc_context):
+            """Render the latest pose received whenever the previous frame is done (poses that arrive
+            meanwhile are skipped, as in ``fmgs serve``)."""
+            if self._refused("StreamRender", None, grpc_context):
+                raise CallFailed(grpc_context.details())
+            latest: list = []
+            ready = asyncio.Event()
+            ended = False
+
+            async def drain() -> None:
+                nonlocal ended
+                try:
+                    async for req in request_stream:
+                        latest[:] = [req]
+                        ready.set()
+                finally:
+                    ended = True
+                    ready.set()
+
+            task = asyncio.create_task(drain())
+            try:
+                while True:
+                    await ready.wait()
+                    ready.clear()
+                    if not latest:
+                        if ended:
+                            return
+                        continue
+                    req = latest.pop()
+                    async for m in self._stream("Render", req, grpc_context):
+                        yield m
+                    if latest:
+                        ready.set()
+            finally:
+                task.cancel()
+
+        # -------------------------------------------------------------- grpc.health.v1
+
+        async def _health(self, request, grpc_context) -> int | None:
+            token = bearer_token(grpc_context.invocation_metadata())
+            refused = self.auth.health_refusal(request.service, token)
+            if refused is not None:
+                grpc_context.set_code(refused[0])
+                grpc_context.set_details(refused[1])
+                return None
+            service = request.service
+            if service in ("", SERVICE):
+                return health_pb2.HealthCheckResponse.SERVING
+            if not service.startswith(SERVICE + "/"):
+                grpc_context.set_code(grpc.StatusCode.NOT_FOUND)
+                grpc_context.set_details(f"unknown service {service[:80]!r}")
+                return None
+            scene = service[len(SERVICE) + 1 :]
+            _, out = await self.host.options(multiplexed_model_id=scene).unary.remote(
+                "GetScene", pb.SceneRequest(scene=scene).SerializeToString()
+            )
+            if isinstance(out, Status):
+                if out.code == "NOT_FOUND":
+                    self._fail(missing(scene), grpc_context)
+                    return None
+                return health_pb2.HealthCheckResponse.NOT_SERVING
+            info = pb.SceneInfo.FromString(out)
+            failed = info.state == pb.SCENE_STATE_FAILED
+            return (
+                health_pb2.HealthCheckResponse.NOT_SERVING
+                if failed
+                else health_pb2.HealthCheckResponse.SERVING
+            )
+
+        async def Check(self, request, grpc_context):
+            status = await self._health(request, grpc_context)
+            return health_pb2.HealthCheckResponse(status=status or 0)
+
+        async def Watch(self, request, grpc_context):
+            """The current status once (Serve's proxy cannot hold a watch open across replicas)."""
+            status = await self._health(request, grpc_context)
+            if status is None:
+                raise CallFailed(grpc_context.details())
+            yield health_pb2.HealthCheckResponse(status=status)
+
+    return FmgsIngress.bind(SceneHost.bind())
+
+
+async def _aiter(items):
+    """Iterate a Ray streaming response or a plain list alike."""
+    if isinstance(items, list):
+        for x in items:
+            yield x
+        return
+    async for x in items:
+        yield x
+
+
+def app_builder(args: dict):
+    """Entry point for ``serve run``/KubeRay: ``import_path: fmgs_server.cluster.app:app_builder`` with
+    ``args`` {"config": TOML path of the ServerConfig settings (optional), any ``ray_*`` ClusterConfig
+    field without the prefix}."""
+    import tomllib
+    from pathlib import Path
+
+    from fmgs.flags import build
+
+    path = args.get("config")
+    cfg = build(ServerConfig, tomllib.loads(Path(path).read_text()) if path else {}, str(path or "defaults"))
+    fields = {k: v for k, v in args.items() if k != "config"}
+    cc = build(ClusterConfig, fields, "serve config args") if fields else ClusterConfig()
+    return build_app(cfg, cc)

@@ -1,0 +1,236 @@
+"""The service on a local Ray cluster answers as ``fmgs serve`` does, through Ray Serve's gRPC proxy.
+
+One Ray cluster for the module (CPU only, two scene replicas); the same repository served directly
+and through Ray; every RPC compared on the wire, answers and errors alike.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+from pathlib import Path
+
+import grpc
+import pytest
+from grpc_health.v1 import health_pb2, health_pb2_grpc
+
+from fmgs.scene.shards import write_shards
+from fmgs_client import FmgsClient
+from fmgs_server.cluster.app import REPLICA_KEY
+from fmgs_server.cluster.config import ClusterConfig
+from fmgs_server.config import ServerConfig
+from fmgs_server.server import start_server
+from fmgs_wire.proto.fmgs.v1 import fmgs_pb2 as pb
+from fmgs_wire.proto.fmgs.v1 import fmgs_pb2_grpc as pb_grpc
+from tests.helpers.query_scenes import CENTRES, CLASS_NAMES, ENCODER_ID, FakeEncoder, blob_scene
+
+ray = pytest.importorskip("ray", reason="the fmgs[ray] extra is part of the CI install")
+ROOT = Path(__file__).resolve().parents[1]
+READ, ADMIN = "read-token", "admin-token"
+
+
+def encoder_factory(encoder_id: str):
+    """The blob scenes' encoder, or the real one (the demo's MiniLM)."""
+    if encoder_id == ENCODER_ID:
+        return FakeEncoder()
+    from fmgs.features.text import load_text_encoder
+
+    return load_text_encoder(encoder_id, device="cpu")
+
+
+@pytest.fixture(scope="module")
+def models(tmp_path_factory):
+    root = tmp_path_factory.mktemp("cluster") / "models"
+    root.mkdir()
+    blob_scene(root / "blobs", with_field=True)
+    blob_scene(root / "plain", seed=1)
+    blob_scene(root / "third", seed=2)
+    shutil.copytree(ROOT / "models" / "demo", root / "demo")
+    write_shards(root / "blobs", root / "blobs-4shards", 4)
+    (root / "tokens").write_text(READ + "\n")
+    (root / "admin").write_text(ADMIN + "\n")
+    return root
+
+
+def _cfg(models, port=0):
+    return ServerConfig(
+        models=models, port=port, reload_check_s=0.0, chunk_bytes=512,
+        token_file=models / "tokens", admin_token_file=models / "admin",
+    )  # fmt: skip
+
+
+@pytest.fixture(scope="module")
+def direct(models):
+    srv = start_server(_cfg(models), encoder_factory=encoder_factory)
+    yield srv.address
+    srv.stop(0)
+
+
+@pytest.fixture(scope="module")
+def cluster(models):
+    from ray import serve
+
+    from fmgs_server.cluster.launch import start_ray_serve
+
+    env = {"env_vars": {"PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}}
+    cc = ClusterConfig(min_replicas=2, max_replicas=2, replica_cpus=0.5, scenes_per_replica=8)
+    ray.init(num_cpus=2, include_dashboard=False, runtime_env=env, log_to_driver=False)
+    try:
+        port = start_ray_serve(_cfg(models), cc, None, encoder_factory)
+        yield f"127.0.0.1:{port}"
+    finally:
+        serve.shutdown()
+        ray.shutdown()
+
+
+def _stub(address):
+    return pb_grpc.FmgsStub(grpc.insecure_channel(address))
+
+
+MD = (("authorization", f"Bearer {READ}"),)
+ADMIN_MD = (("authorization", f"Bearer {ADMIN}"),)
+
+
+def _norm(msg):
+    """A message without its timings (and resident bytes, which differ by replica)."""
+    m = type(msg)()
+    m.CopyFrom(msg)
+    for f in ("elapsed_ms",):
+        if f in m.DESCRIPTOR.fields_by_name:
+            m.ClearField(f)
+    if isinstance(m, pb.SceneInfo):
+        m.ClearField("resident_bytes")
+    if isinstance(m, pb.ListScenesResponse):
+        for s in m.scenes:
+            s.ClearField("resident_bytes")
+    return m
+
+
+def _call(stub, method, request, md=MD):
+    """(code name, details, [normalised messages]) of one call."""
+    fn = getattr(stub, method)
+    try:
+        out = fn(request, metadata=md, timeout=120)
+        msgs = list(out) if not hasattr(out, "SerializeToString") else [out]
+        return "OK", "", [_norm(m) for m in msgs]
+    except grpc.RpcError as e:
+        return e.code().name, e.details(), []
+
+
+def _cam():
+    return pb.Camera(
+        width=24, height=20, fx=20.0, fy=20.0, cx=12.0, cy=10.0,
+        viewmat=[1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1],
+    )  # fmt: skip
+
+
+def _requests():
+    """Every RPC, on scenes and with arguments that succeed and that fail."""
+    names = list(CLASS_NAMES)
+    fields = [pb.GAUSSIAN_FIELD_MEAN, pb.GAUSSIAN_FIELD_SIMILARITY, pb.GAUSSIAN_FIELD_INSTANCE]
+    inst = pb.InstanceOptions(enabled=True)
+    yield "ListScenes", pb.ListScenesRequest()
+    for scene in ("blobs", "plain", "third", "demo", "missing", "../x"):
+        yield "GetScene", pb.SceneRequest(scene=scene)
+        yield (
+            "TextQuery",
+            pb.TextQueryRequest(scene=scene, texts=names, top_k=25, fields=fields, instances=inst),
+        )
+    yield "TextQuery", pb.TextQueryRequest(scene="demo", texts=["a red cube", "laptop"], top_k=10)
+    yield "TextQuery", pb.TextQueryRequest(scene="blobs", texts=names[:1], top_k=5, threshold=0.2)
+    yield "TextQuery", pb.TextQueryRequest(scene="blobs", texts=[], top_k=5)
+    yield "TextQuery", pb.TextQueryRequest(scene="blobs", texts=names, top_k=10_000_000)
+    yield (
+        "Render",
+        pb.RenderRequest(
+            scene="blobs",
+            camera=_cam(),
+            text="red cube",
+            outputs=[pb.RENDER_OUTPUT_RELEVANCY, pb.RENDER_OUTPUT_RGB],
+        ),
+    )
+    yield "Render", pb.RenderRequest(scene="blobs", camera=_cam(), encoding=pb.IMAGE_ENCODING_PNG)
+    yield "Render", pb.RenderRequest(scene="blobs")
+    pts = pb.Tensor(dtype=pb.DTYPE_FLOAT32, shape=[2, 3], data=CENTRES[:2].float().numpy().tobytes())
+    yield "PointQuery", pb.PointQueryRequest(scene="blobs", texts=names, points=pts)
+    yield "PointQuery", pb.PointQueryRequest(scene="plain", texts=names, points=pts)
+    yield "Segment", pb.SegmentRequest(scene="blobs", class_names=names, camera=_cam(), per_gaussian=True)
+    yield "Segment", pb.SegmentRequest(scene="blobs", class_names=names)
+
+
+def test_every_rpc_answers_as_fmgs_serve_does(direct, cluster):
+    a, b = _stub(direct), _stub(cluster)
+    for method, req in _requests():
+        want = _call(a, method, req)
+        got = _call(b, method, req)
+        if method == "ListScenes":  # fmgs serve does not serve sharded scenes (README "Scaling out")
+            kept = [x for x in got[2][0].scenes if x.name != "blobs-4shards"]
+            del got[2][0].scenes[:]
+            got[2][0].scenes.extend(kept)
+        assert got == want, f"{method} {req}"
+    assert any(_call(a, m, r)[0] != "OK" for m, r in _requests())  # the error table is exercised too
+
+
+def test_sharded_text_queries_equal_the_unsharded_scene(cluster):
+    s = _stub(cluster)
+    for texts, k, thr in [
+        (list(CLASS_NAMES), 40, 0.0),
+        (["nothing like it"], 180, 0.0),
+        (["red cube"], 50, 0.6),
+    ]:
+        fields = [pb.GAUSSIAN_FIELD_MEAN, pb.GAUSSIAN_FIELD_SIMILARITY, pb.GAUSSIAN_FIELD_INSTANCE]
+        req = dict(
+            texts=texts, top_k=k, threshold=thr, fields=fields, instances=pb.InstanceOptions(enabled=True)
+        )
+        one = _call(s, "TextQuery", pb.TextQueryRequest(scene="blobs", **req))
+        many = _call(s, "TextQuery", pb.TextQueryRequest(scene="blobs-4shards", **req))
+        assert one[0] == "OK" and len(one[2]) > 0
+        for x, y in zip(one[2], many[2], strict=True):
+            x.ClearField("rescored")  # rows rescored differ: each shard certifies its own answer
+            y.ClearField("rescored")
+        assert one == many
+
+
+def test_only_text_queries_run_on_sharded_scenes(cluster):
+    s = _stub(cluster)
+    code, details, _ = _call(s, "Render", pb.RenderRequest(scene="blobs-4shards", camera=_cam()))
+    assert code == "FAILED_PRECONDITION" and "sharded" in details
+    code, _, (info,) = _call(s, "GetScene", pb.SceneRequest(scene="blobs-4shards"))
+    assert code == "OK" and info.num_gaussians == 180 and info.encoder_id == ENCODER_ID
+
+
+def test_the_thin_client_and_health_work_unchanged(direct, cluster):
+    for address in (direct, cluster):
+        with FmgsClient(address, timeout=60, token=READ) as c:
+            names = [s.name for s in c.list_scenes() if s.name != "blobs-4shards"]
+            assert names == ["blobs", "demo", "plain", "third"]
+            ans = c.query("blobs", ["red cube"], top_k=10)[0]
+            assert len(ans.index) == 10
+            assert c.health() == "SERVING"
+            assert c.health("fmgs.v1.Fmgs/blobs") == "SERVING"
+    h = health_pb2_grpc.HealthStub(grpc.insecure_channel(cluster))
+    with pytest.raises(grpc.RpcError) as e:
+        h.Check(health_pb2.HealthCheckRequest(service="fmgs.v1.Fmgs/blobs"))
+    assert e.value.code() == grpc.StatusCode.UNAUTHENTICATED  # scene names are not probed without a token
+
+
+def test_tokens_and_admin_rpcs_follow_the_same_rules(direct, cluster):
+    for method, req, md in [
+        ("GetScene", pb.SceneRequest(scene="blobs"), ()),
+        ("GetScene", pb.SceneRequest(scene="blobs"), (("authorization", "Bearer wrong"),)),
+        ("LoadScene", pb.SceneRequest(scene="plain"), MD),
+        ("UnloadScene", pb.SceneRequest(scene="plain"), ADMIN_MD),
+        ("ReloadScene", pb.SceneRequest(scene="missing"), ADMIN_MD),
+    ]:
+        assert _call(_stub(cluster), method, req, md)[:2] == _call(_stub(direct), method, req, md)[:2]
+
+
+def test_a_scene_is_answered_by_the_replica_that_holds_it(cluster):
+    ch = grpc.insecure_channel(cluster)
+    s = pb_grpc.FmgsStub(ch)
+    for scene in ("plain", "third"):
+        seen = set()
+        for _ in range(6):
+            _, call = s.GetScene.with_call(pb.SceneRequest(scene=scene), metadata=MD, timeout=60)
+            seen |= {v for k, v in call.trailing_metadata() if k == REPLICA_KEY}
+        assert len(seen) == 1, f"{scene} answered by {seen}"

@@ -196,7 +196,13 @@ def build_scene(source: str | Path, cfg: BuildConfig, progress: bool = True) -> 
 
     cache_dir = work / "features"
     _stage(3, "features", f"{cfg.targets.kind} targets -> {cache_dir}")
-    cache = extract_features(ds, cache_dir, cfg.targets, cfg.device, progress)
+    if cfg.ray:
+        from fmgs.features.distributed import TargetJob, extract_features_ray
+
+        job = TargetJob(str(data), cfg.targets, cfg.device)
+        extract_features_ray(job, cache_dir, None if cfg.ray == "local" else cfg.ray, progress=progress)
+    else:
+        extract_features(ds, cache_dir, cfg.targets, cfg.device, progress)
     cache = FeatureCache.open(cache_dir)
 
     fcfg = replace(cfg.field, device=cfg.device, threads=cfg.field.threads or threads)

@@ -77,6 +77,10 @@ class BuildConfig:
     """Merged into the manifest's ``extra`` (e.g. a description); label targets add ``label_names``."""
     device: str = "cpu"
     """Torch device for every stage."""
+    ray: str | None = None
+    """Run the features stage on a Ray cluster's workers (fmgs[ray]): the address of a running cluster
+    ("auto": the local node's), or "local" to start one here; none: in this process. 3DGS and field
+    training stay in this process (each step needs the whole scene's gradients)."""
 
     def __post_init__(self) -> None:
         if self.field_dtype not in FIELD_DTYPES:

@@ -267,8 +267,14 @@ def cmd_features(args: argparse.Namespace) -> int:
     from fmgs.build import extract_features
     from fmgs.data.dataset import load_dataset
 
-    ds = load_dataset(args.data, undistort_dir=args.undistort_dir)
-    cache = extract_features(ds, Path(args.out), _target_spec(args), args.device)
+    if args.ray is not None:
+        from fmgs.features.distributed import TargetJob, extract_features_ray
+
+        job = TargetJob(str(args.data), _target_spec(args), args.device, args.undistort_dir)
+        cache = extract_features_ray(job, Path(args.out), None if args.ray == "local" else args.ray)
+    else:
+        ds = load_dataset(args.data, undistort_dir=args.undistort_dir)
+        cache = extract_features(ds, Path(args.out), _target_spec(args), args.device)
     t = {k: f"{v.encoder} ({v.dim}-D)" for k, v in cache.targets.items()}
     print(f"feature cache {args.out}: {len(cache.image_names)} images, targets {t}")
     return 0
@@ -460,6 +466,14 @@ def build_parser() -> argparse.ArgumentParser:
     fe.add_argument("data", help="posed dataset folder")
     fe.add_argument("--out", required=True, help="feature cache folder")
     fe.add_argument("--device", default="auto", help="torch device (auto: cuda when available)")
+    fe.add_argument(
+        "--ray",
+        nargs="?",
+        const="local",
+        metavar="ADDRESS",
+        help="extract on a Ray cluster's workers (needs fmgs[ray]; GPUs where it has them): ADDRESS of a "
+        "running cluster ('auto' finds the local node's), or none to start a local one",
+    )
     _undistort_flag(fe)
     _config_flag(fe, "target")
     flags.add_flags(fe.add_argument_group("targets (TargetSpec)"), TargetSpec, aliases=TARGET_ALIASES)

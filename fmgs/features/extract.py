@@ -83,14 +83,26 @@ def extract_targets(
 
     with FeatureCacheWriter(cache_dir, targets) as writer:
         for i in tqdm(_todo(ds, writer, indices), desc="features", unit="image", disable=not cfg.progress):
-            frame = ds.frames[i]
-            image, _ = ds.image(i, cfg.image_scale)
-            image = image.to(cfg.device)
-            hw = feature_size(frame.camera, cfg.feature_scale, cfg.feature_side)
-            clip = hybrid_map(clip_encoder, image, pyramid, hw)
-            dino = dino_encoder.dense(image, hw) if dino_encoder is not None else None
-            writer.add(frame.name, clip=clip, dino=dino)
+            writer.add(**image_targets(ds, i, clip_encoder, dino_encoder, pyramid, cfg))
     return FeatureCache.open(cache_dir)
+
+
+def image_targets(
+    ds: PosedDataset,
+    i: int,
+    clip_encoder: ImageEncoder,
+    dino_encoder: DinoEncoder | None,
+    pyramid: PyramidConfig,
+    cfg: ExtractConfig,
+) -> dict:
+    """One frame's maps, as FeatureCacheWriter.add's keyword arguments (image_name, clip, dino)."""
+    frame = ds.frames[i]
+    image, _ = ds.image(i, cfg.image_scale)
+    image = image.to(cfg.device)
+    hw = feature_size(frame.camera, cfg.feature_scale, cfg.feature_side)
+    clip = hybrid_map(clip_encoder, image, pyramid, hw)
+    dino = dino_encoder.dense(image, hw) if dino_encoder is not None else None
+    return {"image_name": frame.name, "clip": clip, "dino": dino}
 
 
 def read_label_names(path: str | os.PathLike) -> list[str]:
@@ -140,10 +152,7 @@ def extract_labels(
     Label ``l`` means ``names[l]``; labels in ``ignore`` (default: 0, the synthetic background) are not
     supervised. Each name is embedded once.
     """
-    emb = text_encoder.encode_text(list(names)).to(cfg.device, torch.float32)
-    if emb.shape != (len(names), text_encoder.dim):
-        raise ValidationError("text_encoder", f"returned {tuple(emb.shape)} for {len(names)} names")
-    label_path = labels if callable(labels) else (lambda f, d=Path(labels): d / Path(f.name).name)
+    emb = label_embeddings(names, text_encoder, cfg.device)
     targets = {"clip": TargetInfo(text_encoder.id, text_encoder.dim, True)}
     from tqdm.auto import tqdm
 
@@ -151,10 +160,29 @@ def extract_labels(
         for i in tqdm(
             _todo(ds, writer, indices), desc="label targets", unit="image", disable=not cfg.progress
         ):
-            frame = ds.frames[i]
-            lab = read_label_map(label_path(frame), frame.camera.width, frame.camera.height).to(cfg.device)
-            t = label_embedding_map(
-                lab, emb, feature_size(frame.camera, cfg.feature_scale, cfg.feature_side), ignore
-            )
-            writer.add(frame.name, clip=t.clip, mask=t.mask)
+            writer.add(**image_label_targets(ds, i, labels, emb, ignore, cfg))
     return FeatureCache.open(cache_dir)
+
+
+def label_embeddings(names: list[str], text_encoder: TextEncoder, device: str = "cpu") -> torch.Tensor:
+    """[L,D] float32 embeddings of the label names (checked)."""
+    emb = text_encoder.encode_text(list(names)).to(device, torch.float32)
+    if emb.shape != (len(names), text_encoder.dim):
+        raise ValidationError("text_encoder", f"returned {tuple(emb.shape)} for {len(names)} names")
+    return emb
+
+
+def image_label_targets(
+    ds: PosedDataset,
+    i: int,
+    labels: str | os.PathLike | Callable[[Frame], Path],
+    emb: torch.Tensor,
+    ignore: frozenset[int] | set[int],
+    cfg: ExtractConfig,
+) -> dict:
+    """One frame's label targets, as FeatureCacheWriter.add's keyword arguments (image_name, clip, mask)."""
+    label_path = labels if callable(labels) else (lambda f, d=Path(labels): d / Path(f.name).name)
+    frame = ds.frames[i]
+    lab = read_label_map(label_path(frame), frame.camera.width, frame.camera.height).to(cfg.device)
+    t = label_embedding_map(lab, emb, feature_size(frame.camera, cfg.feature_scale, cfg.feature_side), ignore)
+    return {"image_name": frame.name, "clip": t.clip, "mask": t.mask}

@@ -1,0 +1,151 @@
+"""Per-image target extraction fanned out as Ray tasks (``fmgs features --ray``, ``fmgs build --ray``).
+
+Workers compute an image's maps with the same functions as the serial driver
+(fmgs.features.extract.image_targets / image_label_targets) and send them back; the driver alone writes
+the cache (FeatureCacheWriter: one atomic file per image, then the manifest), so the cache equals the
+serial one bit for bit and stays resumable. A task lost with its worker is retried by Ray (``max_retries``)
+and recomputes the same maps; images already in the cache are never sent out again.
+
+Workers keep the dataset and the encoders they loaded for the next task of the same job (a per-process
+cache filled on first use, nothing at import).
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from fmgs.build_config import TargetSpec
+from fmgs.features.cache import FeatureCache, FeatureCacheWriter, TargetInfo
+
+
+@dataclass(frozen=True)
+class TargetJob:
+    """What every worker needs to compute any image's targets (a path every node reads)."""
+
+    data: str
+    """Posed dataset folder."""
+    spec: TargetSpec
+    device: str = "cpu"
+    """"cpu", "cuda" or "auto" (a worker's first CUDA device when it has one)."""
+    undistort_dir: str | None = None
+
+
+class _Worker:
+    """A process's loaded dataset and encoders for one job."""
+
+    def __init__(self, job: TargetJob) -> None:
+        from fmgs.data.dataset import load_dataset
+        from fmgs.features.extract import ExtractConfig, label_embeddings, read_label_names
+        from fmgs.features.text import load_text_encoder
+
+        spec = job.spec
+        device = job.device
+        if device == "auto":
+            device = "cuda" if torch.cuda.is_available() else "cpu"
+        self.ds = load_dataset(job.data, undistort_dir=job.undistort_dir)
+        self.cfg = ExtractConfig(spec.feature_scale, spec.feature_side, device=device, progress=False)
+        if spec.kind == "labels":
+            names = read_label_names(spec.names or self.ds.root / "scene.json")
+            enc = load_text_encoder(spec.text_encoder, device=device)
+            self.emb = label_embeddings(names, enc, device)
+            self.labels = spec.labels or self.ds.root / "labels"
+            self.targets = {"clip": TargetInfo(enc.id, enc.dim, True)}
+        else:
+            from fmgs.features.clip import ClipImageEncoder
+            from fmgs.features.dino import DinoEncoder
+            from fmgs.features.pyramid import PyramidConfig
+
+            self.clip = ClipImageEncoder.load(spec.clip_model, device=device)
+            self.dino = DinoEncoder.load(spec.dino_model, device=device) if spec.dino_model else None
+            self.pyramid = PyramidConfig(scales=(0.25,)) if spec.single_scale else PyramidConfig()
+            self.targets = {"clip": TargetInfo(self.clip.id, self.clip.dim, True)}
+            if self.dino is not None:
+                self.targets["dino"] = TargetInfo(self.dino.id, self.dino.dim, False)
+
+    def maps(self, i: int) -> dict:
+        """Image i's maps as numpy arrays (add()'s keyword arguments)."""
+        from fmgs.features.extract import image_label_targets, image_targets
+
+        if self.job_kind == "labels":
+            out = image_label_targets(self.ds, i, self.labels, self.emb, frozenset({0}), self.cfg)
+        else:
+            out = image_targets(self.ds, i, self.clip, self.dino, self.pyramid, self.cfg)
+        return {k: (v.detach().cpu().numpy() if isinstance(v, torch.Tensor) else v) for k, v in out.items()}
+
+    @property
+    def job_kind(self) -> str:
+        return "labels" if hasattr(self, "emb") else "clip"
+
+
+_WORKERS: dict[TargetJob, _Worker] = {}
+
+
+def _worker(job: TargetJob) -> _Worker:
+    w = _WORKERS.get(job)
+    if w is None:
+        _WORKERS.clear()  # one job per worker process at a time: free the previous encoders
+        w = _WORKERS[job] = _Worker(job)
+    return w
+
+
+def describe_task(job: TargetJob) -> dict[str, TargetInfo]:
+    """The cache's targets (the encoders' ids and sizes), computed where the encoders load."""
+    return _worker(job).targets
+
+
+def maps_task(job: TargetJob, indices: list[int]) -> list[dict]:
+    """The maps of the images ``indices`` (a Ray task; retried whole if its worker is lost)."""
+    w = _worker(job)
+    return [w.maps(i) for i in indices]
+
+
+def extract_features_ray(
+    job: TargetJob,
+    cache_dir: str | os.PathLike,
+    address: str | None = None,
+    batch: int = 2,
+    max_retries: int = 3,
+    task: Callable | None = None,
+    progress: bool = True,
+) -> FeatureCache:
+    """Fill ``cache_dir`` with ``job``'s targets using the tasks of a Ray cluster (``address``: a running
+    cluster, "auto" for the local node's, None to start one here); returns the opened cache.
+
+    batch: images per task (fewer round trips; a lost task redoes that many). Tasks ask for one GPU each
+    when the job's device is not "cpu" and the cluster has GPUs. ``task`` replaces maps_task (tests).
+    """
+    import ray
+
+    from fmgs.data.dataset import load_dataset
+
+    if batch < 1 or max_retries < 0:
+        raise ValueError("batch >= 1 and max_retries >= 0 required")
+    if not ray.is_initialized():
+        ray.init(address=address, include_dashboard=False, log_to_driver=False)
+    gpus = 1 if job.device != "cpu" and ray.cluster_resources().get("GPU", 0) > 0 else 0
+    remote = lambda fn: ray.remote(num_gpus=gpus, max_retries=max_retries)(fn)  # noqa: E731
+    ds = load_dataset(job.data, undistort_dir=job.undistort_dir)
+    targets = ray.get(remote(describe_task).remote(job))
+    from tqdm.auto import tqdm
+
+    with FeatureCacheWriter(cache_dir, targets) as writer:
+        todo = [i for i in range(len(ds)) if not writer.has(ds.frames[i].name)]
+        fn = remote(task or maps_task)
+        pending = [fn.remote(job, todo[s : s + batch]) for s in range(0, len(todo), batch)]
+        with tqdm(total=len(todo), desc="features (ray)", unit="image", disable=not progress) as bar:
+            while pending:
+                done, pending = ray.wait(pending, num_returns=1)
+                for m in ray.get(done[0]):
+                    # Ray hands back read-only arrays: copied before torch wraps them.
+                    arrays = {
+                        k: torch.from_numpy(v.copy()) for k, v in m.items() if isinstance(v, np.ndarray)
+                    }
+                    writer.add(**{**m, **arrays})
+                    bar.update(1)
+    return FeatureCache.open(Path(cache_dir))

@@ -1,6 +1,9 @@
 # GPU image for build + serve: `fmgs-server` on a mounted scene repository, health-checked over gRPC.
 #   docker build -t fmgs .
 #   docker run --gpus all -p 50051:50051 -v "$PWD/models:/models" fmgs
+# The same image runs the Ray Serve deployment (fmgs[ray]: ray[serve] comes with the pinned environment):
+# `fmgs-server --ray ADDRESS`, or as the head and worker image of a KubeRay RayService
+# (deploy/kuberay/rayservice.yaml; KubeRay replaces the entrypoint with its `ray start` command).
 # Stage 1 compiles (CUDA toolkit, compilers); stage 2 carries only the virtual environment and the runtime.
 
 ARG CUDA_VERSION=12.8.1
@@ -17,8 +20,9 @@ RUN python3.11 -m venv /opt/venv
 ENV PATH=/opt/venv/bin:$PATH
 WORKDIR /src
 COPY requirements/ requirements/
-# CUDA torch first (same version as the CPU pin), then the pinned environment, then gsplat compiled
-# ahead of time for the listed GPU architectures (no compiler is needed at run time).
+# CUDA torch first (same version as the CPU pin), then the pinned environment (ray[serve] included: the
+# fmgs[ray] extra's pin), then gsplat compiled ahead of time for the listed GPU architectures (no
+# compiler is needed at run time).
 RUN pip install --upgrade pip \
     && pip install torch==2.13.0 --index-url ${TORCH_INDEX} \
     && pip install -r requirements/cpu.txt \
@@ -35,7 +39,8 @@ RUN python scripts/gen_proto.py --check && pip install --no-deps .
 FROM nvidia/cuda:${CUDA_VERSION}-cudnn-runtime-ubuntu22.04
 ENV DEBIAN_FRONTEND=noninteractive PATH=/opt/venv/bin:$PATH PYTHONUNBUFFERED=1
 COPY requirements/apt.txt /tmp/apt.txt
-RUN apt-get update && apt-get install -y --no-install-recommends python3.11 \
+# wget: KubeRay's default liveness/readiness probes of Ray pods run `wget` in the container.
+RUN apt-get update && apt-get install -y --no-install-recommends python3.11 wget \
         $(grep -v '^#' /tmp/apt.txt) \
     && rm -rf /var/lib/apt/lists/* /tmp/apt.txt \
     && useradd --create-home --uid 10001 fmgs

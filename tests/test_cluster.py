@@ -234,3 +234,44 @@ def test_a_scene_is_answered_by_the_replica_that_holds_it(cluster):
             _, call = s.GetScene.with_call(pb.SceneRequest(scene=scene), metadata=MD, timeout=60)
             seen |= {v for k, v in call.trailing_metadata() if k == REPLICA_KEY}
         assert len(seen) == 1, f"{scene} answered by {seen}"
+
+
+def test_killing_a_replica_under_load_fails_only_calls_the_client_sees_fail(cluster):
+    import threading
+    import time
+
+    from ray import serve
+
+    req = pb.TextQueryRequest(scene="blobs", texts=list(CLASS_NAMES), top_k=30)
+    s = _stub(cluster)
+    ref = _call(s, "TextQuery", req)
+    assert ref[0] == "OK"
+    details = serve.context._get_global_client().get_serve_details()
+    replicas = details["applications"]["fmgs"]["deployments"]["SceneHost"]["replicas"]
+    victim = ray.get_actor(replicas[0]["actor_name"], namespace="serve")
+    results, stop = [], threading.Event()
+
+    def load():
+        stub = _stub(cluster)
+        while not stop.is_set():
+            results.append(_call(stub, "TextQuery", req))
+
+    threads = [threading.Thread(target=load) for _ in range(3)]
+    for t in threads:
+        t.start()
+    time.sleep(2.0)
+    ray.kill(victim, no_restart=True)
+    time.sleep(4.0)
+    stop.set()
+    for t in threads:
+        t.join(120)
+    assert results and all(not t.is_alive() for t in threads)
+    # Every call either brought the whole, right answer or failed with a status the client saw.
+    for r in results:
+        assert r == ref or (r[0] != "OK" and r[2] == []), r[:2]
+    # Service recovers without intervention: the controller replaces the replica.
+    deadline = time.monotonic() + 90
+    ok = 0
+    while ok < 5 and time.monotonic() < deadline:
+        ok = ok + 1 if _call(s, "TextQuery", req) == ref else 0
+    assert ok == 5

@@ -61,3 +61,27 @@ def test_entrypoint_and_healthcheck_are_real_commands():
 def test_image_is_multi_stage_with_a_runtime_base():
     froms = [rest for op, rest in _instructions() if op == "FROM"]
     assert len(froms) == 2 and "devel" in froms[0] and "runtime" in froms[1]
+
+
+def _runtime_stage() -> list[tuple[str, str]]:
+    ins = _instructions()
+    last_from = max(i for i, (op, _) in enumerate(ins) if op == "FROM")
+    return ins[last_from + 1 :]
+
+
+def test_image_carries_ray_serve_for_the_cluster_deployment():
+    """fmgs-server --ray and the KubeRay RayService (deploy/kuberay) run `ray start` in this image."""
+    runs = " ".join(rest for op, rest in _instructions() if op == "RUN")
+    assert "pip install -r requirements/cpu.txt" in runs
+    extra = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["optional-dependencies"]["ray"]
+    pin = next(r for r in extra if r.startswith("ray[serve]=="))
+    cpu = [ln.split("#")[0].strip() for ln in (ROOT / "requirements/cpu.txt").read_text().splitlines()]
+    assert pin in cpu, f"the image's environment (requirements/cpu.txt) lacks the fmgs[ray] pin {pin}"
+    # The virtual environment's bin (ray, fmgs-server) is on the runtime PATH, and wget is there for
+    # KubeRay's default probes.
+    runtime = _runtime_stage()
+    env = " ".join(rest for op, rest in runtime if op == "ENV")
+    assert re.search(r"PATH=/opt/venv/bin:", env)
+    assert any(op == "COPY" and rest.split()[-2:] == ["/opt/venv", "/opt/venv"] for op, rest in runtime)
+    apt = next(rest for op, rest in runtime if op == "RUN" and "apt-get install" in rest)
+    assert "wget" in shlex.split(apt.split("apt-get install", 1)[1])

@@ -338,5 +338,8 @@ def app_builder(args: dict):
     path = args.get("config")
     cfg = build(ServerConfig, tomllib.loads(Path(path).read_text()) if path else {}, str(path or "defaults"))
     fields = {k: v for k, v in args.items() if k != "config"}
+    for key, where in (("app_name", "the application's name"), ("request_timeout_s", "grpc_options")):
+        if key in fields:  # Serve's config decides these, not the application
+            raise ValueError(f"serve config args: set {key!r} as {where} of the Serve config, not in args")
     cc = build(ClusterConfig, fields, "serve config args") if fields else ClusterConfig()
     return build_app(cfg, cc)

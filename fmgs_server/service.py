@@ -24,6 +24,7 @@ from fmgs_server.config import ServerConfig
 from fmgs_server.encoders import EncoderCache
 from fmgs_server.errors import FailedPrecondition, InvalidArgument
 from fmgs_server.repository import SceneRepository, SceneSlot
+from fmgs_server.sharded import ShardedScenes, not_supported
 from fmgs_server.slots import Slots
 from fmgs_server.streams import LatestRequest
 from fmgs_wire.proto.fmgs.v1 import fmgs_pb2 as pb
@@ -40,6 +41,12 @@ class FmgsService(pb_grpc.FmgsServicer):
         self.encoders = encoders
         self.slots = Slots(cfg.compute_slots, cfg.max_streams, cfg.queue_timeout_s)
         self.budget = budget.WorkBudget(cfg.work_memory_bytes, cfg.queue_timeout_s)
+        self.sharded = ShardedScenes(cfg, self)
+        """Sharded scenes (folders with a shards.json): text queries and relevancy renders."""
+
+    def _refuse_sharded(self, method: str, scene: str) -> None:
+        if self.sharded.is_sharded(scene):
+            raise not_supported(method, scene)
 
     def _canonical(self, engine, phrases) -> torch.Tensor | None:
         phrases = convert.texts(phrases, self.cfg, "canonical_phrases", allow_empty=True)
@@ -58,23 +65,30 @@ class FmgsService(pb_grpc.FmgsServicer):
 
     @rpc
     def ListScenes(self, request, context):
-        return pb.ListScenesResponse(scenes=[self._info(s) for s in self.repo.scan()])
+        scenes = [self._info(s) for s in self.repo.scan()]
+        scenes += [self.sharded.info(n) for n in self.sharded.names()]
+        return pb.ListScenesResponse(scenes=sorted(scenes, key=lambda i: i.name))
 
     @rpc
     def GetScene(self, request, context):
+        if self.sharded.is_sharded(request.scene):
+            return self.sharded.info(request.scene)
         return self._info(self.repo.slot(request.scene))
 
     @rpc
     def LoadScene(self, request, context):
+        self._refuse_sharded("LoadScene", request.scene)
         with self.slots.compute(context):
             return self._info(self.repo.load(request.scene))
 
     @rpc
     def UnloadScene(self, request, context):
+        self._refuse_sharded("UnloadScene", request.scene)
         return self._info(self.repo.unload(request.scene))
 
     @rpc
     def ReloadScene(self, request, context):
+        self._refuse_sharded("ReloadScene", request.scene)
         with self.slots.compute(context):
             return self._info(self.repo.reload(request.scene))
 
@@ -88,12 +102,24 @@ class FmgsService(pb_grpc.FmgsServicer):
         thr = convert.threshold(request.threshold)
         fields = set(request.fields)
         inst_cfg = convert.instance_config(request.instances) if request.instances.enabled else None
+        if self.sharded.is_sharded(request.scene):
+            yield from self._sharded_text(request, context, k, len(values), len(fields))
+            return
         engine = self.repo.get(request.scene)
         need = budget.text_bytes(
             min(k, engine.num_embedded), len(values), 3 * len(fields), engine.num_embedded, engine.dim
         )
         with self.budget.reserve(need, context, "this text query"):
             yield from self._text_query(request, context, engine, values, k, thr, fields, inst_cfg)
+
+    def _sharded_text(self, request, context, k: int, n: int, columns: int):
+        from fmgs.scene.shards import ShardManifest
+
+        sm = ShardManifest.read(self.cfg.models / request.scene)
+        need = budget.text_bytes(min(k, sm.num_selected), n, 3 * columns, 0, sm.dim)
+        with self.budget.reserve(need * max(2, len(sm.shards)), context, "this text query"):
+            between = lambda: stop_if_gone(context, "the sharded text query")  # noqa: E731
+            yield from self.sharded.text_query(request, context, between)
 
     def _text_query(self, request, context, engine, values, k, thr, fields, inst_cfg):
         cfg = self.cfg
@@ -125,6 +151,19 @@ class FmgsService(pb_grpc.FmgsServicer):
         cam = convert.camera(request.camera, cfg, request.HasField("camera"))
         outputs = convert.outputs(request.outputs)
         encoding = convert.encoding(request.encoding)
+        if self.sharded.is_sharded(request.scene):
+            # Each layer is the image's channels and opacity: (1 + C + 1) floats per pixel, all held
+            # until they are composited.
+            from fmgs.scene.shards import ShardManifest
+
+            n = len(ShardManifest.read(self.cfg.models / request.scene).shards)
+            need = (
+                budget.render_bytes(cam.width, cam.height, outputs, False) + n * cam.width * cam.height * 24
+            )
+            with self.budget.reserve(need, context, "this render", patient):
+                stop = lambda: stop_if_gone(context, "the render")  # noqa: E731
+                yield from self.sharded.render(request, context, stop)
+            return
         engine = self.repo.get(request.scene)
         need = budget.render_bytes(cam.width, cam.height, outputs, encoding == pb.IMAGE_ENCODING_PNG)
         with self.budget.reserve(need, context, "this render", patient):
@@ -163,6 +202,7 @@ class FmgsService(pb_grpc.FmgsServicer):
 
     @rpc
     def PointQuery(self, request, context):
+        self._refuse_sharded("PointQuery", request.scene)
         values = convert.texts(request.texts, self.cfg)
         if not request.HasField("points"):
             raise InvalidArgument("points: missing")
@@ -194,6 +234,7 @@ class FmgsService(pb_grpc.FmgsServicer):
 
     @rpc_stream
     def Segment(self, request, context):
+        self._refuse_sharded("Segment", request.scene)
         names = convert.texts(request.class_names, self.cfg, "class_names")
         cam = convert.camera(request.camera, self.cfg) if request.HasField("camera") else None
         if cam is None and not request.per_gaussian:

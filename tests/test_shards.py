@@ -16,7 +16,14 @@ from fmgs.query.index import IndexConfig
 from fmgs.query.instances import InstanceConfig
 from fmgs.query.sharded import ShardedScene
 from fmgs.scene.package import export_scene, load_scene
-from fmgs.scene.shards import SHARDS_FILE, ShardManifest, kd_split, read_shard_ids, write_shards
+from fmgs.scene.shards import (
+    SHARDS_FILE,
+    ShardManifest,
+    front_to_back,
+    kd_split,
+    read_shard_ids,
+    write_shards,
+)
 from fmgs.vecmath import safe_normalize
 
 N, M, D = 5000, 4000, 64
@@ -49,13 +56,30 @@ def test_kd_split_is_balanced_reproducible_and_inside_its_cells():
     pts = np.random.default_rng(0).normal(size=(1001, 3))
     pts[:50] = pts[50]  # a stack of equal points straddles a cut
     for k in (1, 2, 3, 4, 7, 8):
-        cells, boxes = kd_split(pts, k)
+        cells, boxes, tree = kd_split(pts, k)
+        rng = np.random.default_rng(k)
+        for eye in rng.normal(size=(20, 3)) * 2:
+            order = front_to_back(tree, eye)
+            assert sorted(order) == list(range(k))
+            inside = [i for i, b in enumerate(boxes) if (eye >= b[:3]).all() and (eye <= b[3:]).all()]
+            assert order[0] in inside  # the eye's own cell comes first
+            # A later cell never holds a point between the eye and an earlier cell's separating plane:
+            # every later cell's box is on the far side of some plane from the eye.
+            for a_pos, a in enumerate(order):
+                for b in order[a_pos + 1 :]:
+                    ba, bb = boxes[a], boxes[b]
+                    separated = any(  # the plane at b's near face: a and the eye on one side
+                        (bb[ax] >= ba[3 + ax] and eye[ax] <= bb[ax])
+                        or (bb[3 + ax] <= ba[ax] and eye[ax] >= bb[3 + ax])
+                        for ax in range(3)
+                    )
+                    assert separated, (a, b, eye)
         sizes = [len(c) for c in cells]
         assert sum(sizes) == len(pts) and max(sizes) - min(sizes) <= k
         assert np.array_equal(np.sort(np.concatenate(cells)), np.arange(len(pts)))
         for c, b in zip(cells, boxes, strict=True):
             assert (pts[c] >= b[:3]).all() and (pts[c] <= b[3:]).all()
-        again, _ = kd_split(pts, k)
+        again, _, _ = kd_split(pts, k)
         assert all(np.array_equal(a, b) for a, b in zip(cells, again, strict=True))
     with pytest.raises(ValidationError, match="shards"):
         kd_split(pts[:3], 4)
@@ -147,3 +171,46 @@ def test_sharded_text_answers_equal_the_unsharded_bit_for_bit(source, tmp_path, 
     got = sharded.text_query_many(sets["clip"], 50, 0.0, canon)
     for a, b in zip(got, ref, strict=True):
         _same_answer(a, b)
+
+
+# ---------------------------------------------------------------------- pose queries on shards
+
+ROOT = __import__("pathlib").Path(__file__).resolve().parents[1]
+
+
+def _demo_camera(eye, w=96, h=72):
+    from fmgs.cameras import Camera
+    from tests.helpers.scenes import look_at
+
+    K = torch.tensor([[70.0, 0, w / 2], [0, 70.0, h / 2], [0, 0, 1]], dtype=torch.float64)
+    return Camera(K, look_at(eye, (0.0, 0.0, -0.2), up=(0.0, 0.0, -1.0)), w, h)
+
+
+@pytest.mark.parametrize("k_shards", [2, 4, 8])
+def test_sharded_relevancy_renders_composite_close_to_the_unsharded_render(tmp_path, k_shards):
+    from fmgs.query.pose import render_pose
+    from fmgs.query.sharded import composite, render_order, shard_layer
+
+    whole = SceneEngine.open(ROOT / "models" / "demo")
+    sharded = ShardedScene(write_shards(ROOT / "models" / "demo", tmp_path / "demo-s", k_shards))
+    q = whole.index.exact_dots(torch.arange(1), torch.eye(whole.dim)).float()[0]  # a stored embedding
+    worst = 0.0
+    for eye in [(0.5, -6.0, 4.0), (6.0, 1.0, 3.0), (-5.0, 4.0, 2.5)]:
+        cam = _demo_camera(eye)
+        ref = render_pose(whole, cam, q, ("relevancy", "alpha"))
+        got = sharded.render_pose(cam, q, ("relevancy", "alpha"))
+        err = (got.relevancy - ref.relevancy).abs()
+        assert bool(torch.isfinite(got.relevancy).all()) and bool(torch.isfinite(got.alpha).all())
+        assert float((got.alpha - ref.alpha).abs().max()) < 0.02  # opacity is order-free up to early stop
+        # Measured on these views: mean <= 0.0008, 99th percentile <= 0.013, at most 0.42% of pixels
+        # off by more than 0.05 (where a Gaussian straddling a split plane is blended out of order).
+        assert float(err.mean()) < 0.005 and float(err.flatten().quantile(0.99)) < 0.05
+        assert float((err > 0.05).float().mean()) < 0.01
+        assert got.argmax[:2] == ref.argmax[:2]  # the most relevant pixel is the same
+        worst = max(worst, float(err.mean()))
+        # the order matters: compositing back to front is measurably worse
+        order = render_order(sharded.manifest, cam)
+        layers = [shard_layer(sharded.engines[i], cam, q) for i in order]
+        backwards = composite(layers[::-1], ("relevancy",))
+        assert float((backwards.relevancy - ref.relevancy).abs().mean()) > float(err.mean())
+    assert worst > 0.0 or k_shards == 1  # the measured difference is real, not a copy of the reference

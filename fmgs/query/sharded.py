@@ -190,6 +190,18 @@ class ShardedScene:
             self.engines.append(e)
             self.maps.append(read_shard_ids(path, info.num_gaussians, info.num_selected))
 
+    @torch.no_grad()
+    def render_pose(self, camera, query, outputs=("relevancy",), canonical=None):
+        """As fmgs.query.pose.render_pose for POSE_OUTPUTS: the shards' layers composited."""
+        from fmgs.errors import ValidationError
+
+        bad = [o for o in outputs if o not in POSE_OUTPUTS]
+        if bad or not outputs:
+            raise ValidationError("outputs", f"a sharded scene renders {POSE_OUTPUTS}, got {list(outputs)}")
+        q = query if "relevancy" in outputs else None
+        order = render_order(self.manifest, camera)
+        return composite([shard_layer(self.engines[i], camera, q, canonical) for i in order], outputs)
+
     def text_query_many(
         self,
         queries: torch.Tensor,
@@ -213,3 +225,74 @@ class ShardedScene:
             merge_text([p[j] for p in per_shard], sq, sq.queries[j], instances, self.manifest.means_box)
             for j in range(len(sq.queries))
         ]
+
+
+# ---------------------------------------------------------------------- pose queries
+
+POSE_OUTPUTS = ("relevancy", "alpha")
+"""What a sharded scene renders (colour and depth need every Gaussian's colour pass: not yet)."""
+
+
+class ShardLayer(NamedTuple):
+    """One shard's partial relevancy render: its embedded Gaussians alone, blended front to back."""
+
+    channels: np.ndarray
+    """[H,W,1+C] float32 blended (f.q, f.c_n) of the shard's Gaussians (premultiplied by their alpha)."""
+    alpha: np.ndarray
+    """[H,W] float32 accumulated opacity of the shard's Gaussians."""
+
+
+@torch.no_grad()
+def shard_layer(engine: SceneEngine, camera, query: torch.Tensor | None, canonical=None, between=None):
+    """This shard's layer for a relevancy (or alpha-only, query None) render of ``camera``."""
+    from fmgs.render import rasterize
+
+    if query is None:
+        chans = torch.ones(engine.num_embedded, 1)
+    else:
+        chans = engine.relevancy_channels(query, canonical)
+    out = rasterize(
+        *engine.geometry, chans.to(engine.geometry[0]), camera, backend=engine.cfg.backend,
+        between_tiles=between,
+    )  # fmt: skip
+    return ShardLayer(out.image.float().cpu().numpy(), out.alpha.float().cpu().numpy())
+
+
+def composite(layers: Sequence[ShardLayer], outputs: tuple[str, ...]):
+    """The PoseRender of layers given front to back: C = sum_i T_i C_i, T_i = prod_{j<i} (1 - A_j).
+
+    Exact when every pixel's Gaussians of a nearer cell lie in front of a farther cell's; Gaussians
+    straddling a split plane and the rasteriser's early stop make the difference measured in
+    benchmarks/CLUSTER.md against the unsharded render.
+    """
+    from fmgs.query.pose import PoseRender
+    from fmgs.query.relevancy import TEMPERATURE, relevancy
+
+    img = np.zeros_like(layers[0].channels, dtype=np.float64)
+    trans = np.ones_like(layers[0].alpha, dtype=np.float64)
+    for layer in layers:
+        img += trans[..., None] * layer.channels
+        trans *= 1.0 - layer.alpha
+    img_t = torch.from_numpy(img.astype(np.float32))
+    alpha = torch.from_numpy((1.0 - trans).astype(np.float32))
+    rel = arg = None
+    if "relevancy" in outputs:
+        rel = relevancy(img_t[..., 0], img_t[..., 1:], TEMPERATURE)
+        flat = int(torch.argmax(rel))
+        y, x = divmod(flat, rel.shape[1])
+        arg = (x, y, float(rel[y, x]))
+    return PoseRender(rel, None, None, alpha if "alpha" in outputs else None, arg)
+
+
+def render_order(manifest: ShardManifest, camera) -> list[int]:
+    """Shard indices front to back for ``camera`` (ValidationError for a manifest without its tree)."""
+    from fmgs.errors import ValidationError
+    from fmgs.scene.shards import front_to_back
+
+    if manifest.tree is None:
+        raise ValidationError(
+            "shards.json", "has no k-d tree (written before pose queries on shards); reshard"
+        )
+    V = camera.viewmat.double()
+    eye = -(V[:3, :3].T @ V[:3, 3])
+    return front_to_back(manifest.tree, eye.tolist())

@@ -62,6 +62,9 @@ class ShardManifest:
     means_box: tuple[float, ...]
     """[6] the 1st and 99th percentile box of all means (fmgs.query.instances.default_eps)."""
     shards: tuple[ShardInfo, ...]
+    tree: object = None
+    """The k-d splits: a shard index (leaf) or [axis, plane, left, right]; gives each camera its
+    front-to-back order of the shards (``front_to_back``). None in manifests written without it."""
 
     def to_dict(self) -> dict:
         return {
@@ -79,6 +82,7 @@ class ShardManifest:
                 }
                 for s in self.shards
             ],
+            "tree": self.tree,
         }
 
     @classmethod
@@ -109,6 +113,7 @@ class ShardManifest:
                 int(m["counts"]["selected"]),
                 tuple(float(c) for c in m["means_box"]),
                 shards,
+                _check_tree(m.get("tree"), len(shards)),
             )
         except (KeyError, TypeError, ValueError, AttributeError) as e:
             raise ValidationError(str(path), f"malformed shard manifest ({e})") from e
@@ -122,6 +127,46 @@ class ShardManifest:
         return out
 
 
+def _check_tree(t, n: int):
+    """The tree as read, checked to hold every shard index once (ValueError otherwise)."""
+    if t is None:
+        return None
+    seen: list[int] = []
+
+    def walk(node) -> None:
+        if isinstance(node, int) and not isinstance(node, bool):
+            seen.append(node)
+            return
+        if not (isinstance(node, list) and len(node) == 4 and node[0] in (0, 1, 2)):
+            raise ValueError(f"bad tree node {str(node)[:60]}")
+        float(node[1])
+        walk(node[2])
+        walk(node[3])
+
+    walk(t)
+    if sorted(seen) != list(range(n)):
+        raise ValueError("the tree must hold every shard index once")
+    return t
+
+
+def front_to_back(tree, eye) -> list[int]:
+    """Shard indices in an order in which no shard's cell lies behind a later one's, seen from ``eye``
+    [3] (the k-d cells are convex: at each split the side holding the eye comes first)."""
+    out: list[int] = []
+
+    def walk(node) -> None:
+        if isinstance(node, int):
+            out.append(node)
+            return
+        axis, plane, left, right = node
+        near, far = (left, right) if float(eye[axis]) < float(plane) else (right, left)
+        walk(near)
+        walk(far)
+
+    walk(tree)
+    return out
+
+
 def _json_float(x: float) -> float | str:
     return x if np.isfinite(x) else ("inf" if x > 0 else "-inf")
 
@@ -131,13 +176,14 @@ def is_sharded(folder: str | Path) -> bool:
     return (Path(folder) / SHARDS_FILE).is_file()
 
 
-def kd_split(means: np.ndarray, k: int) -> tuple[list[np.ndarray], list[np.ndarray]]:
+def kd_split(means: np.ndarray, k: int) -> tuple[list[np.ndarray], list[np.ndarray], object]:
     """Split points [N,3] into k cells of balanced size (sizes differ by at most one... per level).
 
     Each cell is cut across its widest axis at the rank that gives the two halves k//2 and k - k//2
     cells' worth of points; ties in a coordinate are broken by index, so the split is reproducible.
     Returns (per cell: ascending point indices [n_i] int64, per cell: [6] float64 box min xyz, max xyz,
-    unbounded where the cell reaches the scene's outside).
+    unbounded where the cell reaches the scene's outside, the tree: a cell index or [axis, plane, left,
+    right] with the left side's coordinates <= plane <= the right side's).
     """
     if not 1 <= k <= MAX_SHARDS:
         raise ValidationError("shards", f"must be in 1..{MAX_SHARDS}, got {k}")
@@ -146,11 +192,11 @@ def kd_split(means: np.ndarray, k: int) -> tuple[list[np.ndarray], list[np.ndarr
         raise ValidationError("shards", f"{k} shards for {len(means)} Gaussians: at most one shard each")
     cells, boxes = [], []
 
-    def split(idx: np.ndarray, box: np.ndarray, k: int) -> None:
+    def split(idx: np.ndarray, box: np.ndarray, k: int):
         if k == 1:
             cells.append(np.sort(idx))
             boxes.append(box)
-            return
+            return len(cells) - 1
         p = means[idx]
         axis = int(np.argmax(p.max(0) - p.min(0)))
         order = idx[np.lexsort((idx, p[:, axis]))]  # by coordinate, ties by index
@@ -161,11 +207,12 @@ def kd_split(means: np.ndarray, k: int) -> tuple[list[np.ndarray], list[np.ndarr
         lbox, rbox = box.copy(), box.copy()
         lbox[3 + axis] = plane
         rbox[axis] = plane
-        split(left, lbox, kl)
-        split(right, rbox, k - kl)
+        a = split(left, lbox, kl)
+        b = split(right, rbox, k - kl)
+        return [axis, float(plane), a, b]
 
-    split(np.arange(len(means)), np.array([-np.inf] * 3 + [np.inf] * 3), k)
-    return cells, boxes
+    tree = split(np.arange(len(means)), np.array([-np.inf] * 3 + [np.inf] * 3), k)
+    return cells, boxes, tree
 
 
 def write_shards(source: str | Path, out: str | Path, k: int, query_rank: int | None = None) -> Path:
@@ -194,7 +241,7 @@ def write_shards(source: str | Path, out: str | Path, k: int, query_rank: int | 
             except ValidationError:
                 pass  # stale state: the default rank
     means = g.means.detach().double().numpy()
-    cells, boxes = kd_split(means, k)
+    cells, boxes, tree = kd_split(means, k)
     row_of = np.full(g.num, -1, np.int64)  # source Gaussian -> its embedded row (or -1)
     row_of[sel.numpy()] = np.arange(len(sel))
     infos = []
@@ -251,6 +298,7 @@ def write_shards(source: str | Path, out: str | Path, k: int, query_rank: int | 
             len(sel),
             tuple(float(v) for v in np.concatenate([lo, hi])),
             tuple(infos),
+            tree,
         )
         (tmp / SHARDS_FILE).write_text(json.dumps(sm.to_dict(), indent=1))
     return out

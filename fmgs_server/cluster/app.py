@@ -121,6 +121,18 @@ def build_app(cfg: ServerConfig, cc: ClusterConfig, encoder_factory=None):
             await self._hold()
             return await asyncio.to_thread(self.core.finish_sharded_text, plan, parts)
 
+        async def plan_render(self, scene: str, request: bytes):
+            await self._hold()
+            return await asyncio.to_thread(self.core.plan_sharded_render, scene, request)
+
+        async def shard_layer(self, scene: str, folder: str, plan):
+            await self._hold()
+            return await asyncio.to_thread(self.core.shard_layer, scene, folder, plan)
+
+        async def finish_render(self, plan, layers):
+            await self._hold()
+            return await asyncio.to_thread(self.core.finish_sharded_render, plan, layers)
+
         async def is_sharded(self, scene: str) -> bool:
             return self.core.is_sharded(scene)
 
@@ -175,8 +187,11 @@ def build_app(cfg: ServerConfig, cc: ClusterConfig, encoder_factory=None):
             if self._refused(method, request, grpc_context):
                 raise CallFailed(grpc_context.details())
             scene = request.scene
-            if method == "TextQuery" and await self.host.is_sharded.remote(scene):
+            sharded = method in ("TextQuery", "Render") and await self.host.is_sharded.remote(scene)
+            if sharded and method == "TextQuery":
                 items = await self._sharded_text(scene, request)
+            elif sharded:
+                items = await self._sharded_render(scene, request)
             else:
                 h = self.host.options(multiplexed_model_id=scene, stream=True)
                 items = h.stream.remote(method, request.SerializeToString())
@@ -200,6 +215,18 @@ def build_app(cfg: ServerConfig, cc: ClusterConfig, encoder_factory=None):
             ]
             parts = await asyncio.gather(*calls)
             return await at.finish_text.remote(plan, parts)
+
+        async def _sharded_render(self, scene: str, request) -> list:
+            at = self.host.options(multiplexed_model_id=scene)
+            plan = await at.plan_render.remote(scene, request.SerializeToString())
+            if isinstance(plan, Status):
+                return [plan]
+            calls = [
+                self.host.options(multiplexed_model_id=f"{scene}/{f}").shard_layer.remote(scene, f, plan)
+                for f in plan.shards
+            ]
+            layers = await asyncio.gather(*calls)
+            return await at.finish_render.remote(plan, layers)
 
         # -------------------------------------------------------------- fmgs.v1.Fmgs
 

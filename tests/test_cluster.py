@@ -311,3 +311,29 @@ def test_killing_a_replica_under_load_fails_only_calls_the_client_sees_fail(clus
     while ok < 5 and time.monotonic() < deadline:
         ok = ok + 1 if _call(s, "TextQuery", req) == ref else 0
     assert ok == 5
+
+
+def test_pose_streams_answer_as_fmgs_serve_does(direct, cluster):
+    """Every frame a pose stream returns is the frame fmgs serve renders for that pose."""
+    import queue
+
+    def stream(address):
+        s = _stub(address)
+        reqs = queue.Queue()
+        out = s.StreamRender(iter(reqs.get, None), metadata=MD, timeout=120)
+        chunks = []
+        for seq in range(3):
+            req = pb.RenderRequest(
+                scene="blobs", camera=_cam(), text=CLASS_NAMES[seq], sequence=seq,
+                outputs=[pb.RENDER_OUTPUT_RELEVANCY],
+            )  # fmt: skip
+            reqs.put(req)
+            while not (chunks and chunks[-1].width and chunks[-1].sequence == seq):
+                chunks.append(_norm(next(out)))  # until this pose's frame starts: then the next pose
+        reqs.put(None)
+        chunks += [_norm(c) for c in out]
+        return chunks
+
+    want, got = stream(direct), stream(cluster)
+    starts = [c.sequence for c in want if c.width]  # a frame's first chunk carries its size
+    assert starts == [0, 1, 2] and got == want

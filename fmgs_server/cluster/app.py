@@ -282,17 +282,15 @@ def build_app(cfg: ServerConfig, cc: ClusterConfig, encoder_factory=None):
             task = asyncio.create_task(drain())
             try:
                 while True:
-                    await ready.wait()
-                    ready.clear()
                     if not latest:
                         if ended:
                             return
+                        await ready.wait()
+                        ready.clear()
                         continue
                     req = latest.pop()
                     async for m in self._stream("Render", req, grpc_context):
                         yield m
-                    if latest:
-                        ready.set()
             finally:
                 task.cancel()
 

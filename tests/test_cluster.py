@@ -337,3 +337,22 @@ def test_pose_streams_answer_as_fmgs_serve_does(direct, cluster):
     want, got = stream(direct), stream(cluster)
     starts = [c.sequence for c in want if c.width]  # a frame's first chunk carries its size
     assert starts == [0, 1, 2] and got == want
+
+
+def test_a_package_replaced_in_place_is_served_in_its_new_version(direct, cluster, models):
+    """The atomic swap (fmgs.io.atomic.atomic_dir) reaches the replicas: after it, both servers answer
+    from the new package."""
+    import time
+
+    s, d = _stub(cluster), _stub(direct)
+    req = pb.TextQueryRequest(scene="swap", texts=list(CLASS_NAMES), top_k=15)
+    blob_scene(models / "swap", seed=5)
+    before = _call(s, "TextQuery", req)
+    assert before == _call(d, "TextQuery", req)
+    time.sleep(1.0)  # the routers learn which replica holds it
+    v0 = _call(s, "GetScene", pb.SceneRequest(scene="swap"))[2][0].version
+    assert v0
+    blob_scene(models / "swap", seed=6)  # written beside it, swapped in one rename
+    after = _call(s, "TextQuery", req)
+    assert after[0] == "OK" and after != before and after == _call(d, "TextQuery", req)
+    assert _call(s, "GetScene", pb.SceneRequest(scene="swap"))[2][0].version != v0

@@ -61,6 +61,17 @@ class RenderPlan:
     t0: float
 
 
+def sharded_scene(models: Path, scene: str) -> bool:
+    """Whether ``scene`` names a sharded scene of repository ``models`` (a valid name with a shards.json)."""
+    from fmgs.scene.package import check_scene_name
+
+    try:
+        check_scene_name(scene)
+    except FmgsError:
+        return False
+    return is_sharded(models / scene)
+
+
 def not_supported(method: str, scene: str) -> FailedPrecondition:
     return FailedPrecondition(
         f"scene {scene!r} is sharded: {method} is not supported on sharded scenes (text queries and "
@@ -81,13 +92,7 @@ class ShardedScenes:
     # ------------------------------------------------------------------ listing
 
     def is_sharded(self, scene: str) -> bool:
-        from fmgs.scene.package import check_scene_name
-
-        try:
-            check_scene_name(scene)
-        except FmgsError:
-            return False
-        return is_sharded(self.cfg.models / scene)
+        return sharded_scene(self.cfg.models, scene)
 
     def names(self) -> list[str]:
         root = self.cfg.models

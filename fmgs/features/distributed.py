@@ -45,6 +45,7 @@ class _Worker:
         from fmgs.features.text import load_text_encoder
 
         spec = job.spec
+        self.kind = spec.kind
         device = job.device
         if device == "auto":
             device = "cuda" if torch.cuda.is_available() else "cpu"
@@ -72,15 +73,11 @@ class _Worker:
         """Image i's maps as numpy arrays (add()'s keyword arguments)."""
         from fmgs.features.extract import image_label_targets, image_targets
 
-        if self.job_kind == "labels":
+        if self.kind == "labels":
             out = image_label_targets(self.ds, i, self.labels, self.emb, frozenset({0}), self.cfg)
         else:
             out = image_targets(self.ds, i, self.clip, self.dino, self.pyramid, self.cfg)
         return {k: (v.detach().cpu().numpy() if isinstance(v, torch.Tensor) else v) for k, v in out.items()}
-
-    @property
-    def job_kind(self) -> str:
-        return "labels" if hasattr(self, "emb") else "clip"
 
 
 _WORKERS: dict[TargetJob, _Worker] = {}

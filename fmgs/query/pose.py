@@ -31,6 +31,28 @@ class PoseRender(NamedTuple):
     """(x, y, value) of the most relevant pixel (first in row-major order on ties)."""
 
 
+def relevancy_layer(engine, camera: Camera, query: torch.Tensor | None, canonical=None, between_tiles=None):
+    """The rasterised relevancy channels of the engine's embedded Gaussians (f.q and f.c_n per pixel,
+    [H,W,1+C]) with their opacity, or only the opacity ([H,W,1] ones blended) when ``query`` is None."""
+    if query is None:
+        chans = torch.ones(engine.num_embedded, 1)
+    else:
+        chans = engine.relevancy_channels(query, canonical)
+    return rasterize(
+        *engine.geometry, chans.to(engine.geometry[0]), camera, backend=engine.cfg.backend,
+        between_tiles=between_tiles,
+    )  # fmt: skip
+
+
+def score_image(img: torch.Tensor) -> tuple[torch.Tensor, tuple[int, int, float]]:
+    """Relevancy [H,W] of rendered channels [H,W,1+C] and its argmax (x, y, value), first in row-major
+    order on ties."""
+    rel = relevancy(img[..., 0], img[..., 1:], TEMPERATURE)
+    flat = int(torch.argmax(rel))
+    y, x = divmod(flat, rel.shape[1])
+    return rel, (x, y, float(rel[y, x]))
+
+
 @torch.no_grad()
 def render_pose(
     engine,
@@ -52,23 +74,14 @@ def render_pose(
         raise ValidationError("outputs", f"choose from {OUTPUTS}, got {list(outputs)}")
     rel = alpha = rgb = depth = arg = None
     if "relevancy" in outputs or "alpha" in outputs:
-        if "relevancy" in outputs:
-            if query is None:
-                raise ValidationError("text", "a query is needed for a relevancy image")
-            chans = engine.relevancy_channels(query, canonical)
-        else:
-            chans = torch.ones(engine.num_embedded, 1)
-        out = rasterize(
-            *engine.geometry, chans.to(engine.geometry[0]), camera, backend=engine.cfg.backend,
-            between_tiles=between_tiles,
-        )  # fmt: skip
-        img = out.image.float()
+        if "relevancy" in outputs and query is None:
+            raise ValidationError("text", "a query is needed for a relevancy image")
+        q = query if "relevancy" in outputs else None
+        out = relevancy_layer(engine, camera, q, canonical, between_tiles)
         alpha = out.alpha.float().cpu()
         if "relevancy" in outputs:  # scored where it was rendered: only [H,W] crosses to the host
-            rel = relevancy(img[..., 0], img[..., 1:], TEMPERATURE).cpu()
-            flat = int(torch.argmax(rel))
-            y, x = divmod(flat, rel.shape[1])
-            arg = (x, y, float(rel[y, x]))
+            rel, arg = score_image(out.image.float())
+            rel = rel.cpu()
     if "rgb" in outputs or "depth" in outputs:
         out = render_rgb(engine.gaussians, camera, backend=engine.cfg.backend, between_tiles=between_tiles)
         rgb = out.image.float().clamp(0, 1).cpu()

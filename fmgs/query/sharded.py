@@ -245,16 +245,9 @@ class ShardLayer(NamedTuple):
 @torch.no_grad()
 def shard_layer(engine: SceneEngine, camera, query: torch.Tensor | None, canonical=None, between=None):
     """This shard's layer for a relevancy (or alpha-only, query None) render of ``camera``."""
-    from fmgs.render import rasterize
+    from fmgs.query.pose import relevancy_layer
 
-    if query is None:
-        chans = torch.ones(engine.num_embedded, 1)
-    else:
-        chans = engine.relevancy_channels(query, canonical)
-    out = rasterize(
-        *engine.geometry, chans.to(engine.geometry[0]), camera, backend=engine.cfg.backend,
-        between_tiles=between,
-    )  # fmt: skip
+    out = relevancy_layer(engine, camera, query, canonical, between)
     return ShardLayer(out.image.float().cpu().numpy(), out.alpha.float().cpu().numpy())
 
 
@@ -265,8 +258,7 @@ def composite(layers: Sequence[ShardLayer], outputs: tuple[str, ...]):
     straddling a split plane and the rasteriser's early stop make the difference measured in
     benchmarks/CLUSTER.md against the unsharded render.
     """
-    from fmgs.query.pose import PoseRender
-    from fmgs.query.relevancy import TEMPERATURE, relevancy
+    from fmgs.query.pose import PoseRender, score_image
 
     img = np.zeros_like(layers[0].channels, dtype=np.float64)
     trans = np.ones_like(layers[0].alpha, dtype=np.float64)
@@ -277,10 +269,7 @@ def composite(layers: Sequence[ShardLayer], outputs: tuple[str, ...]):
     alpha = torch.from_numpy((1.0 - trans).astype(np.float32))
     rel = arg = None
     if "relevancy" in outputs:
-        rel = relevancy(img_t[..., 0], img_t[..., 1:], TEMPERATURE)
-        flat = int(torch.argmax(rel))
-        y, x = divmod(flat, rel.shape[1])
-        arg = (x, y, float(rel[y, x]))
+        rel, arg = score_image(img_t)
     return PoseRender(rel, None, None, alpha if "alpha" in outputs else None, arg)
 
 

@@ -26,6 +26,7 @@ from fmgs_server.auth import TokenAuth, bearer_token, read_tokens
 from fmgs_server.cluster.config import ClusterConfig
 from fmgs_server.cluster.host import HostCore, Status, missing
 from fmgs_server.config import ServerConfig
+from fmgs_server.sharded import sharded_scene
 from fmgs_wire.proto.fmgs.v1 import fmgs_pb2 as pb
 
 SERVICE = "fmgs.v1.Fmgs"
@@ -133,9 +134,6 @@ def build_app(cfg: ServerConfig, cc: ClusterConfig, encoder_factory=None):
             await self._hold()
             return await asyncio.to_thread(self.core.finish_sharded_render, plan, layers)
 
-        async def is_sharded(self, scene: str) -> bool:
-            return self.core.is_sharded(scene)
-
     @serve.deployment(
         name="FmgsIngress",
         num_replicas=cc.ingress_replicas,
@@ -187,7 +185,8 @@ def build_app(cfg: ServerConfig, cc: ClusterConfig, encoder_factory=None):
             if self._refused(method, request, grpc_context):
                 raise CallFailed(grpc_context.details())
             scene = request.scene
-            sharded = method in ("TextQuery", "Render") and await self.host.is_sharded.remote(scene)
+            # The repository path is readable on every node: no round trip to a replica to ask.
+            sharded = method in ("TextQuery", "Render") and sharded_scene(cfg.models, scene)
             if sharded and method == "TextQuery":
                 items = await self._sharded_text(scene, request)
             elif sharded:

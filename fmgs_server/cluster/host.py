@@ -12,8 +12,7 @@ TextQuery, the caller scatters the ShardQuery to the replicas holding the shards
 
 from __future__ import annotations
 
-import threading
-import time
+from collections.abc import Callable
 from typing import NamedTuple
 
 import grpc
@@ -45,26 +44,26 @@ class Aborted(Exception):
 class ForwardedContext:
     """The part of grpc.ServicerContext the service uses, for a call forwarded by the ingress.
 
-    The Ray proxy does not forward the client's deadline; ``deadline_s`` (monotonic seconds) is the
-    server-side cap when one is configured. ``cancel()`` marks the call gone (the ingress saw the client
-    leave), so long work stops at its next check.
+    Ray Serve's proxy forwards neither the client's deadline nor its leaving, so a forwarded call is
+    always active and has no deadline (the proxy's request_timeout_s caps it from outside).
     """
 
-    def __init__(self, deadline_s: float | None = None) -> None:
-        self.deadline_s = deadline_s
-        self._gone = threading.Event()
-
-    def cancel(self) -> None:
-        self._gone.set()
-
     def is_active(self) -> bool:
-        return not self._gone.is_set() and (self.deadline_s is None or time.monotonic() < self.deadline_s)
+        return True
 
     def time_remaining(self) -> float | None:
-        return None if self.deadline_s is None else self.deadline_s - time.monotonic()
+        return None
 
     def abort(self, code: grpc.StatusCode, details: str):
         raise Aborted(code, details)
+
+
+def _guarded(fn: Callable[[], object]):
+    """fn()'s result, or the Status its exception maps to (the README's error table)."""
+    try:
+        return fn()
+    except Exception as e:
+        return _status(e)
 
 
 def _status(e: BaseException) -> Status:
@@ -83,25 +82,22 @@ class HostCore:
 
     # ------------------------------------------------------------------ whole scenes
 
-    def unary(self, method: str, request: bytes, ctx: ForwardedContext | None = None) -> bytes | Status:
+    def unary(self, method: str, request: bytes) -> bytes | Status:
         """Run unary RPC ``method`` on a serialized request: the serialized answer, or how it failed."""
-        ctx = ctx or ForwardedContext()
-        try:
-            req = getattr(pb, REQUEST_TYPES[method]).FromString(request)
-            return getattr(self.service, method)(req, ctx).SerializeToString()
-        except Exception as e:
-            return _status(e)
 
-    def stream(
-        self, method: str, request: bytes, ctx: ForwardedContext | None = None
-    ) -> list[bytes | Status]:
+        def run() -> bytes:
+            req = getattr(pb, REQUEST_TYPES[method]).FromString(request)
+            return getattr(self.service, method)(req, ForwardedContext()).SerializeToString()
+
+        return _guarded(run)
+
+    def stream(self, method: str, request: bytes) -> list[bytes | Status]:
         """Run server-streaming RPC ``method``: its messages, ending with a Status if it failed. The
         answer is collected whole (its size is bounded by the request limits and the work budget)."""
-        ctx = ctx or ForwardedContext()
         out: list[bytes | Status] = []
         try:
             req = getattr(pb, REQUEST_TYPES[method]).FromString(request)
-            for msg in getattr(self.service, method)(req, ctx):
+            for msg in getattr(self.service, method)(req, ForwardedContext()):
                 out.append(msg.SerializeToString())
         except Exception as e:
             out.append(_status(e))
@@ -119,22 +115,14 @@ class HostCore:
 
     # ------------------------------------------------------------------ sharded scenes (scattered)
 
-    def is_sharded(self, scene: str) -> bool:
-        return self.service.sharded.is_sharded(scene)
-
     def plan_sharded_text(self, scene: str, request: bytes):
         """Validate and embed a TextQuery on sharded ``scene`` (fmgs_server.sharded.TextPlan)."""
-        try:
-            return self.service.sharded.plan_text(scene, pb.TextQueryRequest.FromString(request))
-        except Exception as e:
-            return _status(e)
+        sharded = self.service.sharded
+        return _guarded(lambda: sharded.plan_text(scene, pb.TextQueryRequest.FromString(request)))
 
     def shard_text(self, scene: str, folder: str, sq) -> list | Status:
         """This replica's parts of a sharded text query for shard ``folder`` of ``scene``."""
-        try:
-            return self.service.sharded.shard_text(scene, folder, sq, ForwardedContext())
-        except Exception as e:
-            return _status(e)
+        return _guarded(lambda: self.service.sharded.shard_text(scene, folder, sq, ForwardedContext()))
 
     def finish_sharded_text(self, plan, parts: list) -> list[bytes | Status]:
         """Merge the shards' parts (parts[s][j]: shard s, text j) into the answer's chunks."""
@@ -142,17 +130,12 @@ class HostCore:
 
     def plan_sharded_render(self, scene: str, request: bytes):
         """Validate a RenderRequest on sharded ``scene``, embed its text, order the shards for its camera."""
-        try:
-            return self.service.sharded.plan_render(scene, pb.RenderRequest.FromString(request))
-        except Exception as e:
-            return _status(e)
+        sharded = self.service.sharded
+        return _guarded(lambda: sharded.plan_render(scene, pb.RenderRequest.FromString(request)))
 
     def shard_layer(self, scene: str, folder: str, plan):
         """This replica's layer of a sharded render, or how it failed."""
-        try:
-            return self.service.sharded.shard_layer(scene, folder, plan, ForwardedContext())
-        except Exception as e:
-            return _status(e)
+        return _guarded(lambda: self.service.sharded.shard_layer(scene, folder, plan, ForwardedContext()))
 
     def finish_sharded_render(self, plan, layers: list) -> list[bytes | Status]:
         """Composite the layers (front to back, as planned) into the render's chunks."""
@@ -163,10 +146,8 @@ class HostCore:
         for p in parts:
             if isinstance(p, Status):
                 return [p]
-        try:
-            return [c.SerializeToString() for c in chunks()]
-        except Exception as e:
-            return [_status(e)]
+        out = _guarded(lambda: [c.SerializeToString() for c in chunks()])
+        return [out] if isinstance(out, Status) else out
 
 
 def missing(scene: str) -> Status:

@@ -258,22 +258,19 @@ def test_sigterm_drains_in_flight_and_restart_serves_the_same(tmp_path):
         with grpc.insecure_channel(address) as ch:
             stub = pb_grpc.FmgsStub(ch)
             first = _answer(stub, req)
-            # A slow render (colour and alpha need no text) in flight when SIGTERM arrives completes.
-            result = {}
-
-            def render():
-                r = pb.RenderRequest(
-                    scene="s", camera=cam, outputs=[pb.RENDER_OUTPUT_ALPHA, pb.RENDER_OUTPUT_RGB]
-                )
-                result["chunks"] = list(stub.Render(r, timeout=60))
-
-            t = threading.Thread(target=render)
-            t.start()
-            time.sleep(0.5)
-            assert "chunks" not in result  # still rendering when the signal comes
+            # A large render (colour and alpha need no text) is in flight when SIGTERM arrives: its
+            # first chunk is read and the rest are held back by flow control until the client reads
+            # on, so the server cannot have finished it (a sleep raced fast machines).
+            r = pb.RenderRequest(
+                scene="s", camera=cam, outputs=[pb.RENDER_OUTPUT_ALPHA, pb.RENDER_OUTPUT_RGB]
+            )
+            chunks = stub.Render(r, timeout=60)
+            head = next(chunks)
+            assert not head.last  # still streaming when the signal comes
             p.send_signal(signal.SIGTERM)
-            t.join(60)
-            assert result.get("chunks") and result["chunks"][-1].last
+            time.sleep(0.5)
+            rest = list(chunks)
+            assert rest and rest[-1].last
         assert p.wait(timeout=60) == 0
     finally:
         if p.poll() is None:

@@ -16,6 +16,7 @@ from fmgs.errors import FmgsError
 from fmgs.query.points import query_points
 from fmgs.query.pose import render_pose
 from fmgs.query.presence import negative_names
+from fmgs.query.presence import probes as presence_probes
 from fmgs.query.segment import segment
 from fmgs.scene.manifest import Manifest
 from fmgs_server import budget, convert, responses
@@ -135,14 +136,21 @@ class FmgsService(pb_grpc.FmgsServicer):
             canon = self._canonical(engine, request.canonical_phrases)
             names = tuple(negative_names(engine.manifest.label_names))
             negs = self.encoders.negatives(engine.encoder_id, names)
+            # Colour contrasts need the texts' words: a query given as an embedding goes without.
+            probes = None
+            if negs is not None and not request.HasField("embeddings"):
+                probes = presence_probes(values, q, lambda ts: self.encoders.embed(engine.encoder_id, ts))
             n = len(values)
             t0 = time.perf_counter()
             between = lambda i: stop_if_gone(context, f"text {i} of {n}")  # noqa: E731
-            many = engine.text_query_many(q, k, thr, canon, inst_cfg, between, negs)  # one pass for all texts
+            many = engine.text_query_many(  # one pass for all texts
+                q, k, thr, canon, inst_cfg, between, negs, probes=probes
+            )
             ms = (time.perf_counter() - t0) * 1e3 / max(1, len(values))
             answers = [(i, text, a, ms) for i, (text, a) in enumerate(zip(values, many, strict=True))]
         for i, text, a, ms in answers:
-            yield from responses.text_chunks(engine, i, text, a, fields, ms, cfg.chunk_bytes, names)
+            rivals = names if probes is None else names + probes[i].names
+            yield from responses.text_chunks(engine, i, text, a, fields, ms, cfg.chunk_bytes, rivals)
 
     # ------------------------------------------------------------------ render
 

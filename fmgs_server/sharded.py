@@ -40,7 +40,8 @@ class TextPlan:
     texts: list[str]
     fields: set[int]
     instances: object
-    negatives: tuple[str, ...]
+    rivals: tuple[tuple[str, ...], ...]
+    """Per text, the names its presence rival is chosen from (negatives, then its colour contrasts)."""
     means_box: tuple[float, ...]
     t0: float
 
@@ -161,7 +162,8 @@ class ShardedScenes:
         import numpy as np
 
         from fmgs.query.presence import negative_names
-        from fmgs.query.sharded import ShardQuery
+        from fmgs.query.presence import probes as probe_texts
+        from fmgs.query.sharded import ShardQuery, shard_probes
 
         cfg, svc = self.cfg, self.service
         sm = ShardManifest.read(cfg.models / scene)
@@ -180,12 +182,15 @@ class ShardedScenes:
         t0 = time.perf_counter()
         q = svc.encoders.embed(sm.encoder_id, values)
         negs = svc.encoders.negatives(sm.encoder_id, names)
+        probes = probe_texts(values, q, lambda ts: svc.encoders.embed(sm.encoder_id, ts))
         cols = tuple(n for f, n in responses.COLUMNS.items() if f in fields)
         sq = ShardQuery(
-            q.float().numpy(), k, thr, None, negs.float().numpy().astype(np.float32), inst is not None, cols
-        )
+            q.float().numpy(), k, thr, None, negs.float().numpy().astype(np.float32), shard_probes(probes),
+            inst is not None, cols,
+        )  # fmt: skip
         shards = tuple(s.folder for s in sm.shards)
-        return TextPlan(scene, shards, sq, values, fields, inst, names, sm.means_box, t0)
+        rivals = tuple(names + p.names for p in probes)
+        return TextPlan(scene, shards, sq, values, fields, inst, rivals, sm.means_box, t0)
 
     def shard_text(self, scene: str, folder: str, sq, context) -> list:
         from fmgs.query.sharded import shard_text
@@ -198,14 +203,11 @@ class ShardedScenes:
         from fmgs.query.sharded import merge_text
 
         sq, n = plan.query, len(plan.texts)
-        answers = [
-            merge_text([p[j] for p in parts], sq, sq.queries[j], plan.instances, plan.means_box)
-            for j in range(n)
-        ]
+        answers = [merge_text([p[j] for p in parts], sq, j, plan.instances, plan.means_box) for j in range(n)]
         ms = (time.perf_counter() - plan.t0) * 1e3 / max(1, n)
         for i, (text, a) in enumerate(zip(plan.texts, answers, strict=True)):
             yield from responses.text_chunks(
-                None, i, text, a, plan.fields, ms, self.cfg.chunk_bytes, plan.negatives
+                None, i, text, a, plan.fields, ms, self.cfg.chunk_bytes, plan.rivals[i]
             )
 
     def text_query(self, req: pb.TextQueryRequest, context, between: Callable[[], None]) -> Iterator:

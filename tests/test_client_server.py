@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from fmgs.query.engine import SceneEngine
-from fmgs.query.presence import negative_names
+from fmgs.query.presence import negative_names, probes
 from fmgs_client import cli
 from fmgs_client.client import FmgsClient, FmgsError
 from fmgs_client.ply import read_ply
@@ -94,13 +94,17 @@ def test_query_matches_engine(client, models):
         assert np.all(np.abs(top.aabb.center - top.centroid) < top.aabb.extent)
         assert (a.instance == top.id).sum() == top.num_members
     # Presence as the engine computes it with the scene's negatives (vocabulary and label names).
+    # Texts naming a colour are decided with their colour contrasts too.
     names = negative_names(eng.manifest.label_names)
-    negs = FakeEncoder().encode_text(names)
-    texts = [*CLASS_NAMES, "laptop", "giraffe"]
+    enc = FakeEncoder()
+    negs = enc.encode_text(names)
+    texts = [*CLASS_NAMES, "laptop", "giraffe", "green cube"]
     got = client.query("blobs", texts, top_k=3)
-    for a, text, v in zip(got, texts, FakeEncoder().encode_text(texts), strict=True):
-        p = eng.text_query(v, 3, negatives=negs).presence
-        assert a.presence == Presence(p.score, p.found, p.margin, names[p.rival]) and a.found == p.found
+    vecs_t = enc.encode_text(texts)
+    for a, text, v, pr in zip(got, texts, vecs_t, probes(texts, vecs_t, enc.encode_text), strict=True):
+        p = eng.text_query(v, 3, negatives=negs, probe=pr).presence
+        rivals = [*names, *pr.names]
+        assert a.presence == Presence(p.score, p.found, p.margin, rivals[p.rival]) and a.found == p.found
         assert a.found == (text in CLASS_NAMES)
     # Precomputed embeddings instead of texts.
     emb = vecs.numpy().astype(np.float32)

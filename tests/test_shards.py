@@ -165,6 +165,22 @@ def test_sharded_text_answers_equal_the_unsharded_bit_for_bit(source, tmp_path, 
                 _same_answer(a, b)
                 want = whole.gaussian_columns(b.index, COLUMNS)
                 assert all(np.array_equal(a.columns[c], want[c]) for c in COLUMNS)
+    # colour probes (fmgs.query.presence.Probe): a contrast or the probe's query decides the same way
+    from fmgs.query.presence import Probe
+
+    g = torch.Generator().manual_seed(11)
+    q = sets["typical"]
+    probes = [
+        Probe(q[j], q.new_zeros((0, D)), ())
+        if j % 2
+        else Probe(torch.randn(D, generator=g), q[j] + 0.1 * torch.randn(3, D, generator=g), ("a",) * 3)
+        for j in range(len(q))
+    ]
+    ref = whole.text_query_many(q, 20, 0.0, None, None, negatives=negs, probes=probes)
+    got = sharded.text_query_many(q, 20, 0.0, None, None, negatives=negs, probes=probes)
+    for a, b in zip(got, ref, strict=True):
+        _same_answer(a, b)
+    assert any(b.presence.rival >= len(negs) for b in ref)  # some contrast decided
     # custom canonical phrases go through the exact dots of both
     canon = safe_normalize(torch.randn(3, D, generator=torch.Generator().manual_seed(9)))
     ref = whole.text_query_many(sets["clip"], 50, 0.0, canon)

@@ -9,7 +9,7 @@ from __future__ import annotations
 import threading
 import time
 from collections import OrderedDict
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from typing import NamedTuple
 
@@ -20,7 +20,7 @@ from fmgs.errors import ValidationError
 from fmgs.gaussians import SH_C0
 from fmgs.query.index import EmbeddingIndex, IndexConfig
 from fmgs.query.instances import Instance, InstanceConfig, default_eps, group_instances
-from fmgs.query.presence import Presence, PresenceConfig, presence
+from fmgs.query.presence import Presence, PresenceConfig, Probe, presence
 from fmgs.scene.package import ScenePackage, load_scene
 from fmgs.vecmath import safe_normalize
 
@@ -143,10 +143,11 @@ class SceneEngine:
         instances: InstanceConfig | None = None,
         negatives: torch.Tensor | None = None,
         presence_cfg: PresenceConfig = PRESENCE,
+        probe: Probe | None = None,
     ) -> TextAnswer:
         """Rank the embedded Gaussians for query [D]; canonical [C,D] replaces the scene's phrases;
         negatives [V,D] (the scene's text encoder's embeddings of ``presence.negative_names``) add a
-        presence score."""
+        presence score, decided with ``probe`` (fmgs.query.presence.probes) when given."""
         return self.text_query_many(
             query[None],
             top_k,
@@ -155,6 +156,7 @@ class SceneEngine:
             instances,
             negatives=negatives,
             presence_cfg=presence_cfg,
+            probes=None if probe is None else [probe],
         )[0]
 
     @torch.no_grad()
@@ -168,9 +170,10 @@ class SceneEngine:
         between: Callable[[int], None] | None = None,
         negatives: torch.Tensor | None = None,
         presence_cfg: PresenceConfig = PRESENCE,
+        probes: Sequence[Probe] | None = None,
     ) -> list[TextAnswer]:
         """``text_query`` for queries [n,D], scored in one pass over the query state; ``between(j)`` runs
-        before text j is ranked (a deadline check may raise there)."""
+        before text j is ranked (a deadline check may raise there); probes [n] as ``text_query``'s."""
         q = self.unit(queries)
         c = None if canonical is None else self.unit(canonical, "canonical embeddings")
         neg = None if negatives is None else self.unit(negatives, "negative embeddings")
@@ -178,7 +181,11 @@ class SceneEngine:
         # cuts the answer shorter.
         k = top_k if neg is None or threshold > 0 else max(top_k, presence_cfg.rows)
         ranked = self.index.rank_many(q, k, threshold, c, between)
-        presences = [None] * len(q) if neg is None else self._presence(q, ranked, c, neg, presence_cfg)
+        if probes is not None and len(probes) != len(q):
+            raise ValidationError("probes", f"{len(probes)} presence probes for {len(q)} queries")
+        presences = (
+            [None] * len(q) if neg is None else self._presence(q, ranked, c, neg, presence_cfg, probes)
+        )
         out = []
         for r, pres in zip(ranked, presences, strict=True):
             r = r._replace(
@@ -195,9 +202,9 @@ class SceneEngine:
             out.append(TextAnswer(idx, r.relevancy, r.similarity, inst, ids, r.rescored, pres))
         return out
 
-    def _presence(self, q, ranked, canonical, negatives, cfg: PresenceConfig) -> list[Presence]:
+    def _presence(self, q, ranked, canonical, negatives, cfg: PresenceConfig, probes) -> list[Presence]:
         """Presence of each unit query [n,D] from the first cfg.rows rows of its ranking (ranked again
-        without the threshold where the threshold left fewer)."""
+        without the threshold where the threshold left fewer), with its probe's query and contrasts."""
         short = [j for j, r in enumerate(ranked) if len(r.rows) < min(cfg.rows, self.num_embedded)]
         best = [r.rows[: cfg.rows] for r in ranked]
         if short:
@@ -209,9 +216,15 @@ class SceneEngine:
             if len(rows) == 0:
                 out.append(NO_GAUSSIANS)
                 continue
-            dots = self.index.exact_dots(rows, torch.cat([q[j : j + 1], negatives]))  # [T,1+V] float64
-            qn = negatives.double() @ q[j].double()
-            out.append(presence(dots[:, 0], dots[:, 1:], qn, cfg))
+            pq, con = q[j], None
+            if probes is not None and len(probes[j].contrasts):  # otherwise the probe is the query
+                pq = self.unit(probes[j].query[None], "presence probe")[0]
+                con = self.unit(probes[j].contrasts, "colour contrasts")
+            vecs = [pq[None], negatives] + ([] if con is None else [con])
+            dots = self.index.exact_dots(rows, torch.cat(vecs))  # [T,1+V+S] float64
+            qn = negatives.double() @ pq.double()
+            V = len(negatives)
+            out.append(presence(dots[:, 0], dots[:, 1 : 1 + V], qn, cfg, dots[:, 1 + V :]))
         return out
 
     def gaussian_columns(self, index: torch.Tensor, names) -> dict[str, np.ndarray]:

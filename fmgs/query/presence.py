@@ -14,22 +14,40 @@ label names when it was built from label targets) embedded by the scene's text e
 best Gaussian is closer to the query than to any name the query does not mean. A mug's Gaussians are
 closer to "mug" than to "laptop", so "laptop" is not found there.
 
+A query that names a colour (fmgs.query.colours) asks the colour question on its own too: its text is
+first put in canonical form (colour synonyms mapped to the plain word: "scarlet cube" -> "red cube"),
+which is the q above, and the same query in every other colour joins N as contrasts that can never be
+excluded as paraphrases. A red cube's Gaussians are closer to "red cube" than to "green cube", so "green
+cube" is not found there, though the text encoder puts the two at 0.79. Contrasts need the query's text
+(``probes``); a query given only as an embedding is decided without them.
+
 Calibration is per scene through N: the scene's own names take part. What it cannot do: tell apart
-queries the text encoder itself barely separates (a "blue cube" where the scene has a "red cube": their
-MiniLM similarity is 0.79); on label-target scenes open vocabulary means text similarity of the label
-names, nothing more.
+queries the text encoder itself barely separates in anything but colour (a "purple cube" where the
+scene has a "purple donut" and no cube is found when "purple donut" is among the query's nearest names);
+on label-target scenes open vocabulary means text similarity of the label names, nothing more.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import NamedTuple
 
 import torch
 
+from fmgs.query.colours import colour_probe
 from fmgs.query.vocabulary import VOCABULARY
 
-__all__ = ["VOCABULARY", "Presence", "PresenceConfig", "negative_names", "presence", "presence_reference"]
+__all__ = [
+    "VOCABULARY",
+    "Presence",
+    "PresenceConfig",
+    "Probe",
+    "negative_names",
+    "presence",
+    "presence_reference",
+    "probes",
+]
 
 
 @dataclass(frozen=True)
@@ -58,7 +76,39 @@ class Presence(NamedTuple):
     margin: float
     """Best f.q - max f.n over the contrasted Gaussians (float64)."""
     rival: int
-    """Index into the negatives of the one that decided the margin at the best Gaussian."""
+    """Index into the negatives, then the query's contrasts (V + s), of the one that decided the margin
+    at the best Gaussian."""
+
+
+class Probe(NamedTuple):
+    """What one query's presence is decided with."""
+
+    query: torch.Tensor
+    """[D] the canonical query's embedding (the query's own when it names no colour)."""
+    contrasts: torch.Tensor
+    """[S,D] embeddings of its colour contrasts (S = 0 when it names no colour)."""
+    names: tuple[str, ...]
+    """[S] the contrasts' texts (to name a rival)."""
+
+
+def probes(
+    texts: Sequence[str], queries: torch.Tensor, encode: Callable[[list[str]], torch.Tensor]
+) -> list[Probe]:
+    """The presence probe of each text; queries [n,D] are the texts' embeddings (used as they are for
+    texts that name no colour), ``encode(list of texts) -> [m,D]`` the scene's text encoder. Every
+    canonical form and contrast of the request is encoded in one call."""
+    colour = [colour_probe(t) for t in texts]
+    extra = [t for c in colour if c.contrasts for t in (c.canonical, *c.contrasts)]
+    vecs = encode(extra).float() if extra else None
+    out, at = [], 0
+    for j, c in enumerate(colour):
+        if not c.contrasts:
+            out.append(Probe(queries[j], queries.new_zeros((0, queries.shape[1])), ()))
+            continue
+        n = 1 + len(c.contrasts)
+        out.append(Probe(vecs[at], vecs[at + 1 : at + n], c.contrasts))
+        at += n
+    return out
 
 
 def negative_names(label_names: tuple[str, ...] | list[str] = ()) -> list[str]:
@@ -73,10 +123,15 @@ def negative_names(label_names: tuple[str, ...] | list[str] = ()) -> list[str]:
 
 
 def presence(
-    fq: torch.Tensor, fn: torch.Tensor, qn: torch.Tensor, cfg: PresenceConfig = PresenceConfig()
+    fq: torch.Tensor,
+    fn: torch.Tensor,
+    qn: torch.Tensor,
+    cfg: PresenceConfig = PresenceConfig(),
+    fc: torch.Tensor | None = None,
 ) -> Presence:
     """Presence from dots, computed in float64: f.q [T] and f.n [T,V] of the query's best Gaussians
-    (T >= 1) and the query's text similarity to each negative q.n [V] (V > cfg.exclude)."""
+    (T >= 1), the query's text similarity to each negative q.n [V] (V > cfg.exclude), and f.c [T,S] of
+    the best Gaussians with the query's colour contrasts (never excluded; None or S = 0: none)."""
     fq, fn, qn = fq.double().reshape(-1), fn.double(), qn.double().reshape(-1)
     T, V = fn.shape if fn.ndim == 2 else (-1, -1)
     if T < 1 or len(fq) != T or len(qn) != V or V <= cfg.exclude:
@@ -88,6 +143,11 @@ def presence(
     if cfg.exclude:
         keep[torch.topk(qn, cfg.exclude).indices] = False
     kept = torch.nonzero(keep).reshape(-1)
+    if fc is not None and fc.shape[-1]:
+        if fc.shape != (T, fc.shape[-1]):
+            raise ValueError(f"presence: contrast dots must be [{T},S], got {list(fc.shape)}")
+        fn = torch.cat([fn, fc.double()], 1)
+        kept = torch.cat([kept, torch.arange(V, V + fc.shape[1])])
     rival_dot, rival = fn[:, kept].max(1)
     margins = fq - rival_dot
     b = int(torch.argmax(margins))
@@ -100,15 +160,22 @@ def _sigmoid(x: float) -> float:
 
 
 def presence_reference(
-    query: torch.Tensor, best: torch.Tensor, negatives: torch.Tensor, cfg: PresenceConfig = PresenceConfig()
+    query: torch.Tensor,
+    best: torch.Tensor,
+    negatives: torch.Tensor,
+    cfg: PresenceConfig = PresenceConfig(),
+    contrasts: torch.Tensor | None = None,
 ) -> Presence:
-    """Twin of ``presence`` from the vectors: unit query [D], best Gaussians' embeddings [T,D] and unit
-    negatives [V,D], one Gaussian and one negative at a time (sorting for the exclusion)."""
+    """Twin of ``presence`` from the vectors: unit query [D], best Gaussians' embeddings [T,D], unit
+    negatives [V,D] and unit contrasts [S,D], one Gaussian and one negative at a time (sorting for the
+    exclusion)."""
     q = [float(x) for x in query.double().reshape(-1)]
     dot = lambda a, b: sum(x * y for x, y in zip(a, b, strict=True))  # noqa: E731
     negs = [[float(x) for x in row] for row in negatives.double()]
     order = sorted(range(len(negs)), key=lambda i: (-dot(negs[i], q), i))
     excluded = set(order[: cfg.exclude])
+    if contrasts is not None:
+        negs += [[float(x) for x in row] for row in contrasts.double()]
     best_m, best_r = None, -1
     for row in best.double():
         f = [float(x) for x in row]

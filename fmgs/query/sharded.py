@@ -24,7 +24,7 @@ import torch
 from fmgs.query.certify import order_rows
 from fmgs.query.engine import PRESENCE, EngineConfig, SceneEngine, TextAnswer
 from fmgs.query.instances import InstanceConfig, group_instances
-from fmgs.query.presence import Presence, PresenceConfig, presence
+from fmgs.query.presence import Presence, PresenceConfig, Probe, presence
 from fmgs.scene.shards import ShardManifest, read_shard_ids, shard_folders
 from fmgs.vecmath import safe_normalize
 
@@ -44,7 +44,8 @@ class ShardPart(NamedTuple):
     """[k] float32."""
     rescored: int
     presence_dots: np.ndarray | None
-    """[min(k,T),1+V] float64 f.[q, negatives] of the first rows (None without negatives)."""
+    """[min(k,T),1+V+S] float64 f.[probe query, negatives, contrasts] of the first rows (None without
+    negatives)."""
     means: np.ndarray | None
     """[k,3] float64 (None unless instances are asked for)."""
     opacity: np.ndarray | None
@@ -65,9 +66,20 @@ class ShardQuery:
     """[C,D] float32 replacement canonical embeddings, or None."""
     negatives: np.ndarray | None = None
     """[V,D] float32 presence negatives, or None."""
+    probes: tuple[tuple[np.ndarray, np.ndarray], ...] | None = None
+    """Per text, its presence probe's query [D] and colour contrasts [S,D] float32
+    (fmgs.query.presence.Probe), or None: each text is its own probe."""
     instances: bool = False
     columns: tuple[str, ...] = ()
     presence_rows: int = PRESENCE.rows
+
+
+def shard_probes(probes: Sequence[Probe] | None) -> tuple[tuple[np.ndarray, np.ndarray], ...] | None:
+    """ShardQuery.probes from fmgs.query.presence.probes."""
+    if probes is None:
+        return None
+    f32 = lambda t: t.detach().float().cpu().numpy()  # noqa: E731
+    return tuple((f32(p.query), f32(p.contrasts)) for p in probes)
 
 
 def _t(a: np.ndarray | None) -> torch.Tensor | None:
@@ -91,7 +103,8 @@ def shard_text(engine: SceneEngine, rows_map: torch.Tensor, gauss_map: torch.Ten
         pd = None
         if neg is not None:
             first = r.rows[: sq.presence_rows]
-            pd = engine.index.exact_dots(first, torch.cat([q[j : j + 1], neg])).cpu().numpy()
+            pq, con = _probe(engine, sq, j, q)
+            pd = engine.index.exact_dots(first, torch.cat([pq[None], neg, con])).cpu().numpy()
         means = opac = None
         if sq.instances:
             g = engine.gaussians
@@ -114,20 +127,28 @@ def shard_text(engine: SceneEngine, rows_map: torch.Tensor, gauss_map: torch.Ten
     return out
 
 
+def _probe(engine: SceneEngine, sq: ShardQuery, j: int, q: torch.Tensor):
+    """Text j's presence query [D] and contrasts [S,D], unit, as SceneEngine._presence takes them."""
+    if sq.probes is None or not len(sq.probes[j][1]):
+        return q[j], q.new_zeros((0, q.shape[1]))
+    pq, con = sq.probes[j]
+    return engine.unit(_t(pq[None]), "presence probe")[0], engine.unit(_t(con), "colour contrasts")
+
+
 def merge_text(
     parts: Sequence[ShardPart],
     sq: ShardQuery,
-    query: np.ndarray,
+    j: int,
     instances: InstanceConfig | None,
     means_box: Sequence[float],
     presence_cfg: PresenceConfig = PRESENCE,
 ) -> TextAnswer:
-    """One text's answer from every shard's part for it: the exact top K of the union, presence from the
-    best presence_cfg.rows rows, instances grouped after the merge. query [D] the text's embedding."""
+    """Text j's answer from every shard's part for it: the exact top K of the union, presence from the
+    best presence_cfg.rows rows, instances grouped after the merge."""
     rows = np.concatenate([p.rows for p in parts])
     margin = torch.from_numpy(np.concatenate([p.margin for p in parts]))
     order = order_rows(margin, torch.from_numpy(rows)).numpy()
-    pres = None if sq.negatives is None else _merged_presence(parts, order, query, sq, presence_cfg)
+    pres = None if sq.negatives is None else _merged_presence(parts, order, j, sq, presence_cfg)
     rel_all = np.concatenate([p.relevancy for p in parts])
     keep = order[: sq.top_k]
     keep = keep[rel_all[keep] >= sq.threshold]  # a prefix: relevancy falls with the margin
@@ -154,7 +175,7 @@ def merge_text(
     )
 
 
-def _merged_presence(parts, order, query, sq: ShardQuery, cfg: PresenceConfig) -> Presence:
+def _merged_presence(parts, order, j: int, sq: ShardQuery, cfg: PresenceConfig) -> Presence:
     dots = [p.presence_dots for p in parts]
     have = np.concatenate([np.arange(len(p.rows)) < len(d) for p, d in zip(parts, dots, strict=True)])
     first = order[: cfg.rows]
@@ -170,10 +191,13 @@ def _merged_presence(parts, order, query, sq: ShardQuery, cfg: PresenceConfig) -
     shard = np.searchsorted(starts, first, side="right") - 1
     pos = dstarts[shard] + (first - starts[shard])
     d = torch.from_numpy(np.concatenate(dots)[pos])
+    coloured = sq.probes is not None and len(sq.probes[j][1])
+    query = sq.probes[j][0] if coloured else sq.queries[j]
     q = safe_normalize(torch.from_numpy(np.asarray(query, np.float32))[None].float())[0]
     neg = safe_normalize(torch.from_numpy(np.asarray(sq.negatives, np.float32)).float())
     qn = neg.double() @ q.double()
-    return presence(d[:, 0], d[:, 1:], qn, cfg)
+    V = len(neg)
+    return presence(d[:, 0], d[:, 1 : 1 + V], qn, cfg, d[:, 1 + V :])
 
 
 class ShardedScene:
@@ -211,18 +235,19 @@ class ShardedScene:
         instances: InstanceConfig | None = None,
         negatives: torch.Tensor | None = None,
         columns: tuple[str, ...] = (),
+        probes: Sequence[Probe] | None = None,
     ) -> list[TextAnswer]:
         """As SceneEngine.text_query_many, the shards scored one after another here."""
         np32 = lambda t: None if t is None else t.detach().float().cpu().numpy()  # noqa: E731
         sq = ShardQuery(
             np32(queries), int(top_k), float(threshold), np32(canonical), np32(negatives),
-            instances is not None, tuple(columns),
+            shard_probes(probes), instances is not None, tuple(columns),
         )  # fmt: skip
         per_shard = [
             shard_text(e, rows, gi, sq) for e, (gi, rows) in zip(self.engines, self.maps, strict=True)
         ]
         return [
-            merge_text([p[j] for p in per_shard], sq, sq.queries[j], instances, self.manifest.means_box)
+            merge_text([p[j] for p in per_shard], sq, j, instances, self.manifest.means_box)
             for j in range(len(sq.queries))
         ]
 

@@ -75,3 +75,36 @@ def test_float64_pass_equals_the_ordered_sum():
     out = np.empty((len(rows), 2))
     kernels.half_dots64(A, rows, V, out)
     assert np.array_equal(out, kernels.half_dots_reference(A, rows, V))
+
+
+@pytest.mark.parametrize("n", [1, 3, 8])
+@pytest.mark.parametrize("flush", [False, True])
+def test_fused_bounds_hold_and_are_tight(n, flush):
+    A = _rows_with_extremes()
+    rng = np.random.default_rng(10 + n)
+    V = rng.standard_normal((n, A.shape[1])).astype(np.float32)
+    V /= np.linalg.norm(V, axis=1, keepdims=True)
+    shift = rng.standard_normal(len(A)).astype(np.float32)
+    rows = np.array([3, 0, 1, 2, 4, *rng.choice(np.arange(5, len(A)), 100, replace=False)], np.int64)
+    lo, up = np.empty((n, len(rows))), np.empty((n, len(rows)))
+    probe = np.zeros(1, np.float32) if flush else kernels.SUBNORMAL_PROBE
+    assert kernels.half_bounds(A, rows, V, shift, lo, up, probe) == -1
+    exact = kernels.half_dots_reference(A, rows, V).T - shift[rows].astype(np.float64)[None]
+    assert np.all(lo <= exact) and np.all(exact <= up)
+    f = _numpy_decode(A[rows]).astype(np.float64)
+    width = (A.shape[1] + 4) * 2.0**-24 * np.linalg.norm(f, axis=1)[None] * 1.0001 + 2.1e-12
+    assert np.all(up - lo <= 2 * width)  # no looser than Cauchy-Schwarz says
+    normal = np.abs(f).max(1) < 10  # unit-scale rows: the interval is far below margins' gaps
+    assert float((up - lo)[:, normal].max()) < 1e-4
+
+
+def test_fused_bounds_name_the_first_damaged_row():
+    A = _rows_with_extremes(M=200)
+    A[150, 7] = np.float16(np.inf).view(np.uint16)
+    A[90, 0] = np.float16(np.nan).view(np.uint16)
+    V = np.ones((2, A.shape[1]), np.float32) / np.sqrt(A.shape[1])
+    lo, up = np.empty((2, 200)), np.empty((2, 200))
+    rows = np.arange(200, dtype=np.int64)
+    assert kernels.half_bounds(A, rows, V, np.zeros(200, np.float32), lo, up) == 90
+    ok = rows[5:80]
+    assert kernels.half_bounds(A, ok, V, np.zeros(200, np.float32), lo[:, :75], up[:, :75]) == -1

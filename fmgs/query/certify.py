@@ -30,6 +30,17 @@ Refiner = Callable[[torch.Tensor], tuple[torch.Tensor, torch.Tensor]]
 """rows [k] int64 (sorted, unique) -> ([k] lower, [k] upper) float64 tighter bounds, cheaper than exact."""
 
 
+class Refined(NamedTuple):
+    """Tighter bounds over a sorted superset of a Pending's rows2 (one pass shared by several texts)."""
+
+    rows: torch.Tensor
+    """[U] int64 sorted, unique rows: every row of rows2, maybe others."""
+    lower: torch.Tensor
+    """[U] float64 lower bounds of their margins."""
+    upper: torch.Tensor
+    """[U] float64 upper bounds."""
+
+
 class Certified(NamedTuple):
     """The exact top rows of one query."""
 
@@ -90,12 +101,32 @@ def certify_finish(
     k: int,
     exact: ExactScorer,
     m_min: float = -math.inf,
-    refined: tuple[torch.Tensor, torch.Tensor] | None = None,
+    refined: tuple[torch.Tensor, torch.Tensor] | Refined | None = None,
 ) -> Certified:
-    """Step 2: settle the remaining rows, optionally through tighter (lower, upper) bounds of p.rows2
-    (raising L with the lower bounds, then rescoring only rows whose upper bound still reaches it)."""
+    """Step 2: settle the remaining rows, optionally through tighter bounds: (lower, upper) of p.rows2,
+    or a Refined superset of them. L is raised with the lower bounds, then only rows whose upper bound
+    still reaches it are rescored.
+
+    A Refined superset may hold rows of step 1 (left out here: they are scored already) and rows outside
+    rows2, whose first upper bound was below p.bound: their lower bounds are below it too, so they cannot
+    raise L, and any of them whose refined upper bound reaches L is rescored, which costs a little and
+    changes nothing in the answer."""
     rows2 = p.rows2
-    if refined is not None:
+    if isinstance(refined, Refined):
+        pos = torch.searchsorted(refined.rows, p.rows1)  # where step 1's rows sit, if they are there
+        inside = pos < len(refined.rows)
+        pos, r1 = pos[inside], p.rows1[inside]
+        pos = pos[refined.rows[pos] == r1]
+        # The k-th largest of step 1's margins and the others' lower bounds (k distinct rows reach it):
+        # the best k + |pos| lower bounds hold the best k of the rows not scored yet.
+        lo = refined.lower
+        top = torch.topk(lo, min(len(lo), k + len(pos)))
+        mine = ~torch.isin(top.indices, pos)
+        L = max(p.bound, kth_largest(torch.cat([p.m1, top.values[mine]]), k))
+        keep = refined.upper >= L
+        keep[pos] = False
+        rows2 = refined.rows[keep]
+    elif refined is not None:
         lo2, up2 = refined
         L = max(p.bound, kth_largest(torch.cat([p.m1, lo2]), k))  # k distinct rows reach these
         rows2 = rows2[up2 >= L]

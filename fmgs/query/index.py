@@ -24,7 +24,7 @@ import numpy as np
 import torch
 
 from fmgs.errors import ValidationError
-from fmgs.query.certify import certify_finish, certify_start, order_rows, threshold_margin
+from fmgs.query.certify import Refined, certify_finish, certify_start, order_rows, threshold_margin
 from fmgs.query.config import IndexConfig
 from fmgs.query.relevancy import TEMPERATURE
 from fmgs.query.state import QueryState, build_state
@@ -231,12 +231,12 @@ class EmbeddingIndex:
             from fmgs.query.kernels import int8_upper
 
             W, wn, vn = self._weights(q)
-            out = np.empty((self.num, n), np.float32)
+            out = np.empty((n, self.num), np.float32)
             int8_upper(
                 self.coeffs.numpy(), W.numpy(), self.canonical_max.numpy(), self._err.numpy(),
                 self._res.numpy(), wn.numpy(), vn.numpy(), np.float32(self.slack), out,
             )  # fmt: skip
-            return torch.from_numpy(out)
+            return torch.from_numpy(out).T  # [M,n] view of per-query rows
         a, b = self._bounds(torch.cat([q, canonical_vectors.to(q.device)]), None)
         b = b.expand_as(a)
         lower_canon = (a[:, n:] - b[:, n:]).amax(1, keepdim=True)
@@ -265,40 +265,52 @@ class EmbeddingIndex:
 
     def _refine_pending(self, pending: list, q: torch.Tensor, cv: torch.Tensor | None) -> dict:
         """Tighter bounds for the texts with more than REFINE_ABOVE rows left: one float32 pass over the
-        union of those rows for all of them at once. Returns {text: (lower, upper)} aligned with rows2."""
+        union of those rows for all of them at once. Returns {text: Refined} over the union (a sorted
+        superset of each text's rows2: certify_finish reads it as it is, no per-text gathering)."""
         big = [j for j, p in enumerate(pending) if len(p.rows2) > REFINE_ABOVE]
         if self.half is None or not big:
             return {}
-        # The union as a mask over all rows and positions by a lookup table: O(M) each, where sorting
-        # (torch.unique) and binary searches cost more than the float32 pass itself for 8 texts.
-        member = torch.zeros(self.num, dtype=torch.bool)
-        for j in big:
-            member[pending[j].rows2] = True
-        union = torch.nonzero(member).reshape(-1)  # sorted
-        where = torch.empty(self.num, dtype=torch.int64)
-        where[union] = torch.arange(len(union))
-        lo = torch.empty(len(union), len(big), dtype=torch.float64)
+        if len(big) == 1:
+            union = pending[big[0]].rows2  # sorted
+        else:  # a mask over all rows: O(M), where sorting and merging cost more for 8 texts
+            member = torch.zeros(self.num, dtype=torch.bool)
+            for j in big:
+                member[pending[j].rows2] = True
+            union = torch.nonzero(member).reshape(-1)
+        lo = torch.empty(len(big), len(union), dtype=torch.float64)
         up = torch.empty_like(lo)
-        for s in range(0, len(union), REFINE_CHUNK):  # bounded working memory
+        for s in range(0, len(union), REFINE_CHUNK):  # bounded working memory for the kernel's inputs
             part = union[s : s + REFINE_CHUNK]
-            lo[s : s + len(part)], up[s : s + len(part)] = self._refine(part, q[big], cv)
-        out = {}
-        for c, j in enumerate(big):
-            pos = where[pending[j].rows2]
-            out[j] = (lo[pos, c], up[pos, c])
-        return out
+            self._refine(part, q[big], cv, (lo[:, s : s + len(part)], up[:, s : s + len(part)]))
+        return {j: Refined(union, lo[c], up[c]) for c, j in enumerate(big)}
 
     def _refine(
-        self, rows: torch.Tensor, q: torch.Tensor, cv: torch.Tensor | None
+        self,
+        rows: torch.Tensor,
+        q: torch.Tensor,
+        cv: torch.Tensor | None,
+        into: tuple[torch.Tensor, torch.Tensor] | None = None,
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """Float64 lower and upper bounds [k,n] on the margins of sorted rows [k] for queries q [n,D] from
-        one float32 pass over their float16 embeddings (half_dots: rounding at most (D+4) 2^-24
-        sum|f_j v_j| per dot); cv [C,D] custom canonical vectors, or None for the stored maxima."""
-        from fmgs.query.kernels import half_dots
+        one float32 pass over their float16 embeddings; cv [C,D] custom canonical vectors, or None for the
+        stored maxima (then one fused kernel, ``half_bounds``, writing [n,k] arrays, ``into`` when given,
+        returned transposed; otherwise half_dots: rounding at most (D+4) 2^-24 sum|f_j v_j| per dot)."""
+        from fmgs.query.kernels import half_bounds, half_dots
 
         n = len(q)
-        vecs = q if cv is None else torch.cat([q, cv])
         r = rows.numpy().astype(np.int64)
+        if cv is None:
+            if into is None:
+                lo = torch.empty(n, len(r), dtype=torch.float64)
+                up = torch.empty_like(lo)
+            else:
+                lo, up = into
+            cmax = self.canonical_max.cpu().numpy()  # float32, widened per row in the kernel
+            bad = half_bounds(self.half, r, q.float().contiguous().numpy(), cmax, lo.numpy(), up.numpy())
+            if bad >= 0:
+                raise ValidationError("embeddings", f"row {bad} is not finite: the package is damaged")
+            return lo.T, up.T
+        vecs = torch.cat([q, cv])
         v = vecs.float().contiguous().numpy()
         out = np.empty((len(r), len(v)), np.float32)
         mag = np.empty((len(r), len(v)), np.float32)
@@ -306,12 +318,13 @@ class EmbeddingIndex:
         d = torch.from_numpy(out).double()
         e = torch.from_numpy(mag).double() * ((self.half.shape[1] + 4) * _U32) + 1e-12
         _check_finite(d, r)
-        if cv is None:
-            m = d - self.canonical_max.double()[rows][:, None]
-            return m - e, m + e
         c_hi = (d[:, n:] + e[:, n:]).amax(1, keepdim=True)
         c_lo = (d[:, n:] - e[:, n:]).amax(1, keepdim=True)
-        return d[:, :n] - e[:, :n] - c_hi, d[:, :n] + e[:, :n] - c_lo
+        lo, up = d[:, :n] - e[:, :n] - c_hi, d[:, :n] + e[:, :n] - c_lo
+        if into is not None:
+            into[0].copy_(lo.T)
+            into[1].copy_(up.T)
+        return lo, up
 
     def rank(
         self,
@@ -359,11 +372,12 @@ class EmbeddingIndex:
 
             return margins
 
+        upper = upper.T.contiguous()  # [n,M]: each text's bounds in one run of memory
         pending = []
         for j in range(n):
             if between is not None:
                 between(j)
-            pending.append(certify_start(upper[:, j], k, scorer(j), m_min, first))
+            pending.append(certify_start(upper[j], k, scorer(j), m_min, first))
         refined = self._refine_pending(pending, q, cv)
         out = []
         for j, p in enumerate(pending):

@@ -37,8 +37,9 @@ def int8_upper(
     slack: float,
     out: np.ndarray,
 ) -> None:  # pragma: no cover
-    """out[i,k] = sum_j A[i,j] W[k,j] - shift[i] + err[i] wn[k] + res[i] vn[k] + slack: an upper bound on
-    every row's margin per column (fmgs.query.state); W [n,r], err, res [M] float32, wn, vn [n]."""
+    """out[k,i] = sum_j A[i,j] W[k,j] - shift[i] + err[i] wn[k] + res[i] vn[k] + slack: an upper bound on
+    every row's margin for each query (fmgs.query.state); W [n,r], err, res [M] float32, wn, vn [n];
+    out [n,M]: each query's bounds contiguous, as certification reads them."""
     M, r = A.shape
     n = W.shape[0]
     for i in numba.prange(M):
@@ -46,7 +47,7 @@ def int8_upper(
             acc = np.float32(0.0)
             for j in range(r):
                 acc += np.float32(A[i, j]) * W[k, j]
-            out[i, k] = acc - shift[i] + err[i] * wn[k] + res[i] * vn[k] + slack
+            out[k, i] = acc - shift[i] + err[i] * wn[k] + res[i] * vn[k] + slack
 
 
 _TWO_M24 = np.float32(2.0**-24)
@@ -166,6 +167,94 @@ def _half_dots(A, rows, V, out, mag, scaled, probe, flushed):  # pragma: no cove
                     aab += abs(p)
                 out[t, k] = acc
                 mag[t, k] = aab
+
+
+def half_bounds(
+    A: np.ndarray,
+    rows: np.ndarray,
+    V: np.ndarray,
+    shift: np.ndarray,
+    lo: np.ndarray,
+    up: np.ndarray,
+    probe: np.ndarray = SUBNORMAL_PROBE,
+) -> int:
+    """Float64 bounds lo[k,t] <= f.V_k - shift[r] <= up[k,t] for rows r = rows[t] of A [M,D] (float16 bits)
+    and V [n,D] float32, from one float32 pass (any summation order); shift [M] float32 (widened exactly).
+    lo, up [n,m]: one contiguous row per vector, what certification reads per text. Returns the first
+    row whose dots are not finite, or -1.
+
+    Bound: a float32 sum of D products in any order is off by at most (D+4) 2^-24 sum_j |f_j V_kj|
+    (as ``half_dots``), and sum_j |f_j V_kj| <= |f| |V_k| (Cauchy-Schwarz): the row's norm is summed once
+    instead of a magnitude per dot, and texts go through the row two at a time, sharing its loads. The
+    norm's float32 sum of squares is low by at most a factor 1 - (D+1) 2^-24 (positive terms), which
+    ``grow`` undoes. On unit vectors the bound is about 1.6x looser than the magnitude's, around 5e-5 at
+    D = 512, far below the margins' gaps. Subnormals: as ``half_dots``. Twin: ``half_dots_reference``
+    (tests check the bounds hold and are tight)."""
+    D = A.shape[1]
+    vn = np.sqrt((np.asarray(V, np.float64) ** 2).sum(1))
+    c = (D + 4) * 2.0**-24
+    grow = (1.0 + 2.0**-20) / np.sqrt(1.0 - (D + 1) * 2.0**-24)
+    bad = np.full((len(rows) + 63) // 64, -1, np.int64)
+    flushed = np.zeros(1, np.uint8)
+    _half_bounds(A, rows, V, shift, vn, c, grow, lo, up, True, probe, flushed, bad)
+    if flushed[0]:
+        _half_bounds(A, rows, V, shift, vn, c, grow, lo, up, False, probe, flushed, bad)
+    hit = bad[bad >= 0]
+    return int(hit[0]) if len(hit) else -1
+
+
+@numba.njit(inline="always", cache=True)
+def _put_bounds(acc, nf, vnk, c, sh, lo, up, k, t):  # pragma: no cover
+    d = np.float64(acc)
+    e = nf * vnk * c + 1e-12
+    m = d - sh
+    lo[k, t] = m - e
+    up[k, t] = m + e
+    return np.isfinite(d)
+
+
+@numba.njit(parallel=True, fastmath={"reassoc", "contract", "arcp"}, cache=True)
+def _half_bounds(A, rows, V, shift, vn, c, grow, lo, up, scaled, probe, flushed, bad):  # pragma: no cover
+    m = rows.shape[0]
+    D = A.shape[1]
+    n = V.shape[0]
+    B = 64
+    for b in numba.prange((m + B - 1) // B):
+        if scaled and probe[0] * _POW112 == np.float32(0.0):
+            flushed[0] = 1
+        bits = np.empty(D, np.uint32)
+        buf = bits.view(np.float32)
+        bad[b] = -1
+        for t in range(b * B, min(m, (b + 1) * B)):
+            r = rows[t]
+            if scaled:
+                _decode_row_scaled(A, r, bits, buf)
+            else:
+                _decode_row(A, r, bits, buf)
+            sq = np.float32(0.0)
+            for j in range(D):
+                sq += buf[j] * buf[j]
+            nf = np.sqrt(np.float64(sq)) * grow
+            sh = np.float64(shift[r])
+            ok = np.isfinite(nf)
+            k = 0
+            while k + 1 < n:  # two texts per sweep of the row
+                a0 = np.float32(0.0)
+                a1 = np.float32(0.0)
+                for j in range(D):
+                    x = buf[j]
+                    a0 += x * V[k, j]
+                    a1 += x * V[k + 1, j]
+                ok &= _put_bounds(a0, nf, vn[k], c, sh, lo, up, k, t)
+                ok &= _put_bounds(a1, nf, vn[k + 1], c, sh, lo, up, k + 1, t)
+                k += 2
+            if k < n:
+                a0 = np.float32(0.0)
+                for j in range(D):
+                    a0 += buf[j] * V[k, j]
+                ok &= _put_bounds(a0, nf, vn[k], c, sh, lo, up, k, t)
+            if not ok and bad[b] < 0:
+                bad[b] = r
 
 
 @numba.njit(inline="always", cache=True)

@@ -230,6 +230,15 @@ def test_int8_kernel_matches_reference():
     assert (fast - ref).abs().max() < 1e-5
     shift = torch.randn(3000, generator=g)
     assert (idx.dots(v, shift) - (ref - shift[:, None])).abs().max() < 1e-5
+    # The upper-bound kernel (four queries per sweep from 4 on, a tail after) against the same twin.
+    for n in (1, 3, 4, 7, 8):
+        w = safe_normalize(torch.randn(n, 48, generator=g))
+        up = idx._upper(w, None).double()
+        r = int8_dots_reference(idx.coeffs, idx.scales, idx.basis, w).double()
+        _, wn, vn = idx._weights(w)
+        terms = idx._err.double()[:, None] * wn.double()[None] + idx._res.double()[:, None] * vn.double()[None]
+        want = r - idx.canonical_max.double()[:, None] + terms + idx.slack
+        assert up.shape == (3000, n) and (up - want).abs().max() < 1e-5, n
     # Quantisation error against the unquantised rank-24 projection stays at the int8 step size.
     proj = ((emb.double() @ idx.basis.T) @ (v.double() @ idx.basis.T).T).float()
     assert (ref - proj).abs().max() < 24 * float(idx.scales.max()) / 2

@@ -43,11 +43,33 @@ def int8_upper(
     M, r = A.shape
     n = W.shape[0]
     for i in numba.prange(M):
-        for k in range(n):
+        k = 0
+        if n >= 4:  # a row converted once, four queries per sweep (for fewer, converting costs more)
+            buf = np.empty(r, np.float32)
+            for j in range(r):
+                buf[j] = np.float32(A[i, j])
+            while k + 3 < n:
+                a0 = np.float32(0.0)
+                a1 = np.float32(0.0)
+                a2 = np.float32(0.0)
+                a3 = np.float32(0.0)
+                for j in range(r):
+                    x = buf[j]
+                    a0 += x * W[k, j]
+                    a1 += x * W[k + 1, j]
+                    a2 += x * W[k + 2, j]
+                    a3 += x * W[k + 3, j]
+                out[k, i] = a0 - shift[i] + err[i] * wn[k] + res[i] * vn[k] + slack
+                out[k + 1, i] = a1 - shift[i] + err[i] * wn[k + 1] + res[i] * vn[k + 1] + slack
+                out[k + 2, i] = a2 - shift[i] + err[i] * wn[k + 2] + res[i] * vn[k + 2] + slack
+                out[k + 3, i] = a3 - shift[i] + err[i] * wn[k + 3] + res[i] * vn[k + 3] + slack
+                k += 4
+        while k < n:
             acc = np.float32(0.0)
             for j in range(r):
                 acc += np.float32(A[i, j]) * W[k, j]
             out[k, i] = acc - shift[i] + err[i] * wn[k] + res[i] * vn[k] + slack
+            k += 1
 
 
 _TWO_M24 = np.float32(2.0**-24)

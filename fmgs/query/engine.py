@@ -175,14 +175,14 @@ class SceneEngine:
         """``text_query`` for queries [n,D], scored in one pass over the query state; ``between(j)`` runs
         before text j is ranked (a deadline check may raise there); probes [n] as ``text_query``'s."""
         q = self.unit(queries)
+        if probes is not None and len(probes) != len(q):
+            raise ValidationError("probes", f"{len(probes)} presence probes for {len(q)} queries")
         c = None if canonical is None else self.unit(canonical, "canonical embeddings")
         neg = None if negatives is None else self.unit(negatives, "negative embeddings")
         # Presence needs the best presence_cfg.rows rows: one ranking serves both unless a threshold
         # cuts the answer shorter.
         k = top_k if neg is None or threshold > 0 else max(top_k, presence_cfg.rows)
         ranked = self.index.rank_many(q, k, threshold, c, between)
-        if probes is not None and len(probes) != len(q):
-            raise ValidationError("probes", f"{len(probes)} presence probes for {len(q)} queries")
         presences = (
             [None] * len(q) if neg is None else self._presence(q, ranked, c, neg, presence_cfg, probes)
         )
@@ -216,16 +216,21 @@ class SceneEngine:
             if len(rows) == 0:
                 out.append(NO_GAUSSIANS)
                 continue
-            pq, con = q[j], None
-            if probes is not None and len(probes[j].contrasts):  # otherwise the probe is the query
-                pq = self.unit(probes[j].query[None], "presence probe")[0]
-                con = self.unit(probes[j].contrasts, "colour contrasts")
-            vecs = [pq[None], negatives] + ([] if con is None else [con])
-            dots = self.index.exact_dots(rows, torch.cat(vecs))  # [T,1+V+S] float64
+            pq, con = self.probe_vectors(q[j], None if probes is None else probes[j])
+            dots = self.index.exact_dots(rows, torch.cat([pq[None], negatives, con]))  # [T,1+V+S] float64
             qn = negatives.double() @ pq.double()
             V = len(negatives)
             out.append(presence(dots[:, 0], dots[:, 1 : 1 + V], qn, cfg, dots[:, 1 + V :]))
         return out
+
+    def probe_vectors(self, q: torch.Tensor, probe: Probe | None) -> tuple[torch.Tensor, torch.Tensor]:
+        """The unit presence query [D] and contrasts [S,D] for unit query q [D] and its probe: the query
+        itself and no contrasts when the probe has none (or there is no probe)."""
+        if probe is None or not len(probe.contrasts):
+            return q, q.new_zeros((0, len(q)))
+        return self.unit(probe.query[None], "presence probe")[0], self.unit(
+            probe.contrasts, "colour contrasts"
+        )
 
     def gaussian_columns(self, index: torch.Tensor, names) -> dict[str, np.ndarray]:
         """Attributes of the Gaussians at scene indices [K], float32, for each name asked (a subset of

@@ -164,6 +164,15 @@ def _decode_row_scaled(A, r, bits, buf):  # pragma: no cover
         buf[j] = np.float32(np.inf) if abs(x) >= np.float32(65536.0) else x  # inf/NaN exponent
 
 
+@numba.njit(inline="always", cache=True)
+def _decode(A, r, bits, buf, scaled):  # pragma: no cover
+    """buf = row r decoded, the fast way (``scaled``) or by fields (see ``half_dots``)."""
+    if scaled:
+        _decode_row_scaled(A, r, bits, buf)
+    else:
+        _decode_row(A, r, bits, buf)
+
+
 @numba.njit(parallel=True, fastmath={"reassoc", "contract", "arcp"}, cache=True)
 def _half_dots(A, rows, V, out, mag, scaled, probe, flushed):  # pragma: no cover
     m = rows.shape[0]
@@ -176,10 +185,7 @@ def _half_dots(A, rows, V, out, mag, scaled, probe, flushed):  # pragma: no cove
         bits = np.empty(D, np.uint32)
         buf = bits.view(np.float32)
         for t in range(b * B, min(m, (b + 1) * B)):
-            if scaled:
-                _decode_row_scaled(A, rows[t], bits, buf)
-            else:
-                _decode_row(A, rows[t], bits, buf)
+            _decode(A, rows[t], bits, buf, scaled)
             for k in range(n):
                 acc = np.float32(0.0)
                 aab = np.float32(0.0)
@@ -249,10 +255,7 @@ def _half_bounds(A, rows, V, shift, vn, c, grow, lo, up, scaled, probe, flushed,
         bad[b] = -1
         for t in range(b * B, min(m, (b + 1) * B)):
             r = rows[t]
-            if scaled:
-                _decode_row_scaled(A, r, bits, buf)
-            else:
-                _decode_row(A, r, bits, buf)
+            _decode(A, r, bits, buf, scaled)
             sq = np.float32(0.0)
             for j in range(D):
                 sq += buf[j] * buf[j]

@@ -103,7 +103,8 @@ def shard_text(engine: SceneEngine, rows_map: torch.Tensor, gauss_map: torch.Ten
         pd = None
         if neg is not None:
             first = r.rows[: sq.presence_rows]
-            pq, con = _probe(engine, sq, j, q)
+            probe = None if sq.probes is None else Probe(_t(sq.probes[j][0]), _t(sq.probes[j][1]), ())
+            pq, con = engine.probe_vectors(q[j], probe)
             pd = engine.index.exact_dots(first, torch.cat([pq[None], neg, con])).cpu().numpy()
         means = opac = None
         if sq.instances:
@@ -125,14 +126,6 @@ def shard_text(engine: SceneEngine, rows_map: torch.Tensor, gauss_map: torch.Ten
             )
         )
     return out
-
-
-def _probe(engine: SceneEngine, sq: ShardQuery, j: int, q: torch.Tensor):
-    """Text j's presence query [D] and contrasts [S,D], unit, as SceneEngine._presence takes them."""
-    if sq.probes is None or not len(sq.probes[j][1]):
-        return q[j], q.new_zeros((0, q.shape[1]))
-    pq, con = sq.probes[j]
-    return engine.unit(_t(pq[None]), "presence probe")[0], engine.unit(_t(con), "colour contrasts")
 
 
 def merge_text(

@@ -100,9 +100,13 @@ def build_app(cfg: ServerConfig, cc: ClusterConfig, encoder_factory=None):
             if scene:
                 await self.held(scene)
 
-        async def unary(self, method: str, request: bytes):
+        async def _run(self, fn, *args):
+            """fn(*args) in a worker thread once this replica holds the request's scene."""
             await self._hold()
-            return self.replica, await asyncio.to_thread(self.core.unary, method, request)
+            return await asyncio.to_thread(fn, *args)
+
+        async def unary(self, method: str, request: bytes):
+            return self.replica, await self._run(self.core.unary, method, request)
 
         async def stream(self, method: str, request: bytes):
             await self._hold()
@@ -111,28 +115,22 @@ def build_app(cfg: ServerConfig, cc: ClusterConfig, encoder_factory=None):
                 yield item
 
         async def plan_text(self, scene: str, request: bytes):
-            await self._hold()
-            return await asyncio.to_thread(self.core.plan_sharded_text, scene, request)
+            return await self._run(self.core.plan_sharded_text, scene, request)
 
         async def shard_text(self, scene: str, folder: str, query):
-            await self._hold()
-            return await asyncio.to_thread(self.core.shard_text, scene, folder, query)
+            return await self._run(self.core.shard_text, scene, folder, query)
 
         async def finish_text(self, plan, parts):
-            await self._hold()
-            return await asyncio.to_thread(self.core.finish_sharded_text, plan, parts)
+            return await self._run(self.core.finish_sharded_text, plan, parts)
 
         async def plan_render(self, scene: str, request: bytes):
-            await self._hold()
-            return await asyncio.to_thread(self.core.plan_sharded_render, scene, request)
+            return await self._run(self.core.plan_sharded_render, scene, request)
 
         async def shard_layer(self, scene: str, folder: str, plan):
-            await self._hold()
-            return await asyncio.to_thread(self.core.shard_layer, scene, folder, plan)
+            return await self._run(self.core.shard_layer, scene, folder, plan)
 
         async def finish_render(self, plan, layers):
-            await self._hold()
-            return await asyncio.to_thread(self.core.finish_sharded_render, plan, layers)
+            return await self._run(self.core.finish_sharded_render, plan, layers)
 
     @serve.deployment(
         name="FmgsIngress",

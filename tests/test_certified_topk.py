@@ -11,7 +11,14 @@ import torch
 import fmgs.query.index as index_mod
 from benchmarks.query_sets import QUERY_SETS, query_sets, scene_embeddings
 from fmgs.errors import ValidationError
-from fmgs.query.certify import certified_top_k, threshold_margin
+from fmgs.query.certify import (
+    Refined,
+    certified_top_k,
+    certify_finish,
+    certify_narrow,
+    certify_start,
+    threshold_margin,
+)
 from fmgs.query.index import EmbeddingIndex, IndexConfig, rank_reference, served_relevancy
 from fmgs.query.state import build_state
 from fmgs.vecmath import safe_normalize
@@ -28,18 +35,20 @@ def scene():
 
 
 def _indexes(emb, canon):
-    """Both paths on the same scene: the exact one (below exact_below) and the compact one."""
+    """The paths on the same scene: the exact one (below exact_below), the compact one (two tiers) and
+    the compact one with its first tier alone."""
     exact = EmbeddingIndex.build(emb, canon, IndexConfig(exact_below=M + 1))
     compact = EmbeddingIndex.build(emb.half(), canon, IndexConfig(rank=16, exact_below=M - 1, rerank=2))
-    assert exact.exact and not compact.exact
-    return {"exact": exact, "compact": compact}
+    tier1 = EmbeddingIndex.build(emb.half(), canon, IndexConfig(rank=16, rank2=0, exact_below=0, rerank=2))
+    assert exact.exact and not compact.exact and compact.tier2 is not None and tier1.tier2 is None
+    return {"exact": exact, "compact": compact, "tier1": tier1}
 
 
 def _index(scene, path, monkeypatch):
-    """The index for ``path``: "exact", "compact", or "compact-refined" (every rescoring set goes
-    through the float32 refinement first)."""
+    """The index for ``path``: "exact", "compact", "tier1" (no second tier), or either compact one with
+    "-refined" (every rescoring set goes through the second tier and the float32 refinement first)."""
     emb, _, canon, _, _ = scene
-    if path == "compact-refined":
+    if path.endswith("-refined"):
         monkeypatch.setattr(index_mod, "REFINE_ABOVE", 0)
     return _indexes(emb, canon)[path.split("-")[0]]
 
@@ -60,7 +69,7 @@ def test_query_sets_span_the_range(scene):
     assert len(emb.unique(dim=0)) < M - len(copies) // 3  # exact copies: ties
 
 
-@pytest.mark.parametrize("path", ["exact", "compact", "compact-refined"])
+@pytest.mark.parametrize("path", ["exact", "compact", "compact-refined", "tier1", "tier1-refined"])
 @pytest.mark.parametrize("k", [1, 7, 100, 1000, M])
 def test_top_k_equals_brute_force_on_every_query_set(scene, path, k, monkeypatch):
     emb, _, canon, _, sets = scene
@@ -72,7 +81,7 @@ def test_top_k_equals_brute_force_on_every_query_set(scene, path, k, monkeypatch
             assert k <= a.rescored <= M
 
 
-@pytest.mark.parametrize("path", ["exact", "compact"])
+@pytest.mark.parametrize("path", ["exact", "compact", "tier1"])
 def test_ties_at_the_kth_place_break_by_row(scene, path):
     emb, copies, canon, _, _ = scene
     idx = _indexes(emb, canon)[path]
@@ -92,7 +101,7 @@ def test_ties_at_the_kth_place_break_by_row(scene, path):
     assert groups >= 5
 
 
-@pytest.mark.parametrize("path", ["exact", "compact", "compact-refined"])
+@pytest.mark.parametrize("path", ["exact", "compact", "compact-refined", "tier1-refined"])
 def test_threshold_queries_are_certified(scene, path, monkeypatch):
     emb, _, canon, _, sets = scene
     idx = _index(scene, path, monkeypatch)
@@ -105,7 +114,7 @@ def test_threshold_queries_are_certified(scene, path, monkeypatch):
                 assert bool((a.relevancy >= thr).all())
 
 
-@pytest.mark.parametrize("path", ["exact", "compact", "compact-refined"])
+@pytest.mark.parametrize("path", ["exact", "compact", "compact-refined", "tier1-refined"])
 def test_custom_canonical_and_batches(scene, path, monkeypatch):
     emb, _, canon, canon_vecs, sets = scene
     idx = _index(scene, path, monkeypatch)
@@ -150,6 +159,42 @@ def test_compact_bounds_hold_for_every_row(scene):
     assert float(slack.min()) >= 0 and float(slack.median()) < 1.0
 
 
+def test_second_tier_bounds_hold_are_tight_and_match_their_twin(scene):
+    from fmgs.query.kernels import tier2_bounds_reference
+
+    emb, _, canon, _, sets = scene
+    idx = _indexes(emb, canon)["compact"]
+    t2 = idx.tier2
+    q = torch.cat([sets[n] for n in QUERY_SETS])
+    rows = torch.arange(M)
+    lo, up = idx._tier2_bounds(rows, q)
+    exact = (emb.double() @ q.double().T - canon.amax(1).double()[:, None]).T
+    assert bool((lo <= exact).all() and (exact <= up).all())
+    # Tighter than the first tier alone: the second tier is what settles CLIP-like queries.
+    first = idx._upper(q, None).double().T - exact
+    assert float((up - exact).median()) < float(first.median()) / 4
+    # Against the float64 twin (the kernel sums in float32: within its slack).
+    v64 = q.double()
+    w1, w2 = v64 @ idx.basis.T, v64 @ t2.basis.T
+    perp = v64 - w1 @ idx.basis - w2 @ t2.basis
+    W1 = (v64 @ idx._W_basis.T).float().numpy()
+    W2 = (v64 @ idx._W_basis2.T).float().numpy()
+    rlo, rup = tier2_bounds_reference(
+        idx.coeffs.numpy(), W1, t2.codes.numpy(), W2, rows.numpy(), idx.canonical_max.numpy(),
+        idx._err.numpy(), t2.bounds.numpy(), w1.norm(dim=1).numpy(), w2.norm(dim=1).numpy(),
+        perp.norm(dim=1).numpy(), idx.slack2,
+    )  # fmt: skip
+    assert np.allclose(lo.numpy(), rlo, rtol=0, atol=idx.slack2) and np.allclose(
+        up.numpy(), rup, atol=idx.slack2
+    )
+    # Odd row subsets and one text (the kernel's single-text tail).
+    sub = torch.arange(3, M, 7)
+    lo1, up1 = idx._tier2_bounds(sub, q[:1])
+    assert torch.allclose(lo1[0], lo[0, sub], rtol=0, atol=1e-5) and torch.allclose(
+        up1[0], up[0, sub], atol=1e-5
+    )
+
+
 def test_certified_top_k_with_loose_bounds_is_still_exact():
     g = torch.Generator().manual_seed(0)
     m = torch.randn(2000, generator=g, dtype=torch.float64)
@@ -172,6 +217,14 @@ def test_certified_top_k_with_loose_bounds_is_still_exact():
                 refine_above=0,
             )
             assert c.rows.tolist() == order
+            # Chained tiers: a looser superset narrows first (certify_narrow), then a tighter refinement.
+            p = certify_start(up, k, lambda r: m[r], first=k)
+            rows = torch.arange(0, 2000)
+            w2 = torch.rand(2000, generator=g, dtype=torch.float64) * min(width, 0.5)
+            p2 = certify_narrow(p, k, Refined(rows, m - w2, m + w2))
+            assert p2.bound >= p.bound and p2.n2 <= p.n2 and not bool((p2.need & ~p.need).any())
+            c = certify_finish(p2, k, lambda r: m[r], refined=Refined(rows, m - w, m + w))
+            assert c.rows.tolist() == order
 
 
 def test_threshold_margin_never_drops_a_passing_row():
@@ -193,3 +246,19 @@ def test_state_norms_bound_the_decomposition():
     assert bool(((c - deq).norm(dim=1) <= st.err_norm.double()).all())
     assert bool(((emb.double() - c @ st.basis).norm(dim=1) <= st.res_norm.double()).all())
     assert torch.allclose(st.basis @ st.basis.T, torch.eye(8, dtype=torch.float64), atol=1e-12)
+    # The second tier: up to the numerical rank (64 here: full), orthonormal to the first.
+    t2 = st.tier2
+    assert t2 is not None and t2.rank == 63 - 8
+    both = torch.cat([st.basis, t2.basis])
+    assert torch.allclose(both @ both.T, torch.eye(63, dtype=torch.float64), atol=1e-12)
+    c2 = emb.double() @ t2.basis.T
+    assert bool(((c2 - t2.codes.double() * t2.scales.double()).norm(dim=1) <= t2.bounds[:, 0].double()).all())
+    assert bool(((emb.double() - c @ st.basis - c2 @ t2.basis).norm(dim=1) <= t2.bounds[:, 1].double()).all())
+    # A scene of low rank: the second tier stops at its numerical rank.
+    low = safe_normalize(
+        torch.randn(3000, 20, generator=torch.Generator().manual_seed(3)) @ torch.randn(20, 64)
+    )
+    st = build_state(low.half(), 8)
+    assert st.tier2 is not None and st.rank + st.tier2.rank == 24  # rank 20, rounded up to a multiple of 8
+    assert float(st.tier2.bounds[:, 1].max()) < 1e-2  # what remains is float16 rounding
+    assert build_state(low.half(), 8, rank2=0).tier2 is None

@@ -204,9 +204,14 @@ def test_query_state_bytes_per_gaussian():
     M = 20000
     emb = safe_normalize(torch.randn(M, 512, generator=g)).half()
     canon = torch.randn(M, 4, generator=g)
-    idx = EmbeddingIndex.build(emb, canon, IndexConfig(rank=32, exact_below=0))
+    idx = EmbeddingIndex.build(emb, canon, IndexConfig(rank=32, rank2=0, exact_below=0))
     per = (idx.nbytes() - idx.basis.numel() * 8 - idx.scales.numel() * 4) / M + 8  # + int64 scene index
     assert per <= 32 + 12 + 8, per  # codes, two bound norms and the canonical maximum, scene index
+    # A second tier built in memory (no stored state to map) is resident, and counted.
+    two = EmbeddingIndex.build(emb, canon, IndexConfig(rank=32, rank2=256, exact_below=0))
+    assert two.tier2 is not None and not two.tier2.mapped and two.tier2.rank == 256 - 32
+    small = two.basis.numel() * 8 + two.scales.numel() * 4 + two.tier2.basis.numel() * 8 + 224 * 4
+    assert two.nbytes() - small == M * (32 + 12 + 224 + 8)
 
 
 def test_engine_config_rejects_nonsense():

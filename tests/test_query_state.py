@@ -113,3 +113,49 @@ def test_state_version_is_checked(tmp_path):
     save_file(bad, str(f), metadata=meta)
     with pytest.raises(ValidationError, match="res_norm must be finite and non-negative"):
         load_state(f, M, D, fingerprint(p / "embeddings.safetensors"))
+
+
+def test_second_tier_is_stored_mapped_and_checked(tmp_path):
+    from safetensors import safe_open
+    from safetensors.torch import load_file, save_file
+
+    p, emb, canon, sets = _package(tmp_path)
+    f = p / STATE_FILE
+    src = fingerprint(p / "embeddings.safetensors")
+    st = load_state(f, M, D, src)
+    assert st.tier2 is not None and st.tier2.mapped and R + st.tier2.rank < D
+    eng = SceneEngine.open(p, COMPACT)
+    assert eng.index.tier2 is not None
+    # Its codes are memory-mapped: not counted as resident.
+    assert eng.index.nbytes() < M * (R + 4 * 4 + 1) + 8 * D * (R + st.tier2.rank) + 4 * (R + st.tier2.rank)
+    for q in sets["clip"]:
+        assert torch.equal(eng.index.rank(q, 40).rows, rank_reference(emb, canon, q, 40).rows)
+    with safe_open(str(f), framework="pt") as h:
+        meta = dict(h.metadata())
+    tensors = load_file(str(f))
+    # A version-1 state (first tier only) still loads and answers exactly, without the second tier.
+    v1 = {k: v for k, v in tensors.items() if not k.endswith("2")}
+    save_file(v1, str(f), metadata={k: v for k, v in meta.items() if "2" not in k} | {"version": "1"})
+    assert load_state(f, M, D, src).tier2 is None
+    eng = SceneEngine.open(p, COMPACT)
+    assert eng.index.tier2 is None and not eng.index.exact
+    q = sets["absent"][0]
+    assert torch.equal(eng.index.rank(q, 40).rows, rank_reference(emb, canon, q, 40).rows)
+    # Declared but missing, or damaged.
+    save_file(v1, str(f), metadata=meta)
+    with pytest.raises(ValidationError, match="second tier declared"):
+        load_state(f, M, D, src)
+    bad = dict(tensors)
+    bad["bounds2"] = bad["bounds2"].clone()
+    bad["bounds2"][5, 1] = float("nan")
+    save_file(bad, str(f), metadata=meta)
+    with pytest.raises(ValidationError, match="bounds2 must be finite and non-negative"):
+        load_state(f, M, D, src)
+    bad["bounds2"] = tensors["bounds2"][:-1]
+    save_file(bad, str(f), metadata=meta)
+    with pytest.raises(ValidationError, match=r"bounds2 must be torch.float32 \[3000, 2\]"):
+        load_state(f, M, D, src)
+    # rank2 = 0 in the configuration: the stored second tier is not used.
+    save_file(tensors, str(f), metadata=meta)
+    eng = SceneEngine.open(p, EngineConfig(index=IndexConfig(rank=R, rank2=0, exact_below=0)))
+    assert eng.index.tier2 is None

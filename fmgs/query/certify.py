@@ -9,7 +9,8 @@ current K-th exact margin:
 1. rescore the ``first`` rows of highest upper bound; L = max(m_min, K-th exact margin among them);
 2. rescore every other row whose upper bound is >= L; when there are many, first bound them more tightly
    and cheaply (``refine``: a float32 pass over the stored rows), raise L with the refined lower bounds,
-   and rescore exactly only the rows whose refined upper bound still reaches it.
+   and rescore exactly only the rows whose refined upper bound still reaches it. Tiers of bounds chain
+   (``certify_narrow``): each raises L and leaves only the rows its upper bounds cannot exclude.
 
 Any row left unscored has hi_i < L <= the final K-th margin (more rows can only raise it), so it can
 neither enter the answer nor tie with its last row: the answer is exact for any query. How many rows
@@ -103,6 +104,37 @@ def certify_start(
     return Pending(rows1, m1, L, need, int(need.sum()))
 
 
+def _raise_bound(p: Pending, k: int, refined: Refined) -> tuple[float, torch.Tensor]:
+    """L raised with a Refined superset's lower bounds, and the mask [U] of its rows still to settle
+    (upper bound reaching L, not scored in step 1).
+
+    A Refined superset may hold rows of step 1 (left out: they are scored already) and rows outside
+    rows2, whose first upper bound was below p.bound: their lower bounds are below it too, so they cannot
+    raise L, and any of them whose refined upper bound reaches L costs a little and changes nothing."""
+    pos = torch.searchsorted(refined.rows, p.rows1)  # where step 1's rows sit, if they are there
+    inside = pos < len(refined.rows)
+    pos, r1 = pos[inside], p.rows1[inside]
+    pos = pos[refined.rows[pos] == r1]
+    # The k-th largest of step 1's margins and the other rows' lower bounds (k distinct rows reach it).
+    # Lower bounds below p.bound cannot raise L: only the others are ranked (few, for a tight tier).
+    high = refined.lower >= p.bound
+    high[pos] = False
+    L = max(p.bound, kth_largest(torch.cat([p.m1, refined.lower[high]]), k))
+    keep = refined.upper >= L
+    keep[pos] = False
+    return L, keep
+
+
+def certify_narrow(p: Pending, k: int, refined: Refined) -> Pending:
+    """A tighter Pending from a Refined superset of p.rows2: L raised with its lower bounds, and only the
+    rows of p.need whose refined upper bound still reaches L left (several tiers of bounds chain)."""
+    L, keep = _raise_bound(p, k, refined)
+    need = torch.zeros_like(p.need)
+    need[refined.rows[keep]] = True
+    need &= p.need
+    return Pending(p.rows1, p.m1, L, need, int(need.sum()))
+
+
 def certify_finish(
     p: Pending,
     k: int,
@@ -111,26 +143,10 @@ def certify_finish(
     refined: tuple[torch.Tensor, torch.Tensor] | Refined | None = None,
 ) -> Certified:
     """Step 2: settle the remaining rows, optionally through tighter bounds: (lower, upper) of p.rows2,
-    or a Refined superset of them. L is raised with the lower bounds, then only rows whose upper bound
-    still reaches it are rescored.
-
-    A Refined superset may hold rows of step 1 (left out here: they are scored already) and rows outside
-    rows2, whose first upper bound was below p.bound: their lower bounds are below it too, so they cannot
-    raise L, and any of them whose refined upper bound reaches L is rescored, which costs a little and
-    changes nothing in the answer."""
+    or a Refined superset of them (see ``_raise_bound``). L is raised with the lower bounds, then only
+    rows whose upper bound still reaches it are rescored."""
     if isinstance(refined, Refined):
-        pos = torch.searchsorted(refined.rows, p.rows1)  # where step 1's rows sit, if they are there
-        inside = pos < len(refined.rows)
-        pos, r1 = pos[inside], p.rows1[inside]
-        pos = pos[refined.rows[pos] == r1]
-        # The k-th largest of step 1's margins and the others' lower bounds (k distinct rows reach it):
-        # the best k + |pos| lower bounds hold the best k of the rows not scored yet.
-        lo = refined.lower
-        top = torch.topk(lo, min(len(lo), k + len(pos)))
-        mine = ~torch.isin(top.indices, pos)
-        L = max(p.bound, kth_largest(torch.cat([p.m1, top.values[mine]]), k))
-        keep = refined.upper >= L
-        keep[pos] = False
+        L, keep = _raise_bound(p, k, refined)
         rows2 = refined.rows[keep]
     elif refined is not None:
         lo2, up2 = refined

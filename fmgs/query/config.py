@@ -15,6 +15,11 @@ class IndexConfig:
 
     rank: int = 64
     """Basis size of the compact path (int8 coefficients: r bytes per Gaussian); 0 keeps exact float32."""
+    rank2: int = 256
+    """Total rank of the compact state's two tiers at most (fmgs.query.state; capped at the embeddings'
+    numerical rank). The second tier, r2 - rank bytes per Gaussian memory-mapped, is read only for rows
+    the first leaves unsettled (CLIP-like and absent queries); 0: no second tier (those rows go straight
+    to the float16 embeddings, 2*D bytes each)."""
     exact_below: int = 200_000
     """Scenes with fewer embedded Gaussians use the exact path (4*D bytes per Gaussian)."""
     rerank: int = 10
@@ -28,5 +33,5 @@ class IndexConfig:
     per Gaussian of device memory; the compact path is CPU-only); answers come back on the CPU."""
 
     def __post_init__(self) -> None:
-        if self.rank < 0 or self.exact_below < 0 or self.rerank < 0 or self.basis_sample < 1:
-            raise ValueError("rank, exact_below and rerank must be >= 0, basis_sample >= 1")
+        if min(self.rank, self.rank2, self.exact_below, self.rerank) < 0 or self.basis_sample < 1:
+            raise ValueError("rank, rank2, exact_below and rerank must be >= 0, basis_sample >= 1")

@@ -9,9 +9,11 @@ reach the K-th margin. ``Ranked.rescored`` says how many were.
 Exact path (small scenes, ``rank=0``, CUDA): the embeddings [M,D] as float32; the pass is one matrix
 product, bounded by float32 rounding (about D 2^-24), so only near-ties are rescored.
 Compact path (large scenes, CPU): the package's query state (fmgs.query.state: rank-r int8 codes and two
-error norms per row, memory-mapped) read by a numba kernel, r bytes per Gaussian; rows are rescored from
-the float16 embeddings, memory-mapped from the package. How many rows that takes depends on how well r
-basis vectors describe the scene's embeddings in the query's direction (benchmarks/TEXT.md).
+error norms per row, memory-mapped) read by a numba kernel, r bytes per Gaussian; the rows it leaves go
+through the state's second tier (the next basis vectors up to the embeddings' numerical rank, read only
+for those rows), then a float32 pass over the float16 embeddings (memory-mapped from the package), then
+float64. How many rows each step takes depends on how well the basis describes the scene's embeddings in
+the query's direction (benchmarks/TEXT.md).
 """
 
 from __future__ import annotations
@@ -24,7 +26,15 @@ import numpy as np
 import torch
 
 from fmgs.errors import ValidationError
-from fmgs.query.certify import Refined, certify_finish, certify_start, order_rows, threshold_margin
+from fmgs.query.certify import (
+    Pending,
+    Refined,
+    certify_finish,
+    certify_narrow,
+    certify_start,
+    order_rows,
+    threshold_margin,
+)
 from fmgs.query.config import IndexConfig
 from fmgs.query.relevancy import TEMPERATURE
 from fmgs.query.state import QueryState, build_state
@@ -115,9 +125,15 @@ class EmbeddingIndex:
             self._W_basis = (state.basis * state.scales.double()[:, None]).contiguous()  # [r,D] float64
             r = state.rank
             self.slack = 8 * (r + 8) * _U32 * max(1.0, state.code_norm_max) + 1e-6
+            t2 = state.tier2 if cfg.rank2 > 0 else None
+            self.tier2 = t2
+            """The state's second tier (None: rows the first leaves go to the float16 embeddings)."""
+            if t2 is not None:
+                self._W_basis2 = (t2.basis * t2.scales.double()[:, None]).contiguous()  # [r2,D] float64
+                self.slack2 = 8 * (r + t2.rank + 8) * _U32 * max(1.0, t2.code_norm_max) + 1e-6
         else:
             self.coeffs = table
-            self.basis = self.scales = None
+            self.basis = self.scales = self.tier2 = None
             u = _U32
             if table.is_cuda and torch.backends.cuda.matmul.allow_tf32:
                 u = 2.0**-11  # TF32 matmuls keep 10 mantissa bits
@@ -156,7 +172,7 @@ class EmbeddingIndex:
         if cfg.rank == 0 or cfg.rank >= D or M < cfg.exact_below:
             return cls(embeddings.float().contiguous(), canonical, cfg, half=half)
         if state is None or state.rank != cfg.rank or state.num != M:
-            state = build_state(embeddings, cfg.rank, cfg.basis_sample)
+            state = build_state(embeddings, cfg.rank, cfg.basis_sample, cfg.rank2)
         if read_rows is None:
             src = embeddings
 
@@ -175,10 +191,14 @@ class EmbeddingIndex:
 
     def nbytes(self) -> int:
         """Resident bytes per the query state: codes (or float32 table), bound norms, canonical maxima,
-        basis. The canonical dots [M,C] are not counted when memory-mapped (pose renders page them in)."""
+        basis; the second tier's codes and bounds only when not memory-mapped. The canonical dots [M,C]
+        are not counted when memory-mapped (pose renders page them in)."""
         t = [self.coeffs, self.canonical_max]
         if self.state is not None:
             t += [self._err, self._res, self.basis, self.scales]
+        if self.tier2 is not None:
+            t += [self.tier2.basis, self.tier2.scales]
+            t += [] if self.tier2.mapped else [self.tier2.codes, self.tier2.bounds]
         return sum(x.numel() * x.element_size() for x in t)
 
     @property
@@ -263,6 +283,43 @@ class EmbeddingIndex:
         _check_finite(out, uniq)
         return out[torch.from_numpy(inv).to(self.device)]
 
+    def _narrow_pending(self, pending: list[Pending], q: torch.Tensor, k: int) -> list[Pending]:
+        """The texts with more than REFINE_ABOVE rows left, narrowed by the second tier's bounds (one pass
+        over the union of their rows for all of them); the others as they are."""
+        big = [j for j, p in enumerate(pending) if p.n2 > REFINE_ABOVE]
+        if self.tier2 is None or not big:
+            return pending
+        union = _union(pending, big)
+        lo, up = self._tier2_bounds(union, q[big])
+        out = list(pending)
+        for c, j in enumerate(big):
+            out[j] = certify_narrow(pending[j], k, Refined(union, lo[c], up[c]))
+        return out
+
+    def _tier2_bounds(self, rows: torch.Tensor, q: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Float64 (lower, upper) [n,k] bounds on the margins of sorted rows [k] for queries q [n,D] from
+        both tiers of the compact state (kernels.tier2_bounds), REFINE_CHUNK rows per call."""
+        from fmgs.query.kernels import tier2_bounds
+
+        v64 = q.double()
+        w1 = v64 @ self.basis.T
+        w2 = v64 @ self.tier2.basis.T
+        perp = v64 - w1 @ self.basis - w2 @ self.tier2.basis
+        W1 = (v64 @ self._W_basis.T).float().contiguous().numpy()
+        W2 = (v64 @ self._W_basis2.T).float().contiguous().numpy()
+        norms = [x.norm(dim=1).contiguous().numpy() for x in (w1, w2, perp)]
+        lo = torch.empty(len(q), len(rows), dtype=torch.float64)
+        up = torch.empty_like(lo)
+        u = rows.numpy().astype(np.int64)
+        args = (self.coeffs.numpy(), W1, self.tier2.codes.numpy(), W2)
+        for s in range(0, len(u), REFINE_CHUNK):  # bounded working memory per call
+            part = u[s : s + REFINE_CHUNK]
+            tier2_bounds(
+                *args, part, self.canonical_max.numpy(), self._err.numpy(), self.tier2.bounds.numpy(),
+                *norms, self.slack2, lo[:, s : s + len(part)].numpy(), up[:, s : s + len(part)].numpy(),
+            )  # fmt: skip
+        return lo, up
+
     def _refine_pending(self, pending: list, q: torch.Tensor, cv: torch.Tensor | None) -> dict:
         """Tighter bounds for the texts with more than REFINE_ABOVE rows left: one float32 pass over the
         union of those rows for all of them at once. Returns {text: Refined} over the union (a sorted
@@ -270,10 +327,7 @@ class EmbeddingIndex:
         big = [j for j, p in enumerate(pending) if p.n2 > REFINE_ABOVE]
         if self.half is None or not big:
             return {}
-        member = pending[big[0]].need
-        for j in big[1:]:  # the texts' masks OR-ed: O(M) each, no per-text row lists
-            member = member | pending[j].need
-        union = torch.nonzero(member).reshape(-1)  # sorted
+        union = _union(pending, big)
         lo = torch.empty(len(big), len(union), dtype=torch.float64)
         up = torch.empty_like(lo)
         for s in range(0, len(union), REFINE_CHUNK):  # bounded working memory for the kernel's inputs
@@ -375,6 +429,8 @@ class EmbeddingIndex:
             if between is not None:
                 between(j)
             pending.append(certify_start(upper[j], k, scorer(j), m_min, first))
+        if cv is None:
+            pending = self._narrow_pending(pending, q, k)
         refined = self._refine_pending(pending, q, cv)
         out = []
         for j, p in enumerate(pending):
@@ -384,6 +440,15 @@ class EmbeddingIndex:
             keep = rel >= threshold
             out.append(Ranked(c.rows[keep], rel[keep], sim[keep].float(), c.rescored, c.margin[keep]))
         return out
+
+
+def _union(pending: list[Pending], texts: list[int]) -> torch.Tensor:
+    """Sorted rows [U] still to settle for any of ``texts``: their masks OR-ed (O(M) each, no per-text
+    row lists)."""
+    member = pending[texts[0]].need
+    for j in texts[1:]:
+        member = member | pending[j].need
+    return torch.nonzero(member).reshape(-1)
 
 
 def _float32_on(embeddings: torch.Tensor, device: torch.device, step: int = 1 << 18) -> torch.Tensor:

@@ -72,6 +72,92 @@ def int8_upper(
             k += 1
 
 
+@numba.njit(parallel=True, fastmath=True, cache=True)
+def tier2_bounds(
+    A1: np.ndarray,
+    W1: np.ndarray,
+    A2: np.ndarray,
+    W2: np.ndarray,
+    rows: np.ndarray,
+    shift: np.ndarray,
+    err1: np.ndarray,
+    bounds2: np.ndarray,
+    wn1: np.ndarray,
+    wn2: np.ndarray,
+    vn2: np.ndarray,
+    slack: float,
+    lo: np.ndarray,
+    up: np.ndarray,
+) -> None:  # pragma: no cover
+    """Float64 bounds lo[k,t] <= f.v_k - shift[i] <= up[k,t] for rows i = rows[t] from both tiers of the
+    compact state (fmgs.query.state): a = A1[i].W1[k] + A2[i].W2[k] in float32, error err1[i] wn1[k] +
+    bounds2[i,0] wn2[k] + bounds2[i,1] vn2[k] + slack (slack covers the float32 sum). A1 [M,r1],
+    A2 [M,r2] int8; W1 [n,r1], W2 [n,r2] float32; err1 [M], shift [M] float32; bounds2 [M,2] float32;
+    wn1, wn2, vn2 [n] float64; lo, up [n,m] float64. Twin: ``tier2_bounds_reference``."""
+    m = rows.shape[0]
+    r1 = A1.shape[1]
+    r2 = A2.shape[1]
+    n = W1.shape[0]
+    for t in numba.prange(m):
+        i = rows[t]
+        sh = np.float64(shift[i])
+        e1 = np.float64(err1[i])
+        e2 = np.float64(bounds2[i, 0])
+        res = np.float64(bounds2[i, 1])
+        k = 0
+        while k + 3 < n:  # four texts per sweep of the row: one conversion feeds four products
+            a0 = np.float32(0.0)
+            a1 = np.float32(0.0)
+            a2 = np.float32(0.0)
+            a3 = np.float32(0.0)
+            for j in range(r1):
+                x = np.float32(A1[i, j])
+                a0 += x * W1[k, j]
+                a1 += x * W1[k + 1, j]
+                a2 += x * W1[k + 2, j]
+                a3 += x * W1[k + 3, j]
+            for j in range(r2):
+                x = np.float32(A2[i, j])
+                a0 += x * W2[k, j]
+                a1 += x * W2[k + 1, j]
+                a2 += x * W2[k + 2, j]
+                a3 += x * W2[k + 3, j]
+            _put_tier2(a0, sh, e1, e2, res, wn1, wn2, vn2, slack, lo, up, k, t)
+            _put_tier2(a1, sh, e1, e2, res, wn1, wn2, vn2, slack, lo, up, k + 1, t)
+            _put_tier2(a2, sh, e1, e2, res, wn1, wn2, vn2, slack, lo, up, k + 2, t)
+            _put_tier2(a3, sh, e1, e2, res, wn1, wn2, vn2, slack, lo, up, k + 3, t)
+            k += 4
+        while k < n:
+            a0 = np.float32(0.0)
+            for j in range(r1):
+                a0 += np.float32(A1[i, j]) * W1[k, j]
+            for j in range(r2):
+                a0 += np.float32(A2[i, j]) * W2[k, j]
+            _put_tier2(a0, sh, e1, e2, res, wn1, wn2, vn2, slack, lo, up, k, t)
+            k += 1
+
+
+@numba.njit(inline="always", cache=True)
+def _put_tier2(acc, sh, e1, e2, res, wn1, wn2, vn2, slack, lo, up, k, t):  # pragma: no cover
+    d = np.float64(acc) - sh
+    g = e1 * wn1[k] + e2 * wn2[k] + res * vn2[k] + slack
+    lo[k, t] = d - g
+    up[k, t] = d + g
+
+
+def tier2_bounds_reference(A1, W1, A2, W2, rows, shift, err1, bounds2, wn1, wn2, vn2, slack):
+    """Twin of ``tier2_bounds`` in float64 numpy: (lo, up) [n,m]."""
+    a = (
+        A1[rows].astype(np.float64) @ W1.astype(np.float64).T
+        + A2[rows].astype(np.float64) @ W2.astype(np.float64).T
+    )
+    d = a - shift[rows].astype(np.float64)[:, None]
+    b2 = bounds2[rows].astype(np.float64)
+    g = err1[rows].astype(np.float64)[:, None] * wn1[None] + b2[:, :1] * wn2[None] + b2[:, 1:] * vn2[None]
+    g = g + slack
+    return (d - g).T, (d + g).T
+
+
 _TWO_M24 = np.float32(2.0**-24)
 """One mantissa unit of a float16 subnormal."""
 _REBIAS = np.uint32(112 << 23)

@@ -8,9 +8,20 @@ So for any vector v with w = B v and v_perp = v - B^T w:
 the two per-row norms (quantisation error, residual) being stored rounded up. The query index turns these
 into certified bounds (fmgs.query.certify).
 
+A second tier (``Tier2``) codes the next basis vectors B2 [r2,D] (orthonormal to B and each other) the
+same way, for the rows the first bound cannot settle: with w2 = B2 v, v_perp2 = v - B^T w - B2^T w2 and
+e2 = c2_i - c2'_i,
+    |f_i.v - c'_i.w - c2'_i.w2| <= |c_i - c'_i| |w| + |e2| |w2| + |f_i - B^T c_i - B2^T c2_i| |v_perp2|.
+Field embeddings have low rank (the language head's hidden width + 1, e.g. 257 of 512), so r + r2 basis
+vectors up to that rank leave a residual near float16 rounding and bound CLIP-like queries tightly. The
+second tier stays memory-mapped: it is read only for the rows the first one leaves.
+
 File ``query_state.safetensors`` in the package (written by ``export_scene``):
   basis [r,D] float64, scales [r] float32, codes [M,r] int8, err_norm [M] float16, res_norm [M] float16,
-  metadata {format: "fmgs-query-state", version, rank, num, dim, code_norm_max, source}.
+  and with a second tier basis2 [r2,D] float64, scales2 [r2] float32, codes2 [M,r2] int8, bounds2 [M,2]
+  float32 (its error and residual norms, rounded up);
+  metadata {format: "fmgs-query-state", version, rank, rank2, num, dim, code_norm_max, code_norm_max2,
+  source}. Version 1 files (no second tier) still load; the index then runs on the first tier alone.
 ``source`` fingerprints the embeddings file (size and sampled blocks), so a state that does not belong to
 the embeddings beside it is refused and rebuilt in memory.
 """
@@ -28,8 +39,37 @@ from fmgs.errors import ValidationError
 
 STATE_FILE = "query_state.safetensors"
 STATE_FORMAT = "fmgs-query-state"
-STATE_VERSION = 1
+STATE_VERSION = 2
+READS_VERSIONS = ("1", "2")
+TIER2_RANK = 256
+"""Default total rank of both tiers (first tier + second tier basis vectors)."""
+TIER2_ENERGY = 1e-6
+"""The second tier stops at the embeddings' numerical rank: where the sample's remaining energy falls
+below this fraction (float16 rounding leaves about 1e-8)."""
 _CHUNK = 65536
+
+
+@dataclass
+class Tier2:
+    """Second-tier codes: the basis vectors after the first tier's, read only for unsettled rows."""
+
+    basis: torch.Tensor
+    """[r2,D] float64 orthonormal rows, orthogonal to the first tier's basis."""
+    scales: torch.Tensor
+    """[r2] float32 dequantisation scale per basis vector."""
+    codes: torch.Tensor
+    """[M,r2] int8 coefficients (memory-mapped when loaded from a package)."""
+    bounds: torch.Tensor
+    """[M,2] float32: |c2_i - c2'_i| and the residual |f_i - B^T c_i - B2^T c2_i|, both rounded up
+    (memory-mapped when loaded)."""
+    code_norm_max: float
+    """max_i |(c'_i, c2'_i)| over both tiers' dequantised codes (bounds the float32 rounding)."""
+    mapped: bool = False
+    """Codes and bounds are memory-mapped (not resident)."""
+
+    @property
+    def rank(self) -> int:
+        return int(self.basis.shape[0])
 
 
 @dataclass
@@ -48,6 +88,8 @@ class QueryState:
     """[M] float16 |f_i - B^T c_i| rounded up (what the basis misses)."""
     code_norm_max: float
     """max_i |c'_i| (bounds the float32 rounding of the scan)."""
+    tier2: Tier2 | None = None
+    """The second tier, when the package has one."""
 
     @property
     def rank(self) -> int:
@@ -58,33 +100,68 @@ class QueryState:
         return int(self.codes.shape[0])
 
 
-def build_state(embeddings: torch.Tensor, rank: int, basis_sample: int = 100_000) -> QueryState:
+def build_state(
+    embeddings: torch.Tensor, rank: int, basis_sample: int = 100_000, rank2: int = TIER2_RANK
+) -> QueryState:
     """From embeddings [M,D] (any float dtype, e.g. a float16 memory map); two chunked passes, never a
-    float32 copy of the whole table."""
+    float32 copy of the whole table. ``rank2``: the total rank of both tiers at most (capped at the
+    embeddings' numerical rank; no second tier when that leaves nothing beyond ``rank``)."""
     M, D = embeddings.shape
     if not 0 < rank < D:
         raise ValueError(f"rank must lie in (0, {D}), got {rank}")
-    basis = _basis(embeddings, rank, basis_sample)
-    amax = torch.zeros(rank, dtype=torch.float64)
+    if rank2 < 0:
+        raise ValueError(f"rank2 must be >= 0, got {rank2}")
+    full, energy = _basis(embeddings, basis_sample)
+    top = max(rank, _tier2_rank(energy, rank, rank2))
+    basis = torch.linalg.qr(full[:top].T).Q.T.contiguous()  # orthonormal to float64 rounding
+    amax = torch.zeros(top, dtype=torch.float64)
     for s in range(0, M, _CHUNK):
         amax = torch.maximum(amax, (embeddings[s : s + _CHUNK].double() @ basis.T).abs().amax(0))
     scales = (amax / 127).clamp_min(1e-30).float()
     s64 = scales.double()
     codes = torch.empty(M, rank, dtype=torch.int8)
-    err = torch.empty(M, dtype=torch.float64)
-    res = torch.empty(M, dtype=torch.float64)
-    cmax = 0.0
+    codes2 = torch.empty(M, top - rank, dtype=torch.int8)
+    norms = torch.empty(M, 4, dtype=torch.float64)  # err, res (first tier), err2, res2
+    cmax = cmax2 = 0.0
     for s in range(0, M, _CHUNK):
         f = embeddings[s : s + _CHUNK].double()
         c = f @ basis.T
         q = (c / s64).round().clamp(-127, 127)
-        codes[s : s + _CHUNK] = q.to(torch.int8)
+        codes[s : s + _CHUNK] = q[:, :rank].to(torch.int8)
+        codes2[s : s + _CHUNK] = q[:, rank:].to(torch.int8)
         deq = q * s64
-        err[s : s + _CHUNK] = (c - deq).norm(dim=1)
-        res[s : s + _CHUNK] = (f - c @ basis).norm(dim=1)
+        n = norms[s : s + _CHUNK]
+        n[:, 0] = (c[:, :rank] - deq[:, :rank]).norm(dim=1)
+        n[:, 1] = (f - c[:, :rank] @ basis[:rank]).norm(dim=1)
+        n[:, 2] = (c[:, rank:] - deq[:, rank:]).norm(dim=1)
+        n[:, 3] = (f - c @ basis).norm(dim=1)
         if len(deq):
-            cmax = max(cmax, float(deq.norm(dim=1).max()))
-    return QueryState(basis, scales, codes, round_up_half(err), round_up_half(res), cmax)
+            cmax = max(cmax, float(deq[:, :rank].norm(dim=1).max()))
+            cmax2 = max(cmax2, float(deq.norm(dim=1).max()))
+    tier2 = None
+    if top > rank:
+        bounds = torch.from_numpy(round_up_single(norms[:, 2:].numpy()))
+        tier2 = Tier2(basis[rank:].contiguous(), scales[rank:].contiguous(), codes2, bounds, cmax2)
+    return QueryState(
+        basis[:rank].contiguous(),
+        scales[:rank].contiguous(),
+        codes,
+        round_up_half(norms[:, 0].contiguous()),
+        round_up_half(norms[:, 1].contiguous()),
+        cmax,
+        tier2,
+    )
+
+
+def _tier2_rank(energy: torch.Tensor, rank: int, rank2: int) -> int:
+    """Total rank of both tiers: the numerical rank of the sample (eigenvalues ``energy`` of E^T E,
+    descending) rounded up to a multiple of 8, at most rank2 and D - 1; 0 when no more than ``rank``."""
+    D = len(energy)
+    e = energy.clamp_min(0)
+    tail = e.flip(0).cumsum(0).flip(0)  # tail[j] = energy beyond the first j vectors
+    num = int((tail > TIER2_ENERGY * float(tail[0])).sum()) if float(tail[0]) > 0 else 0
+    r = min(rank2, D - 1, -(-num // 8) * 8)
+    return r if r > rank else 0
 
 
 def round_up_half(x: torch.Tensor) -> torch.Tensor:
@@ -96,9 +173,17 @@ def round_up_half(x: torch.Tensor) -> torch.Tensor:
     return torch.from_numpy(h)
 
 
-def _basis(embeddings: torch.Tensor, rank: int, sample: int) -> torch.Tensor:
-    """[rank,D] float64 top eigenvectors of E^T E (best rank-r subspace for dot products), from a seeded
-    sample of rows."""
+def round_up_single(x: np.ndarray) -> np.ndarray:
+    """float32 values >= x (float64, >= 0), so a stored bound never shrinks."""
+    h = x.astype(np.float32)
+    low = h.astype(np.float64) < x
+    h[low] = np.nextafter(h[low], np.float32(np.inf))
+    return h
+
+
+def _basis(embeddings: torch.Tensor, sample: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """All [D,D] eigenvectors of E^T E as rows, largest eigenvalue first (the best rank-r subspace for dot
+    products is the first r), and the eigenvalues [D] descending, from a seeded sample of rows."""
     M = embeddings.shape[0]
     if M > sample:
         g = torch.Generator().manual_seed(0)
@@ -106,9 +191,8 @@ def _basis(embeddings: torch.Tensor, rank: int, sample: int) -> torch.Tensor:
         E = embeddings[rows].double()
     else:
         E = embeddings.double()
-    _, vecs = torch.linalg.eigh(E.T @ E)  # ascending eigenvalues
-    B = vecs[:, -rank:].flip(1).T.contiguous()
-    return torch.linalg.qr(B.T).Q.T.contiguous()  # orthonormal to float64 rounding
+    vals, vecs = torch.linalg.eigh(E.T @ E)  # ascending eigenvalues
+    return vecs.flip(1).T.contiguous(), vals.flip(0)
 
 
 def fingerprint(path: Path, blocks: int = 64, block: int = 4096) -> str:
@@ -135,6 +219,7 @@ def save_state(state: QueryState, path: Path, source: str) -> None:
         "dim": str(int(state.basis.shape[1])),
         "code_norm_max": repr(float(state.code_norm_max)),
         "source": source,
+        "rank2": "0",
     }
     tensors = {
         "basis": state.basis.contiguous(),
@@ -143,6 +228,16 @@ def save_state(state: QueryState, path: Path, source: str) -> None:
         "err_norm": state.err_norm.contiguous(),
         "res_norm": state.res_norm.contiguous(),
     }
+    t2 = state.tier2
+    if t2 is not None:
+        meta["rank2"] = str(t2.rank)
+        meta["code_norm_max2"] = repr(float(t2.code_norm_max))
+        tensors |= {
+            "basis2": t2.basis.contiguous(),
+            "scales2": t2.scales.contiguous(),
+            "codes2": t2.codes.contiguous(),
+            "bounds2": t2.bounds.contiguous(),
+        }
     save_file(tensors, str(path), metadata=meta)
 
 
@@ -163,9 +258,9 @@ def load_state(path: Path, num: int, dim: int, source: str) -> QueryState:
         raise ValidationError(where, f"cannot read ({e})") from e
     if meta.get("format") != STATE_FORMAT:
         raise ValidationError(where, f"not a query state (format {meta.get('format')!r})")
-    if meta.get("version") != str(STATE_VERSION):
+    if meta.get("version") not in READS_VERSIONS:
         raise ValidationError(
-            where, f"query state version {meta.get('version')!r}, this build reads {STATE_VERSION}"
+            where, f"query state version {meta.get('version')!r}, this build reads {'/'.join(READS_VERSIONS)}"
         )
     if meta.get("source") != source:
         raise ValidationError(where, "written for other embeddings than the package's (stale)")
@@ -192,4 +287,44 @@ def load_state(path: Path, num: int, dim: int, source: str) -> QueryState:
         raise ValidationError(where, f"codes must be int8 [{n},{r}], got {codes.dtype} {list(codes.shape)}")
     if not np.isfinite(cmax) or cmax < 0:
         raise ValidationError(where, "code_norm_max must be finite and non-negative")
-    return QueryState(small["basis"], small["scales"], codes, small["err_norm"], small["res_norm"], cmax)
+    tier2 = _load_tier2(path, meta, n, d, r)
+    err, res = small["err_norm"], small["res_norm"]
+    return QueryState(small["basis"], small["scales"], codes, err, res, cmax, tier2)
+
+
+def _load_tier2(path: Path, meta: dict, n: int, d: int, r: int) -> Tier2 | None:
+    """The second tier of a version-2 state (None when it has none), codes and bounds memory-mapped."""
+    from safetensors import safe_open
+
+    from fmgs.io.mmap_tensors import mmap_torch
+
+    where = str(path)
+    try:
+        r2 = int(meta.get("rank2", "0"))
+        cmax2 = float(meta.get("code_norm_max2", "0"))
+    except ValueError as e:
+        raise ValidationError(where, f"bad metadata ({e})") from e
+    if r2 == 0:
+        return None
+    if not 0 < r + r2 < d or not np.isfinite(cmax2) or cmax2 < 0:
+        raise ValidationError(where, f"second tier rank {r2} (first {r}, dim {d}) or code_norm_max2 invalid")
+    with safe_open(where, framework="pt") as f:
+        if not {"basis2", "scales2", "codes2", "bounds2"} <= set(f.keys()):
+            raise ValidationError(where, "second tier declared (rank2) but its tensors are missing")
+        basis2, scales2 = f.get_tensor("basis2"), f.get_tensor("scales2")
+    codes2, bounds2 = mmap_torch(path, "codes2"), mmap_torch(path, "bounds2")
+    want = {
+        "basis2": (basis2, (r2, d), torch.float64),
+        "scales2": (scales2, (r2,), torch.float32),
+        "codes2": (codes2, (n, r2), torch.int8),
+        "bounds2": (bounds2, (n, 2), torch.float32),
+    }
+    for k, (t, shape, dtype) in want.items():
+        if tuple(t.shape) != shape or t.dtype != dtype:
+            raise ValidationError(where, f"{k} must be {dtype} {list(shape)}, got {t.dtype} {list(t.shape)}")
+    for k, t in (("basis2", basis2), ("scales2", scales2), ("bounds2", bounds2)):
+        for s in range(0, len(t), 1 << 20):  # chunked: a memory map is paged, not copied
+            part = t[s : s + (1 << 20)]
+            if not bool(torch.isfinite(part).all()) or (k != "basis2" and bool((part < 0).any())):
+                raise ValidationError(where, f"{k} must be finite and non-negative")
+    return Tier2(basis2, scales2, codes2, bounds2, cmax2, mapped=True)

@@ -104,6 +104,7 @@ def export_scene(
     extra: dict | None = None,
     field_dtype: str = "float32",
     query_rank: int = 64,
+    query_rank2: int = 256,
 ) -> Path:
     """Write a package to folder ``out`` (replaced atomically) and return it.
 
@@ -112,6 +113,7 @@ def export_scene(
     field_dtype: storage of the field's table and heads, "float32" (exact) or "float16" (half the size;
     the stored embeddings are decoded before rounding, so only queries at arbitrary points see it).
     query_rank: basis size of the stored compact query state (0: none; servers then build it at load).
+    query_rank2: total rank of its two tiers at most (fmgs.query.state; 0: first tier only).
     """
     out = Path(out)
     check_scene_name(out.name)
@@ -143,7 +145,7 @@ def export_scene(
         if 0 < query_rank < D and M > 0:
             from fmgs.query.state import build_state, fingerprint, save_state
 
-            state = build_state(emb, query_rank)
+            state = build_state(emb, query_rank, rank2=query_rank2)
             save_state(state, tmp / STATE_FILE, fingerprint(tmp / "embeddings.safetensors"))
         if field is not None:
             fdt = FIELD_DTYPES[field_dtype]

@@ -215,14 +215,17 @@ def kd_split(means: np.ndarray, k: int) -> tuple[list[np.ndarray], list[np.ndarr
     return cells, boxes, tree
 
 
-def write_shards(source: str | Path, out: str | Path, k: int, query_rank: int | None = None) -> Path:
+def write_shards(
+    source: str | Path, out: str | Path, k: int, query_rank: int | None = None, query_rank2: int | None = None
+) -> Path:
     """Split package ``source`` into ``k`` spatial shards under folder ``out`` (written atomically).
 
-    query_rank: rank of each shard's compact query state (default: the source's, or 64).
+    query_rank: rank of each shard's compact query state (default: the source's, or 64); query_rank2: the
+    total rank of its two tiers at most (default: the source's when it has a second tier, else 256).
     """
     from safetensors.torch import save_file
 
-    from fmgs.query.state import STATE_FILE, build_state, fingerprint, load_state, save_state
+    from fmgs.query.state import STATE_FILE, TIER2_RANK, build_state, fingerprint, load_state, save_state
     from fmgs.scene.package import _read_tensors
 
     source, out = Path(source), Path(out)
@@ -233,13 +236,18 @@ def write_shards(source: str | Path, out: str | Path, k: int, query_rank: int | 
     sel, emb, canon = t["selected"], t["embeddings"], t["canonical"]
     if emb.dtype != torch.float16 or sel.dtype != torch.int64:
         raise ValidationError(str(efile), "expected float16 embeddings and int64 selected indices")
+    stored = None
+    if (source / STATE_FILE).is_file():
+        try:
+            stored = load_state(source / STATE_FILE, len(sel), man.dim, fingerprint(efile))
+        except ValidationError:
+            pass  # stale state: the default ranks
     if query_rank is None:
-        query_rank = 64
-        if (source / STATE_FILE).is_file():
-            try:
-                query_rank = load_state(source / STATE_FILE, len(sel), man.dim, fingerprint(efile)).rank
-            except ValidationError:
-                pass  # stale state: the default rank
+        query_rank = 64 if stored is None else stored.rank
+    if query_rank2 is None:
+        query_rank2 = (
+            TIER2_RANK if stored is None or stored.tier2 is None else stored.rank + stored.tier2.rank
+        )
     means = g.means.detach().double().numpy()
     cells, boxes, tree = kd_split(means, k)
     row_of = np.full(g.num, -1, np.int64)  # source Gaussian -> its embedded row (or -1)
@@ -273,7 +281,7 @@ def write_shards(source: str | Path, out: str | Path, k: int, query_rank: int | 
                 str(d / IDS_FILE),
             )
             if 0 < query_rank < man.dim and len(rows):
-                state = build_state(e.float(), query_rank)
+                state = build_state(e.float(), query_rank, rank2=query_rank2)
                 save_state(state, d / STATE_FILE, fingerprint(d / "embeddings.safetensors"))
             if man.field is not None:
                 shutil.copyfile(source / "field.safetensors", d / "field.safetensors")

@@ -126,8 +126,10 @@ def _raise_bound(p: Pending, k: int, refined: Refined) -> tuple[float, torch.Ten
 
 
 def certify_narrow(p: Pending, k: int, refined: Refined) -> Pending:
-    """A tighter Pending from a Refined superset of p.rows2: L raised with its lower bounds, and only the
-    rows of p.need whose refined upper bound still reaches L left (several tiers of bounds chain)."""
+    """A tighter Pending from tighter bounds: L raised with their lower bounds, and only the rows of p.need
+    whose refined upper bound still reaches L left (several tiers of bounds chain). ``refined`` may be a
+    superset of p.rows2, or leave out rows of it whose refined upper bound is below p.bound (they are
+    out, and their lower bounds cannot raise L)."""
     L, keep = _raise_bound(p, k, refined)
     need = torch.zeros_like(p.need)
     need[refined.rows[keep]] = True

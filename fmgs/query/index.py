@@ -285,20 +285,40 @@ class EmbeddingIndex:
 
     def _narrow_pending(self, pending: list[Pending], q: torch.Tensor, k: int) -> list[Pending]:
         """The texts with more than REFINE_ABOVE rows left, narrowed by the second tier's bounds (one pass
-        over the union of their rows for all of them); the others as they are."""
+        over the union of their rows for all of them); the others as they are.
+
+        The pass runs REFINE_CHUNK rows at a time into reused buffers and keeps, per text, only the rows
+        whose second-tier upper bound reaches that text's L: the others are out whatever L becomes (it
+        only rises), and their lower bounds, below L, cannot raise it."""
         big = [j for j, p in enumerate(pending) if p.n2 > REFINE_ABOVE]
         if self.tier2 is None or not big:
             return pending
         union = _union(pending, big)
-        lo, up = self._tier2_bounds(union, q[big])
+        qb = q[big]
+        size = min(REFINE_CHUNK, len(union))
+        buf = (
+            torch.empty(len(big), size, dtype=torch.float64),
+            torch.empty(len(big), size, dtype=torch.float64),
+        )
+        kept: list[list[tuple[torch.Tensor, ...]]] = [[] for _ in big]
+        for s in range(0, len(union), REFINE_CHUNK):
+            part = union[s : s + REFINE_CHUNK]
+            lo, up = (b[:, : len(part)] for b in buf)
+            self._tier2_bounds(part, qb, into=(lo, up))
+            for c, j in enumerate(big):
+                sel = torch.nonzero(up[c] >= pending[j].bound).reshape(-1)
+                kept[c].append((part[sel], lo[c, sel], up[c, sel]))
         out = list(pending)
         for c, j in enumerate(big):
-            out[j] = certify_narrow(pending[j], k, Refined(union, lo[c], up[c]))
+            rows, lo, up = (torch.cat(x) for x in zip(*kept[c], strict=True))
+            out[j] = certify_narrow(pending[j], k, Refined(rows, lo, up))
         return out
 
-    def _tier2_bounds(self, rows: torch.Tensor, q: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def _tier2_bounds(
+        self, rows: torch.Tensor, q: torch.Tensor, into: tuple[torch.Tensor, torch.Tensor] | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         """Float64 (lower, upper) [n,k] bounds on the margins of sorted rows [k] for queries q [n,D] from
-        both tiers of the compact state (kernels.tier2_bounds), REFINE_CHUNK rows per call."""
+        both tiers of the compact state (kernels.tier2_bounds), written ``into`` when given."""
         from fmgs.query.kernels import tier2_bounds
 
         v64 = q.double()
@@ -308,16 +328,17 @@ class EmbeddingIndex:
         W1 = (v64 @ self._W_basis.T).float().contiguous().numpy()
         W2 = (v64 @ self._W_basis2.T).float().contiguous().numpy()
         norms = [x.norm(dim=1).contiguous().numpy() for x in (w1, w2, perp)]
-        lo = torch.empty(len(q), len(rows), dtype=torch.float64)
-        up = torch.empty_like(lo)
-        u = rows.numpy().astype(np.int64)
-        args = (self.coeffs.numpy(), W1, self.tier2.codes.numpy(), W2)
-        for s in range(0, len(u), REFINE_CHUNK):  # bounded working memory per call
-            part = u[s : s + REFINE_CHUNK]
-            tier2_bounds(
-                *args, part, self.canonical_max.numpy(), self._err.numpy(), self.tier2.bounds.numpy(),
-                *norms, self.slack2, lo[:, s : s + len(part)].numpy(), up[:, s : s + len(part)].numpy(),
-            )  # fmt: skip
+        if into is None:
+            into = (
+                torch.empty(len(q), len(rows), dtype=torch.float64),
+                torch.empty(len(q), len(rows), dtype=torch.float64),
+            )
+        lo, up = into
+        tier2_bounds(
+            self.coeffs.numpy(), W1, self.tier2.codes.numpy(), W2, rows.numpy().astype(np.int64),
+            self.canonical_max.numpy(), self._err.numpy(), self.tier2.bounds.numpy(), *norms, self.slack2,
+            lo.numpy(), up.numpy(),
+        )  # fmt: skip
         return lo, up
 
     def _refine_pending(self, pending: list, q: torch.Tensor, cv: torch.Tensor | None) -> dict:

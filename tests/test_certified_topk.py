@@ -50,6 +50,9 @@ def _index(scene, path, monkeypatch):
     emb, _, canon, _, _ = scene
     if path.endswith("-refined"):
         monkeypatch.setattr(index_mod, "REFINE_ABOVE", 0)
+    if path.endswith("-direct"):  # every text's first pass is the second tier over every row
+        monkeypatch.setattr(index_mod, "TIER2_FIRST_MIN_SAMPLE", 0)
+        monkeypatch.setattr(index_mod, "TIER2_FIRST_FRACTION", -1.0)
     return _indexes(emb, canon)[path.split("-")[0]]
 
 
@@ -69,7 +72,9 @@ def test_query_sets_span_the_range(scene):
     assert len(emb.unique(dim=0)) < M - len(copies) // 3  # exact copies: ties
 
 
-@pytest.mark.parametrize("path", ["exact", "compact", "compact-refined", "tier1", "tier1-refined"])
+@pytest.mark.parametrize(
+    "path", ["exact", "compact", "compact-refined", "compact-direct", "tier1", "tier1-refined"]
+)
 @pytest.mark.parametrize("k", [1, 7, 100, 1000, M])
 def test_top_k_equals_brute_force_on_every_query_set(scene, path, k, monkeypatch):
     emb, _, canon, _, sets = scene
@@ -101,7 +106,7 @@ def test_ties_at_the_kth_place_break_by_row(scene, path):
     assert groups >= 5
 
 
-@pytest.mark.parametrize("path", ["exact", "compact", "compact-refined", "tier1-refined"])
+@pytest.mark.parametrize("path", ["exact", "compact", "compact-refined", "compact-direct", "tier1-refined"])
 def test_threshold_queries_are_certified(scene, path, monkeypatch):
     emb, _, canon, _, sets = scene
     idx = _index(scene, path, monkeypatch)
@@ -114,7 +119,7 @@ def test_threshold_queries_are_certified(scene, path, monkeypatch):
                 assert bool((a.relevancy >= thr).all())
 
 
-@pytest.mark.parametrize("path", ["exact", "compact", "compact-refined", "tier1-refined"])
+@pytest.mark.parametrize("path", ["exact", "compact", "compact-refined", "compact-direct", "tier1-refined"])
 def test_custom_canonical_and_batches(scene, path, monkeypatch):
     emb, _, canon, canon_vecs, sets = scene
     idx = _index(scene, path, monkeypatch)
@@ -193,6 +198,23 @@ def test_second_tier_bounds_hold_are_tight_and_match_their_twin(scene):
     assert torch.allclose(lo1[0], lo[0, sub], rtol=0, atol=1e-5) and torch.allclose(
         up1[0], up[0, sub], atol=1e-5
     )
+
+
+def test_texts_the_first_tier_cannot_settle_go_straight_to_the_second(scene, monkeypatch):
+    emb, _, canon, _, sets = scene
+    monkeypatch.setattr(index_mod, "TIER2_FIRST_MIN_SAMPLE", 0)
+    monkeypatch.setattr(index_mod, "TIER2_FIRST_STEP", 64)  # a 94-row sample of this small scene
+    idx = _indexes(emb, canon)["compact"]
+    q = torch.cat([sets[n] for n in QUERY_SETS])
+    chosen = set(idx._tier2_first(q, 10))
+    # What the first tier actually leaves: the share of rows whose upper bound reaches the 10th margin.
+    exact = emb.double() @ q.double().T - canon.amax(1).double()[:, None]
+    left = (idx._upper(q, None).double() >= torch.topk(exact, 10, dim=0).values[-1]).double().mean(0)
+    assert {j for j in range(len(q)) if left[j] > 0.8} <= chosen  # CLIP-like and absent: most rows left
+    assert not {j for j in range(len(q)) if left[j] < 0.05} & chosen  # settled by the first tier
+    # Each text of a mixed batch takes its own first pass; answers exact either way.
+    for qi, a in zip(q, idx.rank_many(q, 10), strict=True):
+        _same(a, rank_reference(emb, canon, qi, 10))
 
 
 def test_certified_top_k_with_loose_bounds_is_still_exact():

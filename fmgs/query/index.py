@@ -45,6 +45,15 @@ REFINE_ABOVE = 4096
 """More rows than this to rescore are first bounded by a float32 pass (fmgs.query.certify)."""
 REFINE_CHUNK = 262144
 """Rows per refinement pass: bounds its working memory (about 40 bytes per row and text)."""
+TIER2_FIRST_FRACTION = 0.35
+"""A text goes straight to the second tier over every row when its first-tier bound is estimated to leave
+more than this fraction of the rows: measured at 1M rows, the first tier costs 9 ms and the second 27 ms
+over every row, and what the first leaves costs the second again plus about 8 ms of selections and
+masks, so the two break even near a third (benchmarks/TEXT.md)."""
+TIER2_FIRST_STEP = 256
+"""Every this-many-th row makes the sample that estimates it."""
+TIER2_FIRST_MIN_SAMPLE = 256
+"""Smaller scenes (under 64K rows) skip the estimate: the first tier is cheap there."""
 _U32 = 2.0**-24
 
 
@@ -283,14 +292,52 @@ class EmbeddingIndex:
         _check_finite(out, uniq)
         return out[torch.from_numpy(inv).to(self.device)]
 
-    def _narrow_pending(self, pending: list[Pending], q: torch.Tensor, k: int) -> list[Pending]:
+    def _tier2_first(self, q: torch.Tensor, k: int) -> list[int]:
+        """Texts whose first-tier bound would leave more than TIER2_FIRST_FRACTION of the rows (CLIP-like
+        and absent queries): their first pass is the second tier over every row. Estimated on every
+        TIER2_FIRST_STEP-th row: the first tier's upper bounds against the sample's best second-tier
+        lower bounds (a speed decision only: either pass gives exact answers)."""
+        M = self.num
+        if self.tier2 is None or M // TIER2_FIRST_STEP < TIER2_FIRST_MIN_SAMPLE:
+            return []
+        rows = torch.arange(0, M, TIER2_FIRST_STEP)
+        lo2, _ = self._tier2_bounds(rows, q)
+        W, wn, vn = self._weights(q)
+        up1 = (self.coeffs[rows].float() @ W.T - self.canonical_max[rows, None]).T  # [n,S]
+        up1 = up1 + self._err[rows] * wn[:, None] + self._res[rows] * vn[:, None]
+        ks = max(1, -(-k // TIER2_FIRST_STEP))
+        L = torch.topk(lo2, min(ks, len(rows)), dim=1).values[:, -1:]
+        frac = (up1.double() >= L).double().mean(1)
+        return [j for j in range(len(q)) if float(frac[j]) > TIER2_FIRST_FRACTION]
+
+    def _uppers(self, q: torch.Tensor, cv: torch.Tensor | None, direct: list[int]) -> torch.Tensor:
+        """[n,M] upper bounds on every row's margin: the first tier's, or for the texts in ``direct`` the
+        second tier's (rounded up to float32)."""
+        n, M = len(q), self.num
+        rest = [j for j in range(n) if j not in direct]
+        if not direct:
+            return self._upper(q, cv).T.contiguous()
+        out = torch.empty(n, M, dtype=torch.float32)
+        if rest:
+            out[rest] = self._upper(q[rest], cv).T
+        if len(direct) == n:
+            self._tier2_bounds(torch.arange(0), q, upper_into=out)
+        else:
+            out[direct] = self._tier2_bounds(
+                torch.arange(0), q[direct], upper_into=torch.empty(len(direct), M)
+            )[1]
+        return out
+
+    def _narrow_pending(
+        self, pending: list[Pending], q: torch.Tensor, k: int, skip: list[int] = ()
+    ) -> list[Pending]:
         """The texts with more than REFINE_ABOVE rows left, narrowed by the second tier's bounds (one pass
         over the union of their rows for all of them); the others as they are.
 
         The pass runs REFINE_CHUNK rows at a time into reused buffers and keeps, per text, only the rows
         whose second-tier upper bound reaches that text's L: the others are out whatever L becomes (it
         only rises), and their lower bounds, below L, cannot raise it."""
-        big = [j for j, p in enumerate(pending) if p.n2 > REFINE_ABOVE]
+        big = [j for j, p in enumerate(pending) if p.n2 > REFINE_ABOVE and j not in skip]
         if self.tier2 is None or not big:
             return pending
         union = _union(pending, big)
@@ -315,10 +362,16 @@ class EmbeddingIndex:
         return out
 
     def _tier2_bounds(
-        self, rows: torch.Tensor, q: torch.Tensor, into: tuple[torch.Tensor, torch.Tensor] | None = None
+        self,
+        rows: torch.Tensor,
+        q: torch.Tensor,
+        into: tuple[torch.Tensor, torch.Tensor] | None = None,
+        upper_into: torch.Tensor | None = None,
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """Float64 (lower, upper) [n,k] bounds on the margins of sorted rows [k] for queries q [n,D] from
-        both tiers of the compact state (kernels.tier2_bounds), written ``into`` when given."""
+        both tiers of the compact state (kernels.tier2_bounds), written ``into`` when given; with
+        ``upper_into`` ([n,M] float32, contiguous) instead, every row's upper bound (kernels.tier2_upper,
+        rounded up), returned twice."""
         from fmgs.query.kernels import tier2_bounds
 
         v64 = q.double()
@@ -328,6 +381,14 @@ class EmbeddingIndex:
         W1 = (v64 @ self._W_basis.T).float().contiguous().numpy()
         W2 = (v64 @ self._W_basis2.T).float().contiguous().numpy()
         norms = [x.norm(dim=1).contiguous().numpy() for x in (w1, w2, perp)]
+        if upper_into is not None:  # every row, upper bounds only, float32 rounded up
+            from fmgs.query.kernels import tier2_upper
+
+            tier2_upper(
+                self.coeffs.numpy(), W1, self.tier2.codes.numpy(), W2, self.canonical_max.numpy(),
+                self._err.numpy(), self.tier2.bounds.numpy(), *norms, self.slack2, upper_into.numpy(),
+            )  # fmt: skip
+            return upper_into, upper_into
         if into is None:
             into = (
                 torch.empty(len(q), len(rows), dtype=torch.float64),
@@ -428,7 +489,8 @@ class EmbeddingIndex:
             return [Ranked(torch.zeros(0, dtype=torch.int64), e, e, 0) for _ in range(n)]
         q = queries.float().to(self.device)
         cv = None if canonical_vectors is None else canonical_vectors.float().to(self.device)
-        upper = self._upper(q, cv)
+        direct = self._tier2_first(q, k) if cv is None else []
+        upper = self._uppers(q, cv, direct)  # [n,M]: each text's bounds in one run of memory
         m_min = _threshold_margin(float(threshold))
         # First candidates: rerank * k, but at most REFINE_ABOVE beyond k (a large k would pay float64
         # rescoring for rows the refinement pass settles more cheaply).
@@ -444,14 +506,13 @@ class EmbeddingIndex:
 
             return margins
 
-        upper = upper.T.contiguous()  # [n,M]: each text's bounds in one run of memory
         pending = []
         for j in range(n):
             if between is not None:
                 between(j)
             pending.append(certify_start(upper[j], k, scorer(j), m_min, first))
         if cv is None:
-            pending = self._narrow_pending(pending, q, k)
+            pending = self._narrow_pending(pending, q, k, skip=direct)
         refined = self._refine_pending(pending, q, cv)
         out = []
         for j, p in enumerate(pending):

@@ -94,11 +94,8 @@ def tier2_bounds(
     bounds2[i,0] wn2[k] + bounds2[i,1] vn2[k] + slack (slack covers the float32 sum). A1 [M,r1],
     A2 [M,r2] int8; W1 [n,r1], W2 [n,r2] float32; err1 [M], shift [M] float32; bounds2 [M,2] float32;
     wn1, wn2, vn2 [n] float64; lo, up [n,m] float64. Twin: ``tier2_bounds_reference``."""
-    m = rows.shape[0]
-    r1 = A1.shape[1]
-    r2 = A2.shape[1]
     n = W1.shape[0]
-    for t in numba.prange(m):
+    for t in numba.prange(rows.shape[0]):
         i = rows[t]
         sh = np.float64(shift[i])
         e1 = np.float64(err1[i])
@@ -106,35 +103,48 @@ def tier2_bounds(
         res = np.float64(bounds2[i, 1])
         k = 0
         while k + 3 < n:  # four texts per sweep of the row: one conversion feeds four products
-            a0 = np.float32(0.0)
-            a1 = np.float32(0.0)
-            a2 = np.float32(0.0)
-            a3 = np.float32(0.0)
-            for j in range(r1):
-                x = np.float32(A1[i, j])
-                a0 += x * W1[k, j]
-                a1 += x * W1[k + 1, j]
-                a2 += x * W1[k + 2, j]
-                a3 += x * W1[k + 3, j]
-            for j in range(r2):
-                x = np.float32(A2[i, j])
-                a0 += x * W2[k, j]
-                a1 += x * W2[k + 1, j]
-                a2 += x * W2[k + 2, j]
-                a3 += x * W2[k + 3, j]
+            a0, a1, a2, a3 = _dots4(A1, W1, A2, W2, i, k)
             _put_tier2(a0, sh, e1, e2, res, wn1, wn2, vn2, slack, lo, up, k, t)
             _put_tier2(a1, sh, e1, e2, res, wn1, wn2, vn2, slack, lo, up, k + 1, t)
             _put_tier2(a2, sh, e1, e2, res, wn1, wn2, vn2, slack, lo, up, k + 2, t)
             _put_tier2(a3, sh, e1, e2, res, wn1, wn2, vn2, slack, lo, up, k + 3, t)
             k += 4
         while k < n:
-            a0 = np.float32(0.0)
-            for j in range(r1):
-                a0 += np.float32(A1[i, j]) * W1[k, j]
-            for j in range(r2):
-                a0 += np.float32(A2[i, j]) * W2[k, j]
-            _put_tier2(a0, sh, e1, e2, res, wn1, wn2, vn2, slack, lo, up, k, t)
+            _put_tier2(_dots1(A1, W1, A2, W2, i, k), sh, e1, e2, res, wn1, wn2, vn2, slack, lo, up, k, t)
             k += 1
+
+
+@numba.njit(inline="always", cache=True)
+def _dots4(A1, W1, A2, W2, i, k):  # pragma: no cover
+    """Row i's codes (both tiers) dotted with texts k..k+3's weights, float32, the row converted once."""
+    a0 = np.float32(0.0)
+    a1 = np.float32(0.0)
+    a2 = np.float32(0.0)
+    a3 = np.float32(0.0)
+    for j in range(A1.shape[1]):
+        x = np.float32(A1[i, j])
+        a0 += x * W1[k, j]
+        a1 += x * W1[k + 1, j]
+        a2 += x * W1[k + 2, j]
+        a3 += x * W1[k + 3, j]
+    for j in range(A2.shape[1]):
+        x = np.float32(A2[i, j])
+        a0 += x * W2[k, j]
+        a1 += x * W2[k + 1, j]
+        a2 += x * W2[k + 2, j]
+        a3 += x * W2[k + 3, j]
+    return a0, a1, a2, a3
+
+
+@numba.njit(inline="always", cache=True)
+def _dots1(A1, W1, A2, W2, i, k):  # pragma: no cover
+    """Row i's codes (both tiers) dotted with text k's weights, float32."""
+    a0 = np.float32(0.0)
+    for j in range(A1.shape[1]):
+        a0 += np.float32(A1[i, j]) * W1[k, j]
+    for j in range(A2.shape[1]):
+        a0 += np.float32(A2[i, j]) * W2[k, j]
+    return a0
 
 
 @numba.njit(inline="always", cache=True)
@@ -143,6 +153,48 @@ def _put_tier2(acc, sh, e1, e2, res, wn1, wn2, vn2, slack, lo, up, k, t):  # pra
     g = e1 * wn1[k] + e2 * wn2[k] + res * vn2[k] + slack
     lo[k, t] = d - g
     up[k, t] = d + g
+
+
+@numba.njit(parallel=True, fastmath=True, cache=True)
+def tier2_upper(
+    A1: np.ndarray,
+    W1: np.ndarray,
+    A2: np.ndarray,
+    W2: np.ndarray,
+    shift: np.ndarray,
+    err1: np.ndarray,
+    bounds2: np.ndarray,
+    wn1: np.ndarray,
+    wn2: np.ndarray,
+    vn2: np.ndarray,
+    slack: float,
+    up: np.ndarray,
+) -> None:  # pragma: no cover
+    """``tier2_bounds``'s upper bound for every row i (up [n,M] float32, rounded up: the float64 bound u
+    plus |u| 2^-22 + 1e-30 before float32's round-to-nearest, which moves it by at most |u| 2^-24)."""
+    n = W1.shape[0]
+    for i in numba.prange(A1.shape[0]):
+        sh = np.float64(shift[i])
+        e1 = np.float64(err1[i])
+        e2 = np.float64(bounds2[i, 0])
+        res = np.float64(bounds2[i, 1])
+        k = 0
+        while k + 3 < n:
+            a0, a1, a2, a3 = _dots4(A1, W1, A2, W2, i, k)
+            up[k, i] = _up32(a0, sh, e1, e2, res, wn1, wn2, vn2, slack, k)
+            up[k + 1, i] = _up32(a1, sh, e1, e2, res, wn1, wn2, vn2, slack, k + 1)
+            up[k + 2, i] = _up32(a2, sh, e1, e2, res, wn1, wn2, vn2, slack, k + 2)
+            up[k + 3, i] = _up32(a3, sh, e1, e2, res, wn1, wn2, vn2, slack, k + 3)
+            k += 4
+        while k < n:
+            up[k, i] = _up32(_dots1(A1, W1, A2, W2, i, k), sh, e1, e2, res, wn1, wn2, vn2, slack, k)
+            k += 1
+
+
+@numba.njit(inline="always", cache=True)
+def _up32(acc, sh, e1, e2, res, wn1, wn2, vn2, slack, k):  # pragma: no cover
+    u = np.float64(acc) - sh + e1 * wn1[k] + e2 * wn2[k] + res * vn2[k] + slack
+    return np.float32(u + abs(u) * 2.0**-22 + 1e-30)
 
 
 def tier2_bounds_reference(A1, W1, A2, W2, rows, shift, err1, bounds2, wn1, wn2, vn2, slack):

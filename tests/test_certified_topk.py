@@ -193,7 +193,7 @@ def test_second_tier_bounds_hold_are_tight_and_match_their_twin(scene):
         up.numpy(), rup, atol=idx.slack2
     )
     # Every row's upper bound alone, float32 rounded up (the direct first pass): never below the twin's.
-    up32 = idx._tier2_bounds(torch.arange(0), q, upper_into=torch.empty(len(q), M))[1]
+    up32 = idx._tier2_upper(q, torch.empty(len(q), M))
     assert bool((up32.double() >= exact).all())  # the bound holds on every row
     assert np.allclose(up32.double().numpy(), rup, rtol=0, atol=idx.slack2)  # its twin, up to the float32 sum
     # Odd row subsets and one text (the kernel's single-text tail).

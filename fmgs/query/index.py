@@ -321,11 +321,8 @@ class EmbeddingIndex:
         if rest:
             out[rest] = self._upper(q[rest], cv).T
         if len(direct) == n:
-            self._tier2_bounds(torch.arange(0), q, upper_into=out)
-        else:
-            out[direct] = self._tier2_bounds(
-                torch.arange(0), q[direct], upper_into=torch.empty(len(direct), M)
-            )[1]
+            return self._tier2_upper(q, out)
+        out[direct] = self._tier2_upper(q[direct], torch.empty(len(direct), M))
         return out
 
     def _narrow_pending(
@@ -361,46 +358,46 @@ class EmbeddingIndex:
             out[j] = certify_narrow(pending[j], k, Refined(rows, lo, up))
         return out
 
-    def _tier2_bounds(
-        self,
-        rows: torch.Tensor,
-        q: torch.Tensor,
-        into: tuple[torch.Tensor, torch.Tensor] | None = None,
-        upper_into: torch.Tensor | None = None,
-    ) -> tuple[torch.Tensor, torch.Tensor]:
-        """Float64 (lower, upper) [n,k] bounds on the margins of sorted rows [k] for queries q [n,D] from
-        both tiers of the compact state (kernels.tier2_bounds), written ``into`` when given; with
-        ``upper_into`` ([n,M] float32, contiguous) instead, every row's upper bound (kernels.tier2_upper,
-        rounded up), returned twice."""
-        from fmgs.query.kernels import tier2_bounds
-
+    def _tier2_weights(self, q: torch.Tensor) -> tuple:
+        """Both tiers' kernel weights for queries q [n,D]: W1 [n,r], W2 [n,r2] float32 and the norms
+        |B v|, |B2 v|, |v - B^T B v - B2^T B2 v| [n] float64 (float64 maths)."""
         v64 = q.double()
         w1 = v64 @ self.basis.T
         w2 = v64 @ self.tier2.basis.T
         perp = v64 - w1 @ self.basis - w2 @ self.tier2.basis
         W1 = (v64 @ self._W_basis.T).float().contiguous().numpy()
         W2 = (v64 @ self._W_basis2.T).float().contiguous().numpy()
-        norms = [x.norm(dim=1).contiguous().numpy() for x in (w1, w2, perp)]
-        if upper_into is not None:  # every row, upper bounds only, float32 rounded up
-            from fmgs.query.kernels import tier2_upper
+        return (W1, W2, *(x.norm(dim=1).contiguous().numpy() for x in (w1, w2, perp)))
 
-            tier2_upper(
-                self.coeffs.numpy(), W1, self.tier2.codes.numpy(), W2, self.canonical_max.numpy(),
-                self._err.numpy(), self.tier2.bounds.numpy(), *norms, self.slack2, upper_into.numpy(),
-            )  # fmt: skip
-            return upper_into, upper_into
+    def _tier2_bounds(
+        self, rows: torch.Tensor, q: torch.Tensor, into: tuple[torch.Tensor, torch.Tensor] | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Float64 (lower, upper) [n,k] bounds on the margins of sorted rows [k] for queries q [n,D] from
+        both tiers of the compact state (kernels.tier2_bounds), written ``into`` when given."""
+        from fmgs.query.kernels import tier2_bounds
+
+        W1, W2, *norms = self._tier2_weights(q)
         if into is None:
-            into = (
-                torch.empty(len(q), len(rows), dtype=torch.float64),
-                torch.empty(len(q), len(rows), dtype=torch.float64),
-            )
+            into = tuple(torch.empty(len(q), len(rows), dtype=torch.float64) for _ in range(2))
         lo, up = into
+        r = np.ascontiguousarray(rows.numpy(), np.int64)  # no copy for the int64 rows callers pass
         tier2_bounds(
-            self.coeffs.numpy(), W1, self.tier2.codes.numpy(), W2, rows.numpy().astype(np.int64),
-            self.canonical_max.numpy(), self._err.numpy(), self.tier2.bounds.numpy(), *norms, self.slack2,
-            lo.numpy(), up.numpy(),
+            self.coeffs.numpy(), W1, self.tier2.codes.numpy(), W2, r, self.canonical_max.numpy(),
+            self._err.numpy(), self.tier2.bounds.numpy(), *norms, self.slack2, lo.numpy(), up.numpy(),
         )  # fmt: skip
         return lo, up
+
+    def _tier2_upper(self, q: torch.Tensor, out: torch.Tensor) -> torch.Tensor:
+        """Every row's upper bound [n,M] from both tiers for queries q [n,D], float32 rounded up
+        (kernels.tier2_upper), written into ``out`` (contiguous)."""
+        from fmgs.query.kernels import tier2_upper
+
+        W1, W2, *norms = self._tier2_weights(q)
+        tier2_upper(
+            self.coeffs.numpy(), W1, self.tier2.codes.numpy(), W2, self.canonical_max.numpy(),
+            self._err.numpy(), self.tier2.bounds.numpy(), *norms, self.slack2, out.numpy(),
+        )  # fmt: skip
+        return out
 
     def _refine_pending(self, pending: list, q: torch.Tensor, cv: torch.Tensor | None) -> dict:
         """Tighter bounds for the texts with more than REFINE_ABOVE rows left: one float32 pass over the

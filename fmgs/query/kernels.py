@@ -97,10 +97,7 @@ def tier2_bounds(
     n = W1.shape[0]
     for t in numba.prange(rows.shape[0]):
         i = rows[t]
-        sh = np.float64(shift[i])
-        e1 = np.float64(err1[i])
-        e2 = np.float64(bounds2[i, 0])
-        res = np.float64(bounds2[i, 1])
+        sh, e1, e2, res = _row_terms(shift, err1, bounds2, i)
         k = 0
         while k + 3 < n:  # four texts per sweep of the row: one conversion feeds four products
             a0, a1, a2, a3 = _dots4(A1, W1, A2, W2, i, k)
@@ -148,9 +145,21 @@ def _dots1(A1, W1, A2, W2, i, k):  # pragma: no cover
 
 
 @numba.njit(inline="always", cache=True)
+def _row_terms(shift, err1, bounds2, i):  # pragma: no cover
+    """Row i's shift and its three error norms, widened to float64."""
+    return np.float64(shift[i]), np.float64(err1[i]), np.float64(bounds2[i, 0]), np.float64(bounds2[i, 1])
+
+
+@numba.njit(inline="always", cache=True)
+def _width(e1, e2, res, wn1, wn2, vn2, slack, k):  # pragma: no cover
+    """Half-width of text k's bound on a row with error norms e1, e2, res (fmgs.query.state)."""
+    return e1 * wn1[k] + e2 * wn2[k] + res * vn2[k] + slack
+
+
+@numba.njit(inline="always", cache=True)
 def _put_tier2(acc, sh, e1, e2, res, wn1, wn2, vn2, slack, lo, up, k, t):  # pragma: no cover
     d = np.float64(acc) - sh
-    g = e1 * wn1[k] + e2 * wn2[k] + res * vn2[k] + slack
+    g = _width(e1, e2, res, wn1, wn2, vn2, slack, k)
     lo[k, t] = d - g
     up[k, t] = d + g
 
@@ -174,10 +183,7 @@ def tier2_upper(
     plus |u| 2^-22 + 1e-30 before float32's round-to-nearest, which moves it by at most |u| 2^-24)."""
     n = W1.shape[0]
     for i in numba.prange(A1.shape[0]):
-        sh = np.float64(shift[i])
-        e1 = np.float64(err1[i])
-        e2 = np.float64(bounds2[i, 0])
-        res = np.float64(bounds2[i, 1])
+        sh, e1, e2, res = _row_terms(shift, err1, bounds2, i)
         k = 0
         while k + 3 < n:
             a0, a1, a2, a3 = _dots4(A1, W1, A2, W2, i, k)
@@ -193,7 +199,7 @@ def tier2_upper(
 
 @numba.njit(inline="always", cache=True)
 def _up32(acc, sh, e1, e2, res, wn1, wn2, vn2, slack, k):  # pragma: no cover
-    u = np.float64(acc) - sh + e1 * wn1[k] + e2 * wn2[k] + res * vn2[k] + slack
+    u = np.float64(acc) - sh + _width(e1, e2, res, wn1, wn2, vn2, slack, k)
     return np.float32(u + abs(u) * 2.0**-22 + 1e-30)
 
 

@@ -12,12 +12,14 @@ import fmgs.query.index as index_mod
 from benchmarks.query_sets import QUERY_SETS, query_sets, scene_embeddings
 from fmgs.errors import ValidationError
 from fmgs.query.certify import (
+    TOP_SAMPLE_STEP,
     Refined,
     certified_top_k,
     certify_finish,
     certify_narrow,
     certify_start,
     threshold_margin,
+    top_rows,
 )
 from fmgs.query.index import EmbeddingIndex, IndexConfig, rank_reference, served_relevancy
 from fmgs.query.state import build_state
@@ -288,3 +290,25 @@ def test_state_norms_bound_the_decomposition():
     assert st.tier2 is not None and st.rank + st.tier2.rank == 24  # rank 20, rounded up to a multiple of 8
     assert float(st.tier2.bounds[:, 1].max()) < 1e-2  # what remains is float16 rounding
     assert build_state(low.half(), 8, rank2=0).tier2 is None
+
+
+def test_top_rows_selects_the_largest_values_like_topk():
+    """The sampled selector returns n rows whose values are topk's values (ties at the cut may pick other
+    rows of the same value), sorted, on smooth, tied, adversarial (the sample sees only small values) and
+    small inputs."""
+    g = torch.Generator().manual_seed(5)
+    M = 200_000
+    smooth = torch.randn(M, generator=g)
+    tied = torch.randint(0, 50, (M,), generator=g).float()  # thousands of rows per value
+    hidden = torch.zeros(M)
+    hidden[torch.arange(M) % TOP_SAMPLE_STEP != 0] = torch.rand(M - M // TOP_SAMPLE_STEP, generator=g) + 1
+    cases = [(smooth, n) for n in (1, 7, 100, 781, 3000)] + [(tied, n) for n in (1, 100, 2500)]
+    spiked = torch.zeros(M)  # the sample sees only large values: too few candidates, full selection
+    spiked[::TOP_SAMPLE_STEP] = torch.rand(len(spiked[::TOP_SAMPLE_STEP]), generator=g) + 1
+    cases += [(hidden, 100), (spiked, 100), (smooth[:500], 20), (smooth, M), (smooth, M // 2)]
+    for x, n in cases:
+        rows = top_rows(x, n)
+        twin = torch.topk(x, n, sorted=False).values.sort().values
+        assert len(rows) == n and len(torch.unique(rows)) == n
+        assert bool((rows[1:] > rows[:-1]).all())
+        assert torch.equal(x[rows].sort().values, twin)

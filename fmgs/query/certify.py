@@ -60,6 +60,25 @@ def kth_largest(x: torch.Tensor, k: int) -> float:
     return float(torch.topk(x, k, sorted=False).values.min())
 
 
+TOP_SAMPLE_STEP = 64
+"""``top_rows`` estimates its cut on every this-many-th value."""
+
+
+def top_rows(x: torch.Tensor, n: int) -> torch.Tensor:
+    """Sorted indices [n] of n largest values of x [M] (which of several equal values at the cut is taken
+    is unspecified, as for torch.topk, its twin). A cut from a strided sample (twice the share of n it
+    should hold) leaves a few thousand candidates to select from: one pass over x, not a full top-n
+    selection (6 ms at 1M rows)."""
+    n = min(int(n), len(x))
+    if len(x) >= 16 * TOP_SAMPLE_STEP and 0 < n <= len(x) // (4 * TOP_SAMPLE_STEP):
+        s = x[::TOP_SAMPLE_STEP]
+        cut = torch.topk(s, min(len(s), 2 * -(-n // TOP_SAMPLE_STEP) + 8), sorted=False).values.min()
+        cand = torch.nonzero(x >= cut).reshape(-1)
+        if len(cand) >= n:  # else the sample misjudged the cut: select over every value
+            return cand[torch.topk(x[cand], n, sorted=False).indices].sort().values
+    return torch.topk(x, n, sorted=False).indices.sort().values
+
+
 def order_rows(margin: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
     """Positions sorting by margin descending, ties by row ascending (reproducible)."""
     by_row = torch.argsort(rows)
@@ -96,7 +115,7 @@ def certify_start(
     """Step 1: rescore the ``first`` rows of highest upper bound (at least k), find L and what remains."""
     up = upper.detach().cpu()
     n1 = min(len(up), max(int(first), k))
-    rows1 = torch.topk(up, n1, sorted=False).indices.sort().values
+    rows1 = top_rows(up, n1)
     m1 = exact(rows1)
     L = max(m_min, kth_largest(m1, k))
     need = up >= L

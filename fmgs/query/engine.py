@@ -194,9 +194,7 @@ class SceneEngine:
             idx = self.selected[r.rows]
             inst, ids = [], None
             if instances is not None:
-                g = self.gaussians
-                means = g.means[idx].detach().cpu().double().numpy()
-                opac = g.opacities[idx].detach().cpu().double().numpy()
+                means, opac = self.instance_inputs(idx)
                 eps = instances.eps or self._eps_for(instances)
                 inst, ids = group_instances(means, r.relevancy.numpy(), opac, instances, eps)
             out.append(TextAnswer(idx, r.relevancy, r.similarity, inst, ids, r.rescored, pres))
@@ -232,6 +230,14 @@ class SceneEngine:
             probe.contrasts, "colour contrasts"
         )
 
+    def instance_inputs(self, index: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
+        """Means [K,3] and opacities [K] float64 of the Gaussians at scene indices [K], as instance grouping
+        reads them: opacities from those rows' logits in float64 (a float32 sigmoid over the whole scene
+        rounds some rows differently from one over a shard)."""
+        g = self.gaussians
+        means = g.means[index].detach().cpu().double().numpy()
+        return means, torch.sigmoid(g.opacity_logits[index].detach().cpu().double()).numpy()
+
     def gaussian_columns(self, index: torch.Tensor, names) -> dict[str, np.ndarray]:
         """Attributes of the Gaussians at scene indices [K], float32, for each name asked (a subset of
         GAUSSIAN_COLUMNS): mean [K,3]; opacity [K]; scale [K,3] (activated); rotation [K,4] unit wxyz
@@ -244,10 +250,13 @@ class SceneEngine:
         for name in names:
             if name == "mean":
                 out[name] = f32(g.means[index])
+            # Activated from the rows asked only, in float64 rounded to float32: float32 sigmoid and exp
+            # take a vector path for most elements and a scalar one for the rest, so a Gaussian's value
+            # would depend on where it sits (shards would not match the whole scene bit for bit).
             elif name == "opacity":
-                out[name] = f32(g.opacities[index])
+                out[name] = f32(torch.sigmoid(g.opacity_logits[index].double()))
             elif name == "scale":
-                out[name] = f32(g.scales[index])
+                out[name] = f32(torch.exp(g.log_scales[index].double()))
             elif name == "rotation":
                 q = g.quats[index].double()
                 n = q.norm(dim=1, keepdim=True)

@@ -108,9 +108,7 @@ def shard_text(engine: SceneEngine, rows_map: torch.Tensor, gauss_map: torch.Ten
             pd = engine.index.exact_dots(first, torch.cat([pq[None], neg, con])).cpu().numpy()
         means = opac = None
         if sq.instances:
-            g = engine.gaussians
-            means = g.means[local].detach().cpu().double().numpy()
-            opac = g.opacities[local].detach().cpu().double().numpy()
+            means, opac = engine.instance_inputs(local)
         out.append(
             ShardPart(
                 rows_map[r.rows].numpy(),

@@ -12,11 +12,12 @@ class TextSizes:
     gaussians: int
     """Embedded Gaussians of the field-like scene (D = 512)."""
     queries: int
-    """Queries, each timed once per setting (settings interleaved per query)."""
+    """Queries per query set (benchmarks/query_sets.py), each timed once per setting (settings interleaved
+    per query)."""
     top_k: int = 100
     """K of the top-K lists compared."""
     ranks: tuple[int, ...] = (16, 32, 64, 128)
-    """Basis ranks of the compact (int8) path."""
+    """First-tier ranks of the compact (int8) state."""
     subsets: tuple[float, ...] = (0.25, 0.5, 0.75)
     """Fractions of the most opaque Gaussians ranked by the subset knob."""
 
@@ -147,7 +148,7 @@ class Sizes:
 
 
 QUICK = Sizes(
-    text=TextSizes(gaussians=20_000, queries=8),
+    text=TextSizes(gaussians=20_000, queries=2),
     pose=PoseSizes("synthetic-20000", 240, 135, queries=3, reps=1),
     scene=SceneSizes(views=24, width=64, height=48),
     field=FieldSizes(
@@ -185,7 +186,7 @@ QUICK = Sizes(
 )
 
 FULL = Sizes(
-    text=TextSizes(gaussians=1_000_000, queries=30),
+    text=TextSizes(gaussians=1_000_000, queries=8),
     pose=PoseSizes("garden", 480, 270, queries=4, reps=3),
     scene=SceneSizes(views=32, width=64, height=48),
     field=FieldSizes(steps=(250, 500, 1000, 2000, 4200), base_steps=1000, paper_steps=4200, gs_steps=2000),

@@ -20,7 +20,7 @@ from fmgs.metrics import psnr
 from fmgs.synth import SynthConfig, generate
 
 LENS = (-0.25, 0.08, 0.02, -0.015)  # k1, k2, p1, p2: a strong consumer wide-angle lens
-SIZE = dict(views=2, width=96, height=72, points=500, objects=3)
+SIZE = dict(views=2, width=128, height=96, points=500, objects=3)
 
 
 @pytest.fixture(scope="module")

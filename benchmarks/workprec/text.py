@@ -270,6 +270,8 @@ def section(sz: TextSizes, work: Path) -> dict:
         work / "text-package", EngineConfig(replace(cfg.index, rank2=0), device=cfg.device)
     )
     cd = engine.index.canonical.float()  # the package's canonical dots: what the served margin subtracts
+    from benchmarks.text import page_in
+
     try:
         from benchmarks.text import faiss_indexes
 
@@ -278,13 +280,7 @@ def section(sz: TextSizes, work: Path) -> dict:
         faiss_entries = None
     fs = {"emb": emb, "canonical_dots": cd, "opacities": scene.opacities}
     settings = settings_for(sz, fs, engine, tier1, faiss_entries)
-    # The package's files into the page cache, as in a server after its first queries: building the
-    # other settings may have pushed them out, and the first reads would then time the disk.
-    for f in sorted((work / "text-package").rglob("*")):
-        if f.is_file():
-            with f.open("rb") as fh:
-                while fh.read(1 << 24):
-                    pass
+    page_in(work / "text-package")  # building the other settings may have pushed its pages out
     units = engine.unit(queries)  # the vectors the engine ranks by (normalised as served)
     fns = {name: (lambda i, rk=s[2]: rk.rank(units[i], k)) for name, s in settings.items()}
     times, outs = interleaved(fns, len(units))

@@ -69,8 +69,11 @@ class EncoderCache:
                 cache.move_to_end(t)
         missing = list(dict.fromkeys(t for t in texts if t not in have))
         if missing:
+            # One text per pass: a transformer's output for a text changes in its last bits with the
+            # batch it is padded into (other matrix shapes), so a batch would make a text's vector, and
+            # the answer, depend on which texts came with it first (replicas would not agree).
             with torch.no_grad():
-                vecs = enc.encode_text(missing).float().cpu()
+                vecs = torch.cat([enc.encode_text([t]).float().cpu() for t in missing])
             with self._lock:
                 for t, v in zip(missing, vecs, strict=True):
                     cache[t] = v

@@ -302,7 +302,7 @@ def test_top_rows_selects_the_largest_values_like_topk():
     tied = torch.randint(0, 50, (M,), generator=g).float()  # thousands of rows per value
     hidden = torch.zeros(M)
     hidden[torch.arange(M) % TOP_SAMPLE_STEP != 0] = torch.rand(M - M // TOP_SAMPLE_STEP, generator=g) + 1
-    cases = [(smooth, n) for n in (1, 7, 100, 781, 3000)] + [(tied, n) for n in (1, 100, 2500)]
+    cases = [(smooth, n) for n in (1, 7, 100, 781, 3000, M // 8)] + [(tied, n) for n in (1, 100, 2500)]
     spiked = torch.zeros(M)  # the sample sees only large values: too few candidates, full selection
     spiked[::TOP_SAMPLE_STEP] = torch.rand(len(spiked[::TOP_SAMPLE_STEP]), generator=g) + 1
     cases += [(hidden, 100), (spiked, 100), (smooth[:500], 20), (smooth, M), (smooth, M // 2)]

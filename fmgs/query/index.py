@@ -493,32 +493,58 @@ class EmbeddingIndex:
         # rescoring for rows the refinement pass settles more cheaply).
         first = k if self.state is None else min(M, max(k, min(self.cfg.rerank * k, k + REFINE_ABOVE)))
         cmax64 = self.canonical_max.double()
-
-        def scorer(j: int):
-            vecs = q[j : j + 1] if cv is None else torch.cat([q[j : j + 1], cv])
-
-            def margins(rows: torch.Tensor) -> torch.Tensor:
-                d = self.exact_dots(rows, vecs).cpu()
-                return d[:, 0] - (cmax64[rows.to(cmax64.device)].cpu() if cv is None else d[:, 1:].amax(1))
-
-            return margins
-
+        stored = None if cv is not None else cmax64  # None: margins against the custom vectors
+        scorers = [
+            _Scorer(self, q[j : j + 1] if cv is None else torch.cat([q[j : j + 1], cv]), stored)
+            for j in range(n)
+        ]
         pending = []
         for j in range(n):
             if between is not None:
                 between(j)
-            pending.append(certify_start(upper[j], k, scorer(j), m_min, first))
+            pending.append(certify_start(upper[j], k, scorers[j], m_min, first))
         if cv is None:
             pending = self._narrow_pending(pending, q, k, skip=direct)
         refined = self._refine_pending(pending, q, cv)
         out = []
         for j, p in enumerate(pending):
-            c = certify_finish(p, k, scorer(j), m_min, refined.get(j))
-            sim = self.exact_dots(c.rows, q[j : j + 1]).cpu()[:, 0]
+            c = certify_finish(p, k, scorers[j], m_min, refined.get(j))
+            sim = scorers[j].similarity(c.rows)  # every answer row was scored on the way
             rel = served_relevancy(c.margin.float())
             keep = rel >= threshold
             out.append(Ranked(c.rows[keep], rel[keep], sim[keep].float(), c.rescored, c.margin[keep]))
         return out
+
+
+class _Scorer:
+    """A text's exact margins for rows (certify's ExactScorer), keeping the f.q it computed so the answer's
+    similarities are not computed twice (10K float64 dots for k = 10,000)."""
+
+    def __init__(self, index: EmbeddingIndex, vecs: torch.Tensor, cmax64: torch.Tensor | None) -> None:
+        """vecs [1+C,D]: the query, then custom canonical vectors; cmax64 [M]: the stored canonical maxima
+        (None when custom vectors are given)."""
+        self.index, self.vecs, self.cmax64 = index, vecs, cmax64
+        self.rows: list[torch.Tensor] = []
+        self.sims: list[torch.Tensor] = []
+
+    def __call__(self, rows: torch.Tensor) -> torch.Tensor:
+        d = self.index.exact_dots(rows, self.vecs).cpu()
+        self.rows.append(rows.cpu())
+        self.sims.append(d[:, 0])
+        if self.cmax64 is not None:
+            return d[:, 0] - self.cmax64[rows.to(self.cmax64.device)].cpu()
+        return d[:, 0] - d[:, 1:].amax(1)
+
+    def similarity(self, rows: torch.Tensor) -> torch.Tensor:
+        """[k] float64 f.q of rows scored before."""
+        if len(rows) == 0:
+            return torch.zeros(0, dtype=torch.float64)
+        seen, sims = torch.cat(self.rows), torch.cat(self.sims)
+        order = torch.argsort(seen)
+        pos = order[torch.searchsorted(seen[order], rows).clamp_max(len(seen) - 1)]
+        if not torch.equal(seen[pos], rows):
+            raise RuntimeError("a row of the answer was never scored exactly")  # certify's invariant
+        return sims[pos]
 
 
 def _union(pending: list[Pending], texts: list[int]) -> torch.Tensor:

@@ -184,15 +184,6 @@ class FaissRanker:
         return self.bytes
 
 
-def exact_margins(emb: torch.Tensor, cmax: torch.Tensor, q: torch.Tensor, step: int = 262144) -> torch.Tensor:
-    """[M] float64 served margins f.q - max_n f.c_n (the ranking every answer is checked against)."""
-    out = torch.empty(len(emb), dtype=torch.float64)
-    q64 = q.double()
-    for s in range(0, len(emb), step):
-        out[s : s + step] = emb[s : s + step].double() @ q64 - cmax[s : s + step].double()
-    return out
-
-
 def settings_for(sz: TextSizes, fs: dict, engine, tier1, faiss_entries: dict | None) -> dict:
     """name -> (curve, label, ranker, exact reference?, certified?) for every compared setting."""
     from fmgs.query.index import EmbeddingIndex, IndexConfig
@@ -255,7 +246,9 @@ def section(sz: TextSizes, work: Path) -> dict:
     from benchmarks.query_sets import QUERY_SETS, query_sets, scene_embeddings
     from benchmarks.scenes import synthetic
     from benchmarks.server import gaussians_from
+    from benchmarks.text import exact_top, faiss_indexes, page_in, recall
     from fmgs.query.engine import EngineConfig, SceneEngine
+    from fmgs.query.index import served_relevancy
 
     n, k = sz.gaussians, sz.top_k
     scene = synthetic(n, seed=3)
@@ -270,11 +263,7 @@ def section(sz: TextSizes, work: Path) -> dict:
         work / "text-package", EngineConfig(replace(cfg.index, rank2=0), device=cfg.device)
     )
     cd = engine.index.canonical.float()  # the package's canonical dots: what the served margin subtracts
-    from benchmarks.text import page_in
-
     try:
-        from benchmarks.text import faiss_indexes
-
         faiss_entries = faiss_indexes(emb, engine.index.canonical_max)
     except ImportError:  # faiss-cpu is a benchmark-only dependency
         faiss_entries = None
@@ -289,18 +278,12 @@ def section(sz: TextSizes, work: Path) -> dict:
     rel = {name: [] for name in settings}
     same = {name: 0 for name in settings}
     for i, q in enumerate(units):
-        from fmgs.query.certify import order_rows
-        from fmgs.query.index import served_relevancy
-
-        m = exact_margins(emb, cmax, q)
-        cand = torch.topk(m, k, sorted=False).indices
-        ref = cand[order_rows(m[cand], cand)]
-        ref_rel = served_relevancy(m[ref].float())
-        kth = m[ref[-1]]
+        truth, m = exact_top(emb, cmax, q, k)  # the float64 brute force: rows best first, margins [M]
+        ref = torch.from_numpy(truth)
+        ref_rel = served_relevancy(torch.from_numpy(m[truth]).float())
         for name in settings:
             o = outs[name][i]
-            # Tie-aware: another copy of a row tied at the k-th margin counts as found.
-            miss[name].append(1.0 - float((m[o.rows] >= kth).sum()) / k)
+            miss[name].append(1.0 - recall(o.rows.numpy(), truth, m))  # tie-aware
             rel[name].append(sorted_relevancy_error(o.relevancy, ref_rel))
             same[name] += int(torch.equal(o.rows, ref))
     points = []

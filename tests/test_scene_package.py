@@ -167,3 +167,33 @@ def test_field_dtype_that_does_not_match_the_tensors_is_rejected(tmp_path, dtype
         load_scene(p)
     with pytest.raises(ValidationError, match="field_dtype"):
         _field_export(tmp_path / "t", field_dtype="int8")
+
+
+def test_export_in_blocks_stores_what_the_whole_table_would(tmp_path, monkeypatch):
+    """The embeddings are written and the query state built a block at a time (a 10M-Gaussian scene has
+    no room for whole-table copies); the stored tables equal those of the whole float16 table."""
+    import fmgs.io.tensor_stream as stream
+    from fmgs.query.state import build_state, fingerprint, load_state
+
+    monkeypatch.setattr(stream, "BLOCK_BYTES", 4096)
+    g = torch.Generator().manual_seed(3)
+    emb = safe_normalize(torch.randn(3000, 32, generator=g))
+    canon = safe_normalize(torch.randn(4, 32, generator=g))
+    p = export_scene(
+        tmp_path / "s", _gaussians(3000), torch.arange(3000), emb, "test/enc", canon, query_rank=8
+    )
+    s = load_scene(p)
+    assert torch.equal(s.embeddings, emb.half().float())
+    assert torch.allclose(s.canonical, emb.half().float() @ canon.T, atol=1e-6, rtol=0)
+    stored = load_state(p / "query_state.safetensors", 3000, 32, fingerprint(p / "embeddings.safetensors"))
+    whole = build_state(emb.half(), 8)
+    assert torch.equal(stored.codes, whole.codes) and torch.equal(stored.basis, whole.basis)
+    assert torch.equal(stored.tier2.codes, whole.tier2.codes)
+
+
+def test_embeddings_beyond_float16_are_rejected_before_anything_is_written(tmp_path):
+    emb = safe_normalize(torch.randn(20, 6))
+    emb[7, 1] = 1e5  # finite in float32, infinite once stored
+    with pytest.raises(ValidationError, match=r"index 7.*float16 range"):
+        _export(tmp_path / "s", emb=emb)
+    assert list(tmp_path.iterdir()) == []

@@ -25,13 +25,14 @@ from pathlib import Path
 
 import torch
 
-from fmgs.checks import check_finite
+from fmgs.checks import check_finite, first_bad_row
 from fmgs.errors import ValidationError
 from fmgs.field.bounds import SceneBounds
 from fmgs.field.hashgrid import HashGrid
 from fmgs.field.model import FeatureField, FieldConfig
 from fmgs.gaussians import GaussianSet
 from fmgs.io.atomic import atomic_dir
+from fmgs.io.tensor_stream import save_blocks
 from fmgs.io.tensors import load_gaussians, save_gaussians
 from fmgs.query.state import STATE_FILE, QueryState
 from fmgs.scene.manifest import CANONICAL_PHRASES, FieldInfo, Manifest
@@ -125,28 +126,29 @@ def export_scene(
     if canonical_embeddings.shape != (len(canonical_phrases), D):
         raise ValidationError("canonical_embeddings", f"expected [{len(canonical_phrases)},{D}]")
     check_finite("embeddings", embeddings)
-    # Canonical dots from the stored (float16-rounded) embeddings, so the precomputed channels equal
-    # what a query computes from the stored embeddings.
-    emb = embeddings.detach().float().cpu().half().float()
-    canon = emb @ canonical_embeddings.detach().float().cpu().T
+    canon = _canonical_dots(embeddings, canonical_embeddings.detach().float().cpu())
     from safetensors.torch import save_file
 
     field_info = None
     with atomic_dir(out) as tmp:
         save_gaussians(gaussians, tmp / "gaussians.safetensors")
-        save_file(
+        efile = tmp / "embeddings.safetensors"
+        # Written and read back in blocks: a large scene's embeddings are never copied whole (a 10M x
+        # 512 scene would need 20 GB for a float32 copy and 10 GB more for its bytes).
+        save_blocks(
+            efile,
             {
-                "selected": selected.detach().cpu().to(torch.int64).contiguous(),
-                "embeddings": emb.half().contiguous(),
-                "canonical": canon.contiguous(),
+                "selected": (selected, torch.int64),
+                "embeddings": (embeddings, torch.float16),
+                "canonical": canon,
             },
-            str(tmp / "embeddings.safetensors"),
         )
         if 0 < query_rank < D and M > 0:
+            from fmgs.io.mmap_tensors import mmap_torch
             from fmgs.query.state import build_state, fingerprint, save_state
 
-            state = build_state(emb, query_rank, rank2=query_rank2)
-            save_state(state, tmp / STATE_FILE, fingerprint(tmp / "embeddings.safetensors"))
+            state = build_state(mmap_torch(efile, "embeddings"), query_rank, rank2=query_rank2)
+            save_state(state, tmp / STATE_FILE, fingerprint(efile))
         if field is not None:
             fdt = FIELD_DTYPES[field_dtype]
             state = {
@@ -176,6 +178,19 @@ def export_scene(
             field=field_info,
             extra=dict(extra or {}),
         ).write(tmp)
+    return out
+
+
+def _canonical_dots(embeddings: torch.Tensor, canonical: torch.Tensor, block: int = 1 << 16) -> torch.Tensor:
+    """[M,C] float32 dots of the stored (float16-rounded) embeddings [M,D] with canonical [C,D], a block
+    of rows at a time: the precomputed channels equal what a query computes from the stored rows."""
+    out = torch.empty(embeddings.shape[0], canonical.shape[0])
+    for s in range(0, embeddings.shape[0], block):
+        h = embeddings[s : s + block].detach().cpu().half()
+        row = first_bad_row(~torch.isfinite(h))
+        if row is not None:
+            raise ValidationError("embeddings", "exceeds the float16 range the package stores", s + row)
+        out[s : s + block] = h.float() @ canonical.T
     return out
 
 

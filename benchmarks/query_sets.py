@@ -27,8 +27,10 @@ def scene_embeddings(
     seed: int = 0,
     copies: float = 0.03,
     means: torch.Tensor | None = None,
+    dtype: torch.dtype = torch.float32,
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """[num,dim] float32 embeddings holding float16 values, and [c] int64 rows that are copies.
+    """[num,dim] embeddings holding float16 values (stored as ``dtype``: float16 halves a 10M scene's
+    memory), and [c] int64 rows that are copies.
 
     ``means`` [num,3] places the Gaussians (default: uniform in a unit cube); a fraction ``copies`` of
     the rows repeat another row exactly (half of them) or to within one float16 step (the other half).
@@ -39,11 +41,11 @@ def scene_embeddings(
     B = torch.randn(3, 32, generator=g) * torch.linspace(1, 12, 32)
     W1, b1 = torch.randn(64, 256, generator=g) / 8, torch.randn(256, generator=g) * 0.1
     W2, b2 = torch.randn(256, dim, generator=g) / 16, torch.randn(dim, generator=g) * 0.3
-    out = torch.empty(num, dim)
+    out = torch.empty(num, dim, dtype=dtype)
     for s in range(0, num, 65536):
         p = (x[s : s + 65536] - lo) / (hi - lo).clamp_min(1e-9) @ B
         h = torch.relu(torch.cat([p.sin(), p.cos()], 1) @ W1 + b1)
-        out[s : s + 65536] = safe_normalize(h @ W2 + b2).half().float()
+        out[s : s + 65536] = safe_normalize(h @ W2 + b2).half().to(dtype)
     c = int(num * copies)
     dst = torch.randperm(num, generator=g)[:c]
     src = torch.randint(0, num, (c,), generator=g)
@@ -51,7 +53,7 @@ def scene_embeddings(
     near = dst[c // 2 :]
     col = torch.randint(0, dim, (len(near),), generator=g)
     h = out[near, col].half()
-    out[near, col] = torch.nextafter(h, torch.full_like(h, 1.0)).float()  # one float16 step
+    out[near, col] = torch.nextafter(h, torch.full_like(h, 1.0)).to(dtype)  # one float16 step
     return out, dst.sort().values
 
 

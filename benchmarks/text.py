@@ -17,7 +17,9 @@ from __future__ import annotations
 
 import argparse
 import datetime as dt
+import gc
 import json
+import math
 import statistics
 import sys
 import tempfile
@@ -47,17 +49,29 @@ def one_thread() -> None:
     numba.set_num_threads(1)
 
 
-def package(folder: Path, n: int) -> tuple[Path, torch.Tensor, torch.Tensor, torch.Tensor, float]:
+def package(folder: Path, n: int) -> tuple[Path, torch.Tensor, float]:
+    """The scene exported as a package; returns it, the rows that are copies, and the export time. The
+    embeddings are made in float16 and dropped after export (the benchmark then reads the package's
+    memory map, as the server does), so 10M Gaussians fit this machine."""
     g = torch.Generator().manual_seed(0)
     means = torch.rand(n, 3, generator=g)
     gs = GaussianSet.from_activated(
         means, torch.tensor([[1.0, 0, 0, 0]]).expand(n, 4), torch.full((n, 3), 0.01), torch.full((n,), 0.9)
     )
-    emb, copies = scene_embeddings(n, D, seed=1, means=means)
+    emb, copies = scene_embeddings(n, D, seed=1, means=means, dtype=torch.float16)
     canon_vecs = safe_normalize(torch.randn(4, D, generator=g))
     t0 = time.perf_counter()
     p = export_scene(folder / "text", gs, torch.arange(n), emb, "bench/text", canon_vecs)
-    return p, emb, copies, (emb @ canon_vecs.T).amax(1), time.perf_counter() - t0
+    return p, copies, time.perf_counter() - t0
+
+
+def stored(pkg: Path) -> tuple[torch.Tensor, torch.Tensor]:
+    """The package's float16 embeddings [M,D] (memory map) and each row's best canonical dot [M] (the
+    stored float32 dots the engine reads)."""
+    from fmgs.io.mmap_tensors import mmap_torch
+
+    f = pkg / "embeddings.safetensors"
+    return mmap_torch(f, "embeddings"), mmap_torch(f, "canonical").amax(1)
 
 
 def page_in(folder: Path) -> None:
@@ -71,17 +85,32 @@ def page_in(folder: Path) -> None:
                     pass
 
 
+def margins(emb: torch.Tensor, cmax: torch.Tensor, q: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """float64 margins f.q - cmax [n,M] for queries q [n,D] (one pass over the rows for all of them) and
+    each query's best cosine [n]."""
+    M = len(emb)
+    out = torch.empty(len(q), M, dtype=torch.float64)
+    best = torch.full((len(q),), -2.0, dtype=torch.float64)
+    q64 = q.double()
+    for s in range(0, M, 262144):
+        d = emb[s : s + 262144].double() @ q64.T  # [b,n]
+        best = torch.maximum(best, d.amax(0))
+        out[:, s : s + 262144] = (d - cmax[s : s + 262144].double()[:, None]).T
+    return out, best
+
+
+def top_of(m: torch.Tensor, k: int) -> np.ndarray:
+    """Rows of the k largest margins m [M], best first, ties by row."""
+    top = torch.topk(m, k, sorted=False).indices
+    return np.array(sorted(top.tolist(), key=lambda i: (-float(m[i]), i)))
+
+
 def exact_top(
     emb: torch.Tensor, cmax: torch.Tensor, q: torch.Tensor, k: int
 ) -> tuple[np.ndarray, np.ndarray]:
     """Rows of the exact top k by float64 margin (ties by row), and all margins [M]."""
-    m = torch.empty(len(emb), dtype=torch.float64)
-    q64 = q.double()
-    for s in range(0, len(emb), 262144):
-        m[s : s + 262144] = emb[s : s + 262144].double() @ q64 - cmax[s : s + 262144].double()
-    top = torch.topk(m, k, sorted=False).indices
-    order = sorted(top.tolist(), key=lambda i: (-float(m[i]), i))
-    return np.array(order), m.numpy()
+    m = margins(emb, cmax, q[None])[0][0]
+    return top_of(m, k), m.numpy()
 
 
 def recall(ids: np.ndarray, truth: np.ndarray, margin: np.ndarray) -> float:
@@ -91,172 +120,269 @@ def recall(ids: np.ndarray, truth: np.ndarray, margin: np.ndarray) -> float:
     return float((margin[ids] >= margin[truth[-1]]).sum()) / len(truth)
 
 
-def faiss_indexes(emb: torch.Tensor, cmax: torch.Tensor) -> dict:
+def nlist(n: int) -> int:
+    """IVF lists: the power of two nearest sqrt(n) (faiss's rule of thumb; 1,024 at 1M, 4,096 at 10M)."""
+    return max(64, 1 << round(math.log2(math.sqrt(n))))
+
+
+def faiss_indexes(emb: torch.Tensor, cmax: torch.Tensor, flat: bool = True, block: int = 262144) -> dict:
+    """IndexFlatIP (when ``flat``) and IVF-SQ8 + float16 refinement over [f, -cmax], added a block of
+    rows at a time from emb [M,D] (any dtype, e.g. the package's memory map)."""
     import faiss
 
-    x = np.concatenate([emb.numpy(), -cmax.numpy()[:, None]], 1).astype(np.float32)
+    M = len(emb)
+
+    def rows(s: int, e: int) -> np.ndarray:
+        return np.concatenate([emb[s:e].float().numpy(), -cmax[s:e].float().numpy()[:, None]], 1)
+
     out = {}
+    if flat:
+        t0 = time.perf_counter()
+        index = faiss.IndexFlatIP(D + 1)
+        for s in range(0, M, block):
+            index.add(rows(s, min(M, s + block)))
+        out["faiss_flat"] = {"index": index, "build_s": time.perf_counter() - t0, "bytes": 4 * (D + 1)}
     t0 = time.perf_counter()
-    flat = faiss.IndexFlatIP(D + 1)
-    flat.add(x)
-    out["faiss_flat"] = {"index": flat, "build_s": time.perf_counter() - t0, "bytes": 4 * (D + 1)}
-    t0 = time.perf_counter()
-    ivf = faiss.index_factory(D + 1, "IVF1024,SQ8,Refine(SQfp16)", faiss.METRIC_INNER_PRODUCT)
+    lists = nlist(M)
+    ivf = faiss.index_factory(D + 1, f"IVF{lists},SQ8,Refine(SQfp16)", faiss.METRIC_INNER_PRODUCT)
     rng = np.random.default_rng(0)
-    ivf.train(x[rng.choice(len(x), min(len(x), 100_000), replace=False)])
-    ivf.add(x)
+    sample = torch.from_numpy(np.sort(rng.choice(M, min(M, max(100_000, 40 * lists)), replace=False)))
+    ivf.train(np.concatenate([emb[sample].float().numpy(), -cmax[sample].float().numpy()[:, None]], 1))
+    for s in range(0, M, block):
+        ivf.add(rows(s, min(M, s + block)))
     faiss.extract_index_ivf(ivf).nprobe = 64
     out["faiss_ivf_sq8_refine"] = {
         "index": ivf,
         "build_s": time.perf_counter() - t0,
         "bytes": (D + 1) + 8 + 2 * (D + 1),
+        "nlist": lists,
     }
     return out
 
 
+def faiss_search(name: str, d: dict, q: torch.Tensor, k: int) -> tuple[np.ndarray, float]:
+    """One query through one faiss index: ids [k] and milliseconds."""
+    import faiss
+
+    qx = np.concatenate([q.numpy(), [1.0]]).astype(np.float32)[None]
+    if name == "faiss_ivf_sq8_refine":
+        params = faiss.IndexRefineSearchParameters(k_factor=max(1.0, 1000 / k))
+        t0 = time.perf_counter()
+        _, ids = d["index"].search(qx, k, params=params)
+    else:
+        t0 = time.perf_counter()
+        _, ids = d["index"].search(qx, k)
+    return ids[0], (time.perf_counter() - t0) * 1e3
+
+
+def ks_for(n: int) -> list[int]:
+    return [k for k in (1, 100, 10_000) if k <= n // 4]
+
+
+def measure(n: int, queries: int, tmp: Path) -> dict:
+    """Every measurement at one scene size: ours first (the package paged in), then faiss built from the
+    package's memory map (its indexes and ours never resident together: 10M fits 24 GB)."""
+    res: dict = {"gaussians": n, "dim": D, "queries_per_set": queries, "threads": 1, "sets": {}}
+    pkg, copies, res["export_s"] = package(tmp, n)
+    emb, cmax = stored(pkg)
+    rss0 = _rss_gb()
+    t0 = time.perf_counter()
+    eng = SceneEngine.open(pkg, EngineConfig())
+    res["fmgs_open_s"] = time.perf_counter() - t0
+    res["fmgs_open_rss_gb"] = _rss_gb() - rss0
+    ix = eng.index
+    res["fmgs_bytes"] = (ix.nbytes() - (ix.basis.numel() * 8 if ix.basis is not None else 0)) / n + 8
+    res["fmgs_path"] = "exact float32" if ix.exact else f"compact rank {ix.state.rank}"
+    if ix.tier2 is not None:
+        res["fmgs_path"] += f", second tier rank {ix.tier2.rank} memory-mapped"
+    res["fmgs_state_file_bytes"] = (pkg / "query_state.safetensors").stat().st_size / n
+    sets = query_sets(emb, copies, queries)
+    units = {name: eng.unit(sets[name]) for name in QUERY_SETS}  # the vectors the engine ranks by
+    page_in(pkg)
+    eng.text_query(sets["near"][0], 10)  # compile the kernels
+    rows: dict = {}  # (set, k) -> per-query lists
+    truth: dict = {}  # (set, k, j) -> (rows best first, k-th margin row)
+    for name in QUERY_SETS:
+        m, best = margins(emb, cmax, units[name])
+        for k in ks_for(n):
+            row = rows.setdefault((name, k), {"ours_ms": [], "ours_rescored": [], "ours_recall": []})
+            row["best_cosine"] = best
+            for j, q_in in enumerate(sets[name]):
+                t = top_of(m[j], k)
+                truth[name, k, j] = t
+                t0 = time.perf_counter()
+                a = eng.text_query(q_in, k)
+                row["ours_ms"].append((time.perf_counter() - t0) * 1e3)
+                row["ours_rescored"].append(a.rescored)
+                row["ours_recall"].append(recall(a.index.numpy(), t, m[j].numpy()))
+                assert np.array_equal(a.index.numpy(), t), f"{name} k={k}: not the exact ranking"
+        del m
+        print(name, "ours done", flush=True)
+    batch(eng, sets, res)
+    del eng, ix
+    gc.collect()
+    flat = 4 * (D + 1) * n < 0.4 * _mem_total()
+    res["faiss_flat_skipped"] = not flat
+    fx = faiss_indexes(emb, cmax, flat=flat)
+    for f, d in fx.items():
+        res[f"{f}_build_s"], res[f"{f}_bytes"] = d["build_s"], d["bytes"]
+    res["faiss_ivf_nlist"] = fx["faiss_ivf_sq8_refine"]["nlist"]
+    for name in QUERY_SETS:
+        for k in ks_for(n):
+            row = rows[name, k]
+            for f in fx:
+                row[f"{f}_ms"], row[f"{f}_recall"] = [], []
+            for j, q in enumerate(units[name]):
+                t = truth[name, k, j]
+                for f, d in fx.items():
+                    ids, ms = faiss_search(f, d, q, k)
+                    at = torch.from_numpy(np.append(ids[ids >= 0], t[-1]))
+                    m = margins(emb[at], cmax[at], q[None])[0][0]  # the answer's and the k-th, together
+                    row[f"{f}_ms"].append(ms)
+                    row[f"{f}_recall"].append(float((m[:-1] >= m[-1]).sum()) / k)
+            res["sets"][f"{name}/k={k}"] = summarise(row)
+            print(name, k, {a: round(b, 3) for a, b in res["sets"][f"{name}/k={k}"].items()}, flush=True)
+    return res
+
+
+def summarise(row: dict) -> dict:
+    out = {"best_cosine_median": float(row["best_cosine"].median())}
+    for key, v in row.items():
+        if key.endswith("_ms"):
+            out[key[:-3] + "_ms_median"] = statistics.median(v)
+            out[key[:-3] + "_ms_p90"] = float(np.percentile(v, 90))
+        elif key.endswith("recall"):
+            out[key + "_mean"] = float(np.mean(v))
+            out[key + "_min"] = float(np.min(v))
+        elif key == "ours_rescored":
+            out["ours_rescored_median"] = float(np.median(v))
+    return out
+
+
+def batch(eng: SceneEngine, sets: dict, res: dict) -> None:
+    """A batch of 8 texts against one (CLIP-like and typical queries), and the bound pass alone."""
+    ix = eng.index
+    for name in ("typical", "clip"):
+        qs = sets[name][:8]
+        if len(qs) < 8:
+            qs = qs.repeat(8, 1)[:8]
+        # "One" is each text of the batch asked alone (the median over the 8 and the rounds), so the
+        # ratio does not hang on how easy the first text happens to be.
+        one, first, eight = [], [], []
+        for _ in range(3):
+            for j, qj in enumerate(qs):
+                t0 = time.perf_counter()
+                eng.text_query(qj, 100)
+                one.append(time.perf_counter() - t0)
+                if j == 0:
+                    first.append(one[-1])
+            t0 = time.perf_counter()
+            eng.text_query_many(qs, 100)
+            eight.append(time.perf_counter() - t0)
+        # The bound pass alone (every row bounded for the texts, as rank_many starts): its own ratio is a
+        # floor under the batch's, whatever the rest costs.
+        qu = eng.unit(qs)
+        direct = ix._tier2_first(qu, 100)
+        kone, keight = [], []
+        for _ in range(3):
+            for j in range(8):
+                t0 = time.perf_counter()
+                ix._uppers(qu[j : j + 1], None, [0] if j in direct else [])
+                kone.append(time.perf_counter() - t0)
+            t0 = time.perf_counter()
+            ix._uppers(qu, None, direct)
+            keight.append(time.perf_counter() - t0)
+        res[f"bound8_{name}_ms"] = 1e3 * statistics.median(keight)
+        res[f"bound1_{name}_ms"] = 1e3 * statistics.median(kone)
+        res[f"batch8_{name}_ratio"] = statistics.median(eight) / statistics.median(one)
+        res[f"batch8_{name}_ratio_first"] = statistics.median(eight) / statistics.median(first)
+        res[f"batch8_{name}_ms"] = 1e3 * statistics.median(eight)
+        res[f"one_{name}_ms"] = 1e3 * statistics.median(one)
+
+
+def _mem_total() -> int:
+    with open("/proc/meminfo") as f:
+        for line in f:
+            if line.startswith("MemTotal:"):
+                return int(line.split()[1]) * 1024
+    return 0
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--gaussians", type=int, default=1_000_000)
+    ap.add_argument(
+        "--gaussians", default="1000000", help="scene sizes, comma-separated (e.g. 1000000,10000000)"
+    )
     ap.add_argument("--queries", type=int, default=12, help="queries per set")
     ap.add_argument("--quick", action="store_true")
     ap.add_argument("--out", type=Path, default=ROOT / "benchmarks")
     args = ap.parse_args()
+    sizes = [int(x) for x in args.gaussians.split(",")]
     if args.quick:
-        args.gaussians, args.queries = 50_000, 3
+        sizes, args.queries = [50_000], 3
     one_thread()
     import faiss
 
     faiss.omp_set_num_threads(1)
-    n = args.gaussians
-    res: dict = {"gaussians": n, "dim": D, "queries_per_set": args.queries, "threads": 1, "sets": {}}
-    with tempfile.TemporaryDirectory() as tmp:
-        pkg, emb, copies, cmax, export_s = package(Path(tmp), n)
-        res["export_s"] = export_s
-        rss0 = _rss_gb()
-        t0 = time.perf_counter()
-        eng = SceneEngine.open(pkg, EngineConfig())
-        res["fmgs_open_s"] = time.perf_counter() - t0
-        res["fmgs_open_rss_gb"] = _rss_gb() - rss0
-        ix = eng.index
-        res["fmgs_bytes"] = (ix.nbytes() - (ix.basis.numel() * 8 if ix.basis is not None else 0)) / n + 8
-        res["fmgs_path"] = "exact float32" if ix.exact else f"compact rank {ix.state.rank}"
-        if ix.tier2 is not None:
-            res["fmgs_path"] += f", second tier rank {ix.tier2.rank} memory-mapped"
-        res["fmgs_state_file_bytes"] = (pkg / "query_state.safetensors").stat().st_size / n
-        fx = faiss_indexes(emb, cmax)
-        sets = query_sets(emb, copies, args.queries)
-        page_in(pkg)
-        eng.text_query(sets["near"][0], 10)  # compile the kernels
-        for name in QUERY_SETS:
-            for k in (1, 100, 10_000):
-                if k > n // 4:
-                    continue
-                row = {"ours_ms": [], "ours_rescored": [], "ours_recall": []}
-                for f in fx:
-                    row[f"{f}_ms"], row[f"{f}_recall"] = [], []
-                for q_in in sets[name]:
-                    q = eng.unit(q_in[None])[0]  # the vector the engine ranks by (normalised as served)
-                    truth, margin = exact_top(emb, cmax, q, k)
-                    t0 = time.perf_counter()
-                    a = eng.text_query(q_in, k)
-                    row["ours_ms"].append((time.perf_counter() - t0) * 1e3)
-                    row["ours_rescored"].append(a.rescored)
-                    row["ours_recall"].append(recall(a.index.numpy(), truth, margin))
-                    assert np.array_equal(a.index.numpy(), truth), f"{name} k={k}: not the exact ranking"
-                    qx = np.concatenate([q.numpy(), [1.0]]).astype(np.float32)[None]
-                    for f, d in fx.items():
-                        if f == "faiss_ivf_sq8_refine":
-                            params = faiss.IndexRefineSearchParameters(k_factor=max(1.0, 1000 / k))
-                            t0 = time.perf_counter()
-                            _, ids = d["index"].search(qx, k, params=params)
-                        else:
-                            t0 = time.perf_counter()
-                            _, ids = d["index"].search(qx, k)
-                        row[f"{f}_ms"].append((time.perf_counter() - t0) * 1e3)
-                        row[f"{f}_recall"].append(recall(ids[0], truth, margin))
-                summary = {}
-                for key, v in row.items():
-                    if key.endswith("_ms"):
-                        summary[key[:-3] + "_ms_median"] = statistics.median(v)
-                        summary[key[:-3] + "_ms_p90"] = float(np.percentile(v, 90))
-                    elif key.endswith("recall"):
-                        summary[key + "_mean"] = float(np.mean(v))
-                        summary[key + "_min"] = float(np.min(v))
-                    else:
-                        summary["ours_rescored_median"] = float(np.median(v))
-                best = float((emb @ sets[name].T).amax(0).median())
-                summary["best_cosine_median"] = best
-                res["sets"][f"{name}/k={k}"] = summary
-                print(name, k, {a: round(b, 3) for a, b in summary.items()}, flush=True)
-        # A batch of 8 texts against one (CLIP-like and typical queries).
-        for name in ("typical", "clip"):
-            qs = sets[name][:8]
-            if len(qs) < 8:
-                qs = qs.repeat(8, 1)[:8]
-            # "One" is each text of the batch asked alone (the median over the 8 and the rounds), so
-            # the ratio does not hang on how easy the first text happens to be.
-            one, first, eight = [], [], []
-            for _ in range(3):
-                for j, qj in enumerate(qs):
-                    t0 = time.perf_counter()
-                    eng.text_query(qj, 100)
-                    one.append(time.perf_counter() - t0)
-                    if j == 0:
-                        first.append(one[-1])
-                t0 = time.perf_counter()
-                eng.text_query_many(qs, 100)
-                eight.append(time.perf_counter() - t0)
-            # The bound pass alone (every row bounded for the texts, as rank_many starts): its own ratio
-            # is a floor under the batch's, whatever the rest costs.
-            qu = eng.unit(qs)
-            direct = ix._tier2_first(qu, 100)
-            kone, keight = [], []
-            for _ in range(3):
-                for j in range(8):
-                    t0 = time.perf_counter()
-                    ix._uppers(qu[j : j + 1], None, [0] if j in direct else [])
-                    kone.append(time.perf_counter() - t0)
-                t0 = time.perf_counter()
-                ix._uppers(qu, None, direct)
-                keight.append(time.perf_counter() - t0)
-            res[f"bound8_{name}_ms"] = 1e3 * statistics.median(keight)
-            res[f"bound1_{name}_ms"] = 1e3 * statistics.median(kone)
-            res[f"batch8_{name}_ratio"] = statistics.median(eight) / statistics.median(one)
-            res[f"batch8_{name}_ratio_first"] = statistics.median(eight) / statistics.median(first)
-            res[f"batch8_{name}_ms"] = 1e3 * statistics.median(eight)
-            res[f"one_{name}_ms"] = 1e3 * statistics.median(one)
-        for f, d in fx.items():
-            res[f"{f}_build_s"], res[f"{f}_bytes"] = d["build_s"], d["bytes"]
+    results = []
+    for n in sizes:
+        with tempfile.TemporaryDirectory() as tmp:
+            results.append(measure(n, args.queries, Path(tmp)))
+        gc.collect()
     info = machine()
     info["date"] = dt.datetime.now().isoformat(timespec="seconds")
     stem = "TEXT_QUICK" if args.quick else "TEXT"
     args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / f"{stem}.json").write_text(json.dumps({"machine": info, "text": res}, indent=1))
-    (args.out / f"{stem}.md").write_text(report(res, info, args.quick))
+    out = {"machine": info, "text": results[0], "sizes": results}
+    (args.out / f"{stem}.json").write_text(json.dumps(out, indent=1))
+    (args.out / f"{stem}.md").write_text(report(results, info, args.quick))
     print((args.out / f"{stem}.md").read_text())
     return 0
 
 
-def report(res: dict, info: dict, quick: bool) -> str:
-    n = res["gaussians"]
+def report(results: list[dict], info: dict, quick: bool) -> str:
+    sizes = ", ".join(f"{r['gaussians']:,}" for r in results)
     L = [
         "# Text queries: certified exact answers against faiss",
         "",
         f"Machine: {info.get('cpu', '?')}, {info.get('cores', '?')} cores, one thread for every engine; "
         f"{info.get('date', '')}. {'QUICK size: completion only.' if quick else ''}",
-        f"Scene: {n:,} field-like Gaussians (D={res['dim']}, clone ties), {res['queries_per_set']} queries "
-        "per set (benchmarks/query_sets.py). Reproduce: `pip install faiss-cpu; python benchmarks/text.py`.",
+        f"Scenes: {sizes} field-like Gaussians (D={results[0]['dim']}, clone ties), "
+        f"{results[0]['queries_per_set']} queries per set (benchmarks/query_sets.py), all sizes in one run. "
+        "Reproduce: `pip install faiss-cpu; python benchmarks/text.py"
+        + (f" --gaussians {','.join(str(r['gaussians']) for r in results)}`." if len(results) > 1 else "`."),
         "",
-        f"Ours: `SceneEngine.open` + `text_query` ({res['fmgs_path']}), every answer checked equal to the "
-        "float64 brute force (rows and order). faiss: the same float16 embeddings with the margin trick.",
+        "Ours: `SceneEngine.open` + `text_query` on the exported package, every answer checked equal to the "
+        "float64 brute force (rows and order). faiss: the same float16 embeddings with the margin trick, "
+        "built from the package's memory map after ours was measured (never resident together).",
+        "",
+    ]
+    for res in results:
+        L += size_section(res)
+    if len(results) > 1:
+        L += scaling_section(results)
+    return "\n".join(L)
+
+
+def size_section(res: dict) -> list[str]:
+    n = res["gaussians"]
+    flat = not res.get("faiss_flat_skipped")
+    L = [
+        f"## {n:,} Gaussians",
         "",
         "| engine | resident bytes/Gaussian | build s | open s |",
         "|---|---|---|---|",
-        f"| ours (compact state in the package: {res.get('fmgs_state_file_bytes', 0):.0f} bytes/Gaussian on "
-        f"disk) | {res['fmgs_bytes']:.0f} | {res['export_s']:.1f} (export) | {res['fmgs_open_s']:.2f} |",
-        f"| faiss IndexFlatIP | {res['faiss_flat_bytes']} | {res['faiss_flat_build_s']:.1f} | in memory |",
-        f"| faiss IVF1024,SQ8 + fp16 refine 1000 | {res['faiss_ivf_sq8_refine_bytes']} | "
-        f"{res['faiss_ivf_sq8_refine_build_s']:.1f} | in memory |",
+        f"| ours ({res['fmgs_path']}; compact state in the package: "
+        f"{res.get('fmgs_state_file_bytes', 0):.0f} bytes/Gaussian on disk) | {res['fmgs_bytes']:.0f} | "
+        f"{res['export_s']:.1f} (export) | {res['fmgs_open_s']:.2f} |",
+        (
+            f"| faiss IndexFlatIP | {res['faiss_flat_bytes']} | {res['faiss_flat_build_s']:.1f} | in memory |"
+            if flat
+            else f"| faiss IndexFlatIP | {4 * (res['dim'] + 1)} | not run: "
+            f"{4 * (res['dim'] + 1) * n / 1e9:.1f} GB does not fit beside the rest on this machine | |"
+        ),
+        f"| faiss IVF{res.get('faiss_ivf_nlist', 1024)},SQ8 + fp16 refine 1000, nprobe 64 | "
+        f"{res['faiss_ivf_sq8_refine_bytes']} | {res['faiss_ivf_sq8_refine_build_s']:.1f} | in memory |",
         "",
         "Rows rescored: rows whose float16 embedding was read (a float32 pass with a proven bound, then "
         "float64 for those it cannot settle).",
@@ -266,11 +392,11 @@ def report(res: dict, info: dict, quick: bool) -> str:
         "|---|---|---|---|---|---|---|---|---|",
     ]
     for key, s in res["sets"].items():
+        fl = f"{s['faiss_flat_ms_median']:.1f} | {s['faiss_flat_recall_mean']:.3f}" if flat else "- | -"
         L.append(
             f"| {key} | {s['best_cosine_median']:.2f} | {s['ours_ms_median']:.1f} ({s['ours_ms_p90']:.1f}) | "
-            f"{s['ours_rescored_median']:,.0f} | {s['ours_recall_mean']:.3f} | "
-            f"{s['faiss_flat_ms_median']:.1f} | "
-            f"{s['faiss_flat_recall_mean']:.3f} | {s['faiss_ivf_sq8_refine_ms_median']:.1f} | "
+            f"{s['ours_rescored_median']:,.0f} | {s['ours_recall_mean']:.3f} | {fl} | "
+            f"{s['faiss_ivf_sq8_refine_ms_median']:.1f} | "
             f"{s['faiss_ivf_sq8_refine_recall_mean']:.3f} ({s['faiss_ivf_sq8_refine_recall_min']:.2f}) |"
         )
     L += [
@@ -282,20 +408,57 @@ def report(res: dict, info: dict, quick: bool) -> str:
         f"{res['batch8_clip_ms']:.0f} ms against {res['one_clip_ms']:.1f} ms, "
         f"**{res['batch8_clip_ratio']:.2f}x** ({res['batch8_clip_ratio_first']:.2f}x); batch medians of 3.",
         "",
+        "The pass that bounds every row (the first tier for typical texts, the second for CLIP-like "
+        "ones) alone, 8 texts against one: typical "
+        f"{res['bound8_typical_ms']:.0f} ms against {res['bound1_typical_ms']:.1f} ms "
+        f"({res['bound8_typical_ms'] / res['bound1_typical_ms']:.2f}x), CLIP-like "
+        f"{res['bound8_clip_ms']:.0f} ms against {res['bound1_clip_ms']:.1f} ms "
+        f"({res['bound8_clip_ms'] / res['bound1_clip_ms']:.2f}x). One text's pass is bound by reading "
+        "the codes, eight texts' by the multiply-adds (8 x 64 or 8 x 320 per row), so this ratio is a "
+        "floor under the batch's on one thread.",
+        "",
     ]
-    if "bound8_clip_ms" in res:
-        L += [
-            "The pass that bounds every row (the first tier for typical texts, the second for CLIP-like "
-            "ones) alone, 8 texts against one: typical "
-            f"{res['bound8_typical_ms']:.0f} ms against {res['bound1_typical_ms']:.1f} ms "
-            f"({res['bound8_typical_ms'] / res['bound1_typical_ms']:.2f}x), CLIP-like "
-            f"{res['bound8_clip_ms']:.0f} ms against {res['bound1_clip_ms']:.1f} ms "
-            f"({res['bound8_clip_ms'] / res['bound1_clip_ms']:.2f}x). One text's pass is bound by reading "
-            "the codes, eight texts' by the multiply-adds (8 x 64 or 8 x 320 per row), so this ratio is a "
-            "floor under the batch's on one thread.",
-            "",
-        ]
-    return "\n".join(L)
+    return L
+
+
+def scaling_section(results: list[dict]) -> list[str]:
+    """Each larger size's median latency over the smallest's, per query set and K (same run)."""
+    base = results[0]
+    L = [
+        f"## Scaling from {base['gaussians']:,} Gaussians (same run)",
+        "",
+        "| set / K | "
+        + " | ".join(f"ours at {r['gaussians']:,}" for r in results[1:])
+        + " | "
+        + " | ".join(f"IVF-SQ8 at {r['gaussians']:,}" for r in results[1:])
+        + " |",
+        "|---|" + "---|" * (2 * (len(results) - 1)),
+    ]
+    ratios: dict[int, list[float]] = {r["gaussians"]: [] for r in results[1:]}
+    for key, b in base["sets"].items():
+        cells, peer = [], []
+        for r in results[1:]:
+            s = r["sets"].get(key)
+            if s is None:
+                cells.append("-")
+                peer.append("-")
+                continue
+            x = s["ours_ms_median"] / b["ours_ms_median"]
+            ratios[r["gaussians"]].append(x)
+            cells.append(f"{s['ours_ms_median']:.0f} ms ({x:.1f}x)")
+            y = s["faiss_ivf_sq8_refine_ms_median"] / b["faiss_ivf_sq8_refine_ms_median"]
+            peer.append(f"{s['faiss_ivf_sq8_refine_ms_median']:.0f} ms ({y:.1f}x)")
+        L.append(f"| {key} | " + " | ".join(cells + peer) + " |")
+    L.append("")
+    for n, xs in ratios.items():
+        if xs:
+            L.append(
+                f"Ours at {n:,} over {base['gaussians']:,}: median {statistics.median(xs):.1f}x, "
+                f"{min(xs):.1f}-{max(xs):.1f}x over the query sets and K (target: within "
+                f"{n / base['gaussians']:.0f}x)."
+            )
+    L.append("")
+    return L
 
 
 if __name__ == "__main__":

@@ -325,16 +325,16 @@ def main() -> int:
 
     faiss.omp_set_num_threads(1)
     results = []
+    info = machine()
+    stem = "TEXT_QUICK" if args.quick else "TEXT"
+    args.out.mkdir(parents=True, exist_ok=True)
     for n in sizes:
         with tempfile.TemporaryDirectory() as tmp:
             results.append(measure(n, args.queries, Path(tmp)))
         gc.collect()
-    info = machine()
-    info["date"] = dt.datetime.now().isoformat(timespec="seconds")
-    stem = "TEXT_QUICK" if args.quick else "TEXT"
-    args.out.mkdir(parents=True, exist_ok=True)
-    out = {"machine": info, "text": results[0], "sizes": results}
-    (args.out / f"{stem}.json").write_text(json.dumps(out, indent=1))
+        info["date"] = dt.datetime.now().isoformat(timespec="seconds")
+        out = {"machine": info, "text": results[0], "sizes": results}
+        (args.out / f"{stem}.json").write_text(json.dumps(out, indent=1))  # after every size
     (args.out / f"{stem}.md").write_text(report(results, info, args.quick))
     print((args.out / f"{stem}.md").read_text())
     return 0

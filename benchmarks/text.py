@@ -100,9 +100,12 @@ def margins(emb: torch.Tensor, cmax: torch.Tensor, q: torch.Tensor) -> tuple[tor
 
 
 def top_of(m: torch.Tensor, k: int) -> np.ndarray:
-    """Rows of the k largest margins m [M], best first, ties by row."""
-    top = torch.topk(m, k, sorted=False).indices
-    return np.array(sorted(top.tolist(), key=lambda i: (-float(m[i]), i)))
+    """Rows of the k largest margins m [M], best first, ties by row: rows tied at the k-th margin are
+    taken lowest row first (topk alone picks any of them)."""
+    v = torch.topk(m, k, sorted=False).values.min()
+    above = torch.nonzero(m > v).reshape(-1)
+    tied = torch.nonzero(m == v).reshape(-1)[: k - len(above)]  # ascending rows
+    return np.array(sorted(torch.cat([above, tied]).tolist(), key=lambda i: (-float(m[i]), i)))
 
 
 def exact_top(

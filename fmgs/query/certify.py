@@ -120,7 +120,7 @@ def certify_start(
     L = max(m_min, kth_largest(m1, k))
     need = up >= L
     need[rows1] = False
-    return Pending(rows1, m1, L, need, int(need.sum()))
+    return Pending(rows1, m1, L, need, int(torch.count_nonzero(need)))
 
 
 def _raise_bound(p: Pending, k: int, refined: Refined) -> tuple[float, torch.Tensor]:
@@ -153,7 +153,7 @@ def certify_narrow(p: Pending, k: int, refined: Refined) -> Pending:
     need = torch.zeros_like(p.need)
     need[refined.rows[keep]] = True
     need &= p.need
-    return Pending(p.rows1, p.m1, L, need, int(need.sum()))
+    return Pending(p.rows1, p.m1, L, need, int(torch.count_nonzero(need)))
 
 
 def certify_finish(

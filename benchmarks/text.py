@@ -182,7 +182,7 @@ def ks_for(n: int) -> list[int]:
     return [k for k in (1, 100, 10_000) if k <= n // 4]
 
 
-def measure(n: int, queries: int, tmp: Path) -> dict:
+def measure(n: int, queries: int, tmp: Path, peers: bool = True) -> dict:
     """Every measurement at one scene size: ours first (the package paged in), then faiss built from the
     package's memory map (its indexes and ours never resident together: 10M fits 24 GB)."""
     res: dict = {"gaussians": n, "dim": D, "queries_per_set": queries, "threads": 1, "sets": {}}
@@ -226,10 +226,11 @@ def measure(n: int, queries: int, tmp: Path) -> dict:
     gc.collect()
     flat = 4 * (D + 1) * n < 0.4 * _mem_total()
     res["faiss_flat_skipped"] = not flat
-    fx = faiss_indexes(emb, cmax, flat=flat)
+    fx = faiss_indexes(emb, cmax, flat=flat) if peers else {}
     for f, d in fx.items():
         res[f"{f}_build_s"], res[f"{f}_bytes"] = d["build_s"], d["bytes"]
-    res["faiss_ivf_nlist"] = fx["faiss_ivf_sq8_refine"]["nlist"]
+    if fx:
+        res["faiss_ivf_nlist"] = fx["faiss_ivf_sq8_refine"]["nlist"]
     for name in QUERY_SETS:
         for k in ks_for(n):
             row = rows[name, k]
@@ -319,6 +320,10 @@ def main() -> int:
     ap.add_argument("--queries", type=int, default=12, help="queries per set")
     ap.add_argument("--quick", action="store_true")
     ap.add_argument("--out", type=Path, default=ROOT / "benchmarks")
+    ap.add_argument("--stem", default="TEXT", help="report file names (STEM.md, STEM.json)")
+    ap.add_argument(
+        "--no-peers", action="store_true", help="ours only (no faiss: its 10M build takes 28 min)"
+    )
     args = ap.parse_args()
     sizes = [int(x) for x in args.gaussians.split(",")]
     if args.quick:
@@ -329,11 +334,11 @@ def main() -> int:
     faiss.omp_set_num_threads(1)
     results = []
     info = machine()
-    stem = "TEXT_QUICK" if args.quick else "TEXT"
+    stem = "TEXT_QUICK" if args.quick else args.stem
     args.out.mkdir(parents=True, exist_ok=True)
     for n in sizes:
         with tempfile.TemporaryDirectory() as tmp:
-            results.append(measure(n, args.queries, Path(tmp)))
+            results.append(measure(n, args.queries, Path(tmp), peers=not args.no_peers))
         gc.collect()
         info["date"] = dt.datetime.now().isoformat(timespec="seconds")
         out = {"machine": info, "text": results[0], "sizes": results}
@@ -369,7 +374,8 @@ def report(results: list[dict], info: dict, quick: bool) -> str:
 
 def size_section(res: dict) -> list[str]:
     n = res["gaussians"]
-    flat = not res.get("faiss_flat_skipped")
+    peers = "faiss_ivf_nlist" in res  # False: measured with --no-peers
+    flat = peers and not res.get("faiss_flat_skipped")
     L = [
         f"## {n:,} Gaussians",
         "",
@@ -382,10 +388,18 @@ def size_section(res: dict) -> list[str]:
             f"| faiss IndexFlatIP | {res['faiss_flat_bytes']} | {res['faiss_flat_build_s']:.1f} | in memory |"
             if flat
             else f"| faiss IndexFlatIP | {4 * (res['dim'] + 1)} | not run: "
-            f"{4 * (res['dim'] + 1) * n / 1e9:.1f} GB does not fit beside the rest on this machine | |"
+            + (
+                f"{4 * (res['dim'] + 1) * n / 1e9:.1f} GB does not fit beside the rest on this machine | |"
+                if peers
+                else "--no-peers | |"
+            )
         ),
-        f"| faiss IVF{res.get('faiss_ivf_nlist', 1024)},SQ8 + fp16 refine 1000, nprobe 64 | "
-        f"{res['faiss_ivf_sq8_refine_bytes']} | {res['faiss_ivf_sq8_refine_build_s']:.1f} | in memory |",
+        (
+            f"| faiss IVF{res['faiss_ivf_nlist']},SQ8 + fp16 refine 1000, nprobe 64 | "
+            f"{res['faiss_ivf_sq8_refine_bytes']} | {res['faiss_ivf_sq8_refine_build_s']:.1f} | in memory |"
+            if peers
+            else "| faiss IVF-SQ8 + refine | | not run: --no-peers | |"
+        ),
         "",
         "Rows rescored: rows whose float16 embedding was read (a float32 pass with a proven bound, then "
         "float64 for those it cannot settle).",
@@ -399,8 +413,12 @@ def size_section(res: dict) -> list[str]:
         L.append(
             f"| {key} | {s['best_cosine_median']:.2f} | {s['ours_ms_median']:.1f} ({s['ours_ms_p90']:.1f}) | "
             f"{s['ours_rescored_median']:,.0f} | {s['ours_recall_mean']:.3f} | {fl} | "
-            f"{s['faiss_ivf_sq8_refine_ms_median']:.1f} | "
-            f"{s['faiss_ivf_sq8_refine_recall_mean']:.3f} ({s['faiss_ivf_sq8_refine_recall_min']:.2f}) |"
+            + (
+                f"{s['faiss_ivf_sq8_refine_ms_median']:.1f} | "
+                f"{s['faiss_ivf_sq8_refine_recall_mean']:.3f} ({s['faiss_ivf_sq8_refine_recall_min']:.2f}) |"
+                if peers
+                else "- | - |"
+            )
         )
     L += [
         "",
@@ -449,6 +467,9 @@ def scaling_section(results: list[dict]) -> list[str]:
             x = s["ours_ms_median"] / b["ours_ms_median"]
             ratios[r["gaussians"]].append(x)
             cells.append(f"{s['ours_ms_median']:.0f} ms ({x:.1f}x)")
+            if "faiss_ivf_sq8_refine_ms_median" not in s:  # --no-peers
+                peer.append("-")
+                continue
             y = s["faiss_ivf_sq8_refine_ms_median"] / b["faiss_ivf_sq8_refine_ms_median"]
             peer.append(f"{s['faiss_ivf_sq8_refine_ms_median']:.0f} ms ({y:.1f}x)")
         L.append(f"| {key} | " + " | ".join(cells + peer) + " |")

@@ -204,7 +204,7 @@ def measure(n: int, queries: int, tmp: Path, peers: bool = True) -> dict:
     page_in(pkg)
     eng.text_query(sets["near"][0], 10)  # compile the kernels
     rows: dict = {}  # (set, k) -> per-query lists
-    truth: dict = {}  # (set, k, j) -> (rows best first, k-th margin row)
+    truth: dict = {}  # (set, k, j) -> the exact top k rows, best first
     for name in QUERY_SETS:
         m, best = margins(emb, cmax, units[name])
         for k in ks_for(n):

@@ -18,9 +18,11 @@ from fmgs.query.certify import (
     certify_finish,
     certify_narrow,
     certify_start,
+    rows_at_least,
     threshold_margin,
     top_rows,
 )
+from fmgs.query.certify import _drop_sorted, _keep_sorted
 from fmgs.query.index import EmbeddingIndex, IndexConfig, rank_reference, served_relevancy
 from fmgs.query.state import build_state
 from fmgs.vecmath import safe_normalize
@@ -250,7 +252,8 @@ def test_certified_top_k_with_loose_bounds_is_still_exact():
             rows = torch.arange(0, 2000)
             w2 = torch.rand(2000, generator=g, dtype=torch.float64) * min(width, 0.5)
             p2 = certify_narrow(p, k, Refined(rows, m - w2, m + w2))
-            assert p2.bound >= p.bound and p2.n2 <= p.n2 and not bool((p2.need & ~p.need).any())
+            assert p2.bound >= p.bound and p2.n2 <= p.n2 and set(p2.rows2.tolist()) <= set(p.rows2.tolist())
+            assert bool((p2.rows2[1:] > p2.rows2[:-1]).all())
             c = certify_finish(p2, k, lambda r: m[r], refined=Refined(rows, m - w, m + w))
             assert c.rows.tolist() == order
 
@@ -312,3 +315,53 @@ def test_top_rows_selects_the_largest_values_like_topk():
         assert len(rows) == n and len(torch.unique(rows)) == n
         assert bool((rows[1:] > rows[:-1]).all())
         assert torch.equal(x[rows].sort().values, twin)
+
+
+def test_sorted_row_helpers_match_set_operations():
+    """rows_at_least against torch.nonzero (ties at the cut, NaN never selected, float64 too); the sorted
+    difference and intersection against Python sets, empty and disjoint inputs included."""
+    g = torch.Generator().manual_seed(11)
+    x = torch.randint(0, 20, (5000,), generator=g).float()
+    x[::97] = float("nan")
+    for cut in (-1.0, 0.0, 7.0, 19.0, 20.0, float("nan")):
+        for v in (x, x.double()):
+            want = torch.nonzero(v >= cut).reshape(-1)
+            assert torch.equal(rows_at_least(v, cut), want)
+    for na, nb in ((0, 0), (0, 10), (10, 0), (300, 50), (50, 300), (2000, 2000)):
+        a = torch.randperm(4000, generator=g)[:na].sort().values
+        b = torch.randperm(4000, generator=g)[:nb].sort().values
+        sa, sb = set(a.tolist()), set(b.tolist())
+        assert _drop_sorted(a, b).tolist() == sorted(sa - sb)
+        assert _keep_sorted(a, b).tolist() == sorted(sa & sb)
+    a = torch.arange(0, 100, 2)
+    assert torch.equal(_drop_sorted(a, torch.arange(1, 100, 2)), a)  # disjoint
+    assert len(_keep_sorted(a, torch.arange(1, 100, 2))) == 0
+
+
+def test_union_of_pending_rows_both_ways():
+    """_union by sorting short lists and by a mask over the rows when they are long: the same sorted set."""
+    from fmgs.query.certify import Pending
+
+    g = torch.Generator().manual_seed(12)
+    e = torch.zeros(0)
+    for num, size in ((100_000, 50), (100_000, 40_000), (1000, 999)):
+        ps = [
+            Pending(e, e, 0.0, torch.randperm(num, generator=g)[:size].sort().values) for _ in range(4)
+        ]
+        want = sorted(set().union(*(set(p.rows2.tolist()) for p in ps)))
+        for texts in ([0], [1, 3], [0, 1, 2, 3]):
+            got = index_mod._union(ps, texts, num)
+            assert got.tolist() == sorted(set().union(*(set(ps[j].rows2.tolist()) for j in texts)))
+        assert index_mod._union(ps, [0, 1, 2, 3], num).tolist() == want
+
+
+def test_second_tier_sample_holds_the_strided_rows(scene):
+    emb, _, canon, _, _ = scene
+    idx = _indexes(emb, canon)["compact"]
+    s, rows = idx._sample, torch.arange(0, M, index_mod.TIER2_FIRST_STEP)
+    assert np.array_equal(s.codes1, idx.coeffs[rows].numpy())
+    assert np.array_equal(s.codes2, idx.tier2.codes[rows].numpy())
+    assert np.array_equal(s.bounds2, idx.tier2.bounds[rows].numpy())
+    assert np.array_equal(s.shift, idx.canonical_max[rows].numpy())
+    assert np.array_equal(s.err1, idx._err[rows].numpy()) and np.array_equal(s.res1, idx._res[rows].numpy())
+    assert torch.equal(s.codes1_f32, idx.coeffs[rows].float())

@@ -23,6 +23,7 @@ import math
 from collections.abc import Callable
 from typing import NamedTuple
 
+import numpy as np
 import torch
 
 ExactScorer = Callable[[torch.Tensor], torch.Tensor]
@@ -60,6 +61,34 @@ def kth_largest(x: torch.Tensor, k: int) -> float:
     return float(torch.topk(x, k, sorted=False).values.min())
 
 
+def rows_at_least(x: torch.Tensor, cut: float) -> torch.Tensor:
+    """Sorted rows [n] int64 of x [M] (CPU) with x >= cut. numpy's compare and flatnonzero: about 0.4 ms
+    at 1M rows against 2.3 ms for torch's (measured), which matters once per text."""
+    return torch.from_numpy(np.flatnonzero(x.numpy() >= cut))
+
+
+def _drop_sorted(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """Sorted unique rows a [n] without those in sorted unique b [m]: b located in a (m log n), not a
+    sort of both."""
+    if len(a) == 0 or len(b) == 0:
+        return a
+    pos = torch.searchsorted(a, b).clamp_max(len(a) - 1)
+    hit = pos[a[pos] == b]
+    if len(hit) == 0:
+        return a
+    keep = torch.ones(len(a), dtype=torch.bool)
+    keep[hit] = False
+    return a[keep]
+
+
+def _keep_sorted(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """Rows of sorted unique a [n] that are also in sorted unique b [m] (a located in b)."""
+    if len(a) == 0 or len(b) == 0:
+        return a[:0]
+    pos = torch.searchsorted(b, a).clamp_max(len(b) - 1)
+    return a[b[pos] == a]
+
+
 TOP_SAMPLE_STEP = 64
 """``top_rows`` estimates its cut on every this-many-th value."""
 
@@ -73,7 +102,7 @@ def top_rows(x: torch.Tensor, n: int) -> torch.Tensor:
     if len(x) >= 16 * TOP_SAMPLE_STEP and 0 < n <= len(x) // 8:  # about 2n candidates: a saving
         s = x[::TOP_SAMPLE_STEP]
         cut = torch.topk(s, min(len(s), 2 * -(-n // TOP_SAMPLE_STEP) + 8), sorted=False).values.min()
-        cand = torch.nonzero(x >= cut).reshape(-1)
+        cand = rows_at_least(x, float(cut))
         if len(cand) >= n:  # else the sample misjudged the cut: select over every value
             return cand[torch.topk(x[cand], n, sorted=False).indices].sort().values
     return torch.topk(x, n, sorted=False).indices.sort().values
@@ -94,15 +123,13 @@ class Pending(NamedTuple):
     """[n1] their exact margins."""
     bound: float
     """L, a lower bound on the k-th exact margin (or m_min): rows whose upper bound is below it are out."""
-    need: torch.Tensor
-    """[M] bool: the rows whose upper bound reaches L, not yet scored (a mask: several texts' masks
-    combine without listing each text's rows)."""
-    n2: int
-    """How many rows ``need`` holds."""
+    rows2: torch.Tensor
+    """[n2] int64 sorted rows whose upper bound reaches L, not yet scored."""
 
-    def rows2(self) -> torch.Tensor:
-        """[n2] sorted rows of ``need``."""
-        return self.need.nonzero()[:, 0]
+    @property
+    def n2(self) -> int:
+        """How many rows are still to settle."""
+        return len(self.rows2)
 
 
 def certify_start(
@@ -118,9 +145,7 @@ def certify_start(
     rows1 = top_rows(up, n1)
     m1 = exact(rows1)
     L = max(m_min, kth_largest(m1, k))
-    need = up >= L
-    need[rows1] = False
-    return Pending(rows1, m1, L, need, int(torch.count_nonzero(need)))
+    return Pending(rows1, m1, L, _drop_sorted(rows_at_least(up, L), rows1))
 
 
 def _raise_bound(p: Pending, k: int, refined: Refined) -> tuple[float, torch.Tensor]:
@@ -145,15 +170,12 @@ def _raise_bound(p: Pending, k: int, refined: Refined) -> tuple[float, torch.Ten
 
 
 def certify_narrow(p: Pending, k: int, refined: Refined) -> Pending:
-    """A tighter Pending from tighter bounds: L raised with their lower bounds, and only the rows of p.need
+    """A tighter Pending from tighter bounds: L raised with their lower bounds, and only the rows of p.rows2
     whose refined upper bound still reaches L left (several tiers of bounds chain). ``refined`` may be a
     superset of p.rows2, or leave out rows of it whose refined upper bound is below p.bound (they are
     out, and their lower bounds cannot raise L)."""
     L, keep = _raise_bound(p, k, refined)
-    need = torch.zeros_like(p.need)
-    need[refined.rows[keep]] = True
-    need &= p.need
-    return Pending(p.rows1, p.m1, L, need, int(torch.count_nonzero(need)))
+    return Pending(p.rows1, p.m1, L, _keep_sorted(refined.rows[keep], p.rows2))
 
 
 def certify_finish(
@@ -172,9 +194,9 @@ def certify_finish(
     elif refined is not None:
         lo2, up2 = refined
         L = max(p.bound, kth_largest(torch.cat([p.m1, lo2]), k))  # k distinct rows reach these
-        rows2 = p.rows2()[up2 >= L]
+        rows2 = p.rows2[up2 >= L]
     else:
-        rows2 = p.rows2()
+        rows2 = p.rows2
     rows, margin = p.rows1, p.m1
     if len(rows2):
         rows, margin = torch.cat([p.rows1, rows2]), torch.cat([p.m1, exact(rows2)])
@@ -202,7 +224,7 @@ def certified_top_k(
     if k == 0:
         return Certified(torch.zeros(0, dtype=torch.int64), torch.zeros(0, dtype=torch.float64), 0)
     p = certify_start(upper, k, exact, m_min, first)
-    refined = refine(p.rows2()) if refine is not None and p.n2 > refine_above else None
+    refined = refine(p.rows2) if refine is not None and p.n2 > refine_above else None
     return certify_finish(p, k, exact, m_min, refined)
 
 

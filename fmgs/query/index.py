@@ -57,6 +57,25 @@ TIER2_FIRST_MIN_SAMPLE = 256
 _U32 = 2.0**-24
 
 
+class _Codes(NamedTuple):
+    """The compact state's tables as numpy arrays (every row's, or a sample's)."""
+
+    codes1: np.ndarray
+    """[m,r] int8 first-tier codes."""
+    codes2: np.ndarray
+    """[m,r2] int8 second-tier codes."""
+    shift: np.ndarray
+    """[m] float32 canonical maxima."""
+    err1: np.ndarray
+    """[m] float32 first-tier quantisation error norms."""
+    bounds2: np.ndarray
+    """[m,2] float32 second-tier error and residual norms."""
+    res1: np.ndarray
+    """[m] float32 first-tier residual norms."""
+    codes1_f32: torch.Tensor | None
+    """[m,r] float32 first-tier codes (the sample only)."""
+
+
 class Ranked(NamedTuple):
     """Rows of the embedded Gaussians, best first."""
 
@@ -300,15 +319,40 @@ class EmbeddingIndex:
         M = self.num
         if self.tier2 is None or M // TIER2_FIRST_STEP < TIER2_FIRST_MIN_SAMPLE:
             return []
-        rows = torch.arange(0, M, TIER2_FIRST_STEP)
-        lo2, _ = self._tier2_bounds(rows, q)
+        s = self._sample
+        n_s = len(s.shift)
+        lo2, _ = self._tier2_bounds(torch.arange(n_s), q, codes=s)
         W, wn, vn = self._weights(q)
-        up1 = (self.coeffs[rows].float() @ W.T - self.canonical_max[rows, None]).T  # [n,S]
-        up1 = up1 + self._err[rows] * wn[:, None] + self._res[rows] * vn[:, None]
+        up1 = (s.codes1_f32 @ W.T - torch.from_numpy(s.shift)[:, None]).T  # [n,S]
+        up1 = up1 + torch.from_numpy(s.err1) * wn[:, None] + torch.from_numpy(s.res1) * vn[:, None]
         ks = max(1, -(-k // TIER2_FIRST_STEP))
-        L = torch.topk(lo2, min(ks, len(rows)), dim=1).values[:, -1:]
+        L = torch.topk(lo2, min(ks, n_s), dim=1).values[:, -1:]
         frac = (up1.double() >= L).double().mean(1)
         return [j for j in range(len(q)) if float(frac[j]) > TIER2_FIRST_FRACTION]
+
+    @functools.cached_property
+    def _sample(self) -> _Codes:
+        """Every TIER2_FIRST_STEP-th row's codes and norms, copied together on first use: the estimate then
+        reads 1 MB in one run (at 1M rows) instead of a page of each memory-mapped table per row."""
+        rows = torch.arange(0, self.num, TIER2_FIRST_STEP)
+        codes1 = self.coeffs[rows].contiguous()
+        return _Codes(
+            codes1.numpy(),
+            self.tier2.codes[rows].contiguous().numpy(),
+            self.canonical_max[rows].contiguous().numpy(),
+            self._err[rows].contiguous().numpy(),
+            self.tier2.bounds[rows].contiguous().numpy(),
+            self._res[rows].contiguous().numpy(),
+            codes1.float(),
+        )
+
+    @property
+    def _codes(self) -> _Codes:
+        """Every row's codes and norms, as the tier-2 kernels read them."""
+        return _Codes(
+            self.coeffs.numpy(), self.tier2.codes.numpy(), self.canonical_max.numpy(), self._err.numpy(),
+            self.tier2.bounds.numpy(), self._res.numpy(), None,
+        )  # fmt: skip
 
     def _uppers(self, q: torch.Tensor, cv: torch.Tensor | None, direct: list[int]) -> torch.Tensor:
         """[n,M] upper bounds on every row's margin: the first tier's, or for the texts in ``direct`` the
@@ -337,7 +381,7 @@ class EmbeddingIndex:
         big = [j for j, p in enumerate(pending) if p.n2 > REFINE_ABOVE and j not in skip]
         if self.tier2 is None or not big:
             return pending
-        union = _union(pending, big)
+        union = _union(pending, big, self.num)
         qb = q[big]
         size = min(REFINE_CHUNK, len(union))
         buf = (
@@ -370,20 +414,26 @@ class EmbeddingIndex:
         return (W1, W2, *(x.norm(dim=1).contiguous().numpy() for x in (w1, w2, perp)))
 
     def _tier2_bounds(
-        self, rows: torch.Tensor, q: torch.Tensor, into: tuple[torch.Tensor, torch.Tensor] | None = None
+        self,
+        rows: torch.Tensor,
+        q: torch.Tensor,
+        into: tuple[torch.Tensor, torch.Tensor] | None = None,
+        codes: _Codes | None = None,
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """Float64 (lower, upper) [n,k] bounds on the margins of sorted rows [k] for queries q [n,D] from
-        both tiers of the compact state (kernels.tier2_bounds), written ``into`` when given."""
+        both tiers of the compact state (kernels.tier2_bounds), written ``into`` when given. ``codes``:
+        the tables the rows index (default: every row's)."""
         from fmgs.query.kernels import tier2_bounds
 
+        c = self._codes if codes is None else codes
         W1, W2, *norms = self._tier2_weights(q)
         if into is None:
             into = tuple(torch.empty(len(q), len(rows), dtype=torch.float64) for _ in range(2))
         lo, up = into
         r = np.ascontiguousarray(rows.numpy(), np.int64)  # no copy for the int64 rows callers pass
         tier2_bounds(
-            self.coeffs.numpy(), W1, self.tier2.codes.numpy(), W2, r, self.canonical_max.numpy(),
-            self._err.numpy(), self.tier2.bounds.numpy(), *norms, self.slack2, lo.numpy(), up.numpy(),
+            c.codes1, W1, c.codes2, W2, r, c.shift, c.err1, c.bounds2, *norms, self.slack2, lo.numpy(),
+            up.numpy(),
         )  # fmt: skip
         return lo, up
 
@@ -406,7 +456,7 @@ class EmbeddingIndex:
         big = [j for j, p in enumerate(pending) if p.n2 > REFINE_ABOVE]
         if self.half is None or not big:
             return {}
-        union = _union(pending, big)
+        union = _union(pending, big, self.num)
         lo = torch.empty(len(big), len(union), dtype=torch.float64)
         up = torch.empty_like(lo)
         for s in range(0, len(union), REFINE_CHUNK):  # bounded working memory for the kernel's inputs
@@ -555,13 +605,19 @@ def _empty32(n: int, m: int) -> torch.Tensor:
     return torch.from_numpy(np.empty((n, m), np.float32))
 
 
-def _union(pending: list[Pending], texts: list[int]) -> torch.Tensor:
-    """Sorted rows [U] still to settle for any of ``texts``: their masks OR-ed (O(M) each, no per-text
-    row lists)."""
-    member = pending[texts[0]].need
-    for j in texts[1:]:
-        member = member | pending[j].need
-    return torch.nonzero(member).reshape(-1)
+def _union(pending: list[Pending], texts: list[int], num: int) -> torch.Tensor:
+    """Sorted rows [U] still to settle for any of ``texts`` (of ``num`` rows): a sort of their lists when
+    they are short, a mask over the rows when they hold a sizeable share of them (O(num))."""
+    parts = [pending[j].rows2 for j in texts]
+    total = sum(len(r) for r in parts)
+    if len(parts) == 1:
+        return parts[0]
+    if total * 16 < num:
+        return torch.unique(torch.cat(parts))
+    member = np.zeros(num, bool)
+    for r in parts:
+        member[r.numpy()] = True
+    return torch.from_numpy(np.flatnonzero(member))
 
 
 def _float32_on(embeddings: torch.Tensor, device: torch.device, step: int = 1 << 18) -> torch.Tensor:

@@ -14,6 +14,8 @@ from fmgs.errors import ValidationError
 from fmgs.query.certify import (
     TOP_SAMPLE_STEP,
     Refined,
+    _drop_sorted,
+    _keep_sorted,
     certified_top_k,
     certify_finish,
     certify_narrow,
@@ -22,7 +24,6 @@ from fmgs.query.certify import (
     threshold_margin,
     top_rows,
 )
-from fmgs.query.certify import _drop_sorted, _keep_sorted
 from fmgs.query.index import EmbeddingIndex, IndexConfig, rank_reference, served_relevancy
 from fmgs.query.state import build_state
 from fmgs.vecmath import safe_normalize
@@ -345,9 +346,7 @@ def test_union_of_pending_rows_both_ways():
     g = torch.Generator().manual_seed(12)
     e = torch.zeros(0)
     for num, size in ((100_000, 50), (100_000, 40_000), (1000, 999)):
-        ps = [
-            Pending(e, e, 0.0, torch.randperm(num, generator=g)[:size].sort().values) for _ in range(4)
-        ]
+        ps = [Pending(e, e, 0.0, torch.randperm(num, generator=g)[:size].sort().values) for _ in range(4)]
         want = sorted(set().union(*(set(p.rows2.tolist()) for p in ps)))
         for texts in ([0], [1, 3], [0, 1, 2, 3]):
             got = index_mod._union(ps, texts, num)

@@ -1,6 +1,6 @@
 """The ``fmgs-server`` command (also ``fmgs serve``): every ServerConfig field is a flag and a TOML key.
 
-fmgs-server --models models --port 50051 --index-rank 64 --index-rerank 10
+fmgs-server --models models --port 50051 --index-rank 64 --index-rerank 4
 fmgs-server --config server.toml --port 0      # flags override the file, the file the defaults
 """
 

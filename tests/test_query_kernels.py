@@ -75,6 +75,28 @@ def test_float64_pass_equals_the_ordered_sum():
     out = np.empty((len(rows), 2))
     kernels.half_dots64(A, rows, V, out)
     assert np.array_equal(out, kernels.half_dots_reference(A, rows, V))
+    # Every group size (rows are summed four at a time, 64 per block) and text count; repeated rows.
+    for m in (1, 2, 3, 5, 63, 64, 65, 130):
+        r = np.random.default_rng(m).integers(0, len(A), m).astype(np.int64)
+        for n in (1, 3):
+            o = np.empty((m, n))
+            kernels.half_dots64(A, r, V[:1].repeat(n, 0) * np.arange(1, n + 1)[:, None], o)
+            assert np.array_equal(
+                o, kernels.half_dots_reference(A, r, V[:1].repeat(n, 0) * np.arange(1, n + 1)[:, None])
+            )
+
+
+def test_float64_pass_reads_damaged_values_as_infinite():
+    """inf, -inf and NaN read as +inf (as the twin decodes them), so a damaged row is never finite."""
+    A = _rows_with_extremes(M=12)
+    for row, bits in ((2, 0x7C00), (5, 0xFC00), (7, 0x7E00), (9, 0xFE01)):
+        A[row, 3] = bits
+    V = np.ones((1, A.shape[1])) / A.shape[1]
+    rows = np.arange(12, dtype=np.int64)
+    out = np.empty((12, 1))
+    kernels.half_dots64(A, rows, V, out)
+    assert np.array_equal(out, kernels.half_dots_reference(A, rows, V), equal_nan=True)
+    assert np.isposinf(out[[2, 5, 7, 9], 0]).all() and np.isfinite(out[[0, 1, 3, 4, 6, 8, 10, 11]]).all()
 
 
 @pytest.mark.parametrize("n", [1, 3, 8])

@@ -464,46 +464,73 @@ def _half_bounds(A, rows, V, shift, vn, c, grow, lo, up, scaled, probe, flushed,
                 bad[b] = r
 
 
-@numba.njit(inline="always", cache=True)
-def _half_parts(bits):  # pragma: no cover
-    """A float16's (integer mantissa with its implicit bit, sign-and-exponent index into
-    half_scale_table) from its bits: the value is mantissa * table[index], exactly."""
-    h = np.int32(bits)
-    i = h >> 10
-    return (h & 1023) | (1024 if (i & 31) != 0 else 0), i
-
-
-def half_scale_table() -> np.ndarray:
-    """[64] float64 value of one mantissa unit for each (sign, exponent) of a float16 (bits 15..10): x =
-    (mantissa | implicit bit) * table[h >> 10], exact; +-inf for the inf/NaN exponent."""
-    mag = [2.0**-24] + [2.0 ** (e - 25) for e in range(1, 31)] + [np.inf]
-    return np.array(mag + [-x for x in mag], np.float64)
-
-
-_P64 = half_scale_table()
-
-
 def half_dots64(A: np.ndarray, rows: np.ndarray, V: np.ndarray, out: np.ndarray) -> None:
     """out[t,k] = sum_j A[rows[t],j] V[k,j] in float64, summed in order j = 0..D-1 (so equal rows give equal
     sums): the exact score. A [M,D] float16 bits, V [n,D] float64 holding float32 values (each product
-    is exact in float64). A scalar loop (the order is fixed), so the decoding is fused into it: mantissa
-    times a table entry per (sign, exponent). Twin: ``half_dots_reference``."""
-    _half_dots64(A, rows, V, _P64, out)
+    is exact in float64). Twin: ``half_dots_reference``.
+
+    Rows are decoded exactly (``_decode_row``, then widened) and summed four at a time: the four ordered
+    sums are independent chains, and the next rows' cache lines are read ahead so that their misses
+    overlap this group's sums (random rows of a memory-mapped table). 1.7x faster than a scalar loop
+    that decodes as it sums at 14K rows (benchmarks/TEXT.md's k = 10,000)."""
+    _half_dots64(A, rows, V, out, np.zeros((len(rows) + 63) // 64, np.uint32))
+
+
+_AHEAD = 4
+"""Rows read ahead of the group being summed."""
+
+
+@numba.njit(inline="always", cache=True)
+def _touch(A, rows, start, stop):  # pragma: no cover
+    """A word from every cache line of rows[start:stop] (a read whose misses run ahead of the sums)."""
+    s = np.uint32(0)
+    for u in range(start, stop):
+        r = rows[u]
+        for j in range(0, A.shape[1], 32):
+            s += np.uint32(A[r, j])
+    return s
 
 
 @numba.njit(parallel=True, cache=True)
-def _half_dots64(A, rows, V, P, out):  # pragma: no cover
+def _half_dots64(A, rows, V, out, sink):  # pragma: no cover
     m = rows.shape[0]
     D = A.shape[1]
     n = V.shape[0]
-    for t in numba.prange(m):
-        r = rows[t]
-        for k in range(n):
-            acc = 0.0
-            for j in range(D):
-                mant, i = _half_parts(A[r, j])
-                acc += (np.float64(mant) * P[i]) * V[k, j]
-            out[t, k] = acc
+    B = 64
+    for b in numba.prange((m + B - 1) // B):
+        bits = np.empty(D, np.uint32)
+        buf = bits.view(np.float32)
+        f = np.zeros((4, D), np.float64)  # a short last group's missing rows hold stale values: not stored
+        t = b * B
+        end = min(m, t + B)
+        s = np.uint32(0)
+        while t < end:
+            g = min(4, end - t)
+            s += _touch(A, rows, t + 4, min(m, t + 4 + _AHEAD))
+            for u in range(g):
+                _decode_row(A, rows[t + u], bits, buf)
+                for j in range(D):
+                    f[u, j] = np.float64(buf[j])
+            for k in range(n):
+                c0 = 0.0
+                c1 = 0.0
+                c2 = 0.0
+                c3 = 0.0
+                for j in range(D):
+                    v = V[k, j]
+                    c0 += f[0, j] * v
+                    c1 += f[1, j] * v
+                    c2 += f[2, j] * v
+                    c3 += f[3, j] * v
+                out[t, k] = c0
+                if g > 1:
+                    out[t + 1, k] = c1
+                if g > 2:
+                    out[t + 2, k] = c2
+                if g > 3:
+                    out[t + 3, k] = c3
+            t += g
+        sink[b] = s  # kept, so the reads ahead are not optimised away
 
 
 def half_dots_reference(A: np.ndarray, rows: np.ndarray, V: np.ndarray) -> np.ndarray:

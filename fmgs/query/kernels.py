@@ -471,8 +471,8 @@ def half_dots64(A: np.ndarray, rows: np.ndarray, V: np.ndarray, out: np.ndarray)
 
     Rows are decoded exactly (``_decode_row``, then widened) and summed four at a time: the four ordered
     sums are independent chains, and the next rows' cache lines are read ahead so that their misses
-    overlap this group's sums (random rows of a memory-mapped table). 1.7x faster than a scalar loop
-    that decodes as it sums at 14K rows (benchmarks/TEXT.md's k = 10,000)."""
+    overlap this group's sums (random rows of a memory-mapped table). 14K random rows of a 1M x 512
+    table: 5.7 ms against 9.4 ms for a scalar loop that decoded as it summed (measured)."""
     _half_dots64(A, rows, V, out, np.zeros((len(rows) + 63) // 64, np.uint32))
 
 

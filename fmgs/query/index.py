@@ -72,8 +72,6 @@ class _Codes(NamedTuple):
     """[m,2] float32 second-tier error and residual norms."""
     res1: np.ndarray
     """[m] float32 first-tier residual norms."""
-    codes1_f32: torch.Tensor | None
-    """[m,r] float32 first-tier codes (the sample only)."""
 
 
 class Ranked(NamedTuple):
@@ -219,15 +217,20 @@ class EmbeddingIndex:
 
     def nbytes(self) -> int:
         """Resident bytes per the query state: codes (or float32 table), bound norms, canonical maxima,
-        basis; the second tier's codes and bounds only when not memory-mapped. The canonical dots [M,C]
-        are not counted when memory-mapped (pose renders page them in)."""
+        basis; the second tier's codes and bounds only when not memory-mapped, and the resident sample the
+        second-tier estimate reads (whether made yet or not). The canonical dots [M,C] are not counted when
+        memory-mapped (pose renders page them in)."""
         t = [self.coeffs, self.canonical_max]
         if self.state is not None:
             t += [self._err, self._res, self.basis, self.scales]
+        sample = 0
         if self.tier2 is not None:
             t += [self.tier2.basis, self.tier2.scales]
             t += [] if self.tier2.mapped else [self.tier2.codes, self.tier2.bounds]
-        return sum(x.numel() * x.element_size() for x in t)
+            if self.num // TIER2_FIRST_STEP >= TIER2_FIRST_MIN_SAMPLE:
+                per_row = self.state.rank + self.tier2.rank + 4 * 3 + 8  # codes, three norms, bounds2
+                sample = -(-self.num // TIER2_FIRST_STEP) * per_row
+        return sum(x.numel() * x.element_size() for x in t) + sample
 
     @property
     def device(self) -> torch.device:
@@ -323,7 +326,7 @@ class EmbeddingIndex:
         n_s = len(s.shift)
         lo2, _ = self._tier2_bounds(torch.arange(n_s), q, codes=s)
         W, wn, vn = self._weights(q)
-        up1 = (s.codes1_f32 @ W.T - torch.from_numpy(s.shift)[:, None]).T  # [n,S]
+        up1 = (torch.from_numpy(s.codes1).float() @ W.T - torch.from_numpy(s.shift)[:, None]).T  # [n,S]
         up1 = up1 + torch.from_numpy(s.err1) * wn[:, None] + torch.from_numpy(s.res1) * vn[:, None]
         ks = max(1, -(-k // TIER2_FIRST_STEP))
         L = torch.topk(lo2, min(ks, n_s), dim=1).values[:, -1:]
@@ -332,18 +335,17 @@ class EmbeddingIndex:
 
     @functools.cached_property
     def _sample(self) -> _Codes:
-        """Every TIER2_FIRST_STEP-th row's codes and norms, copied together on first use: the estimate then
-        reads 1 MB in one run (at 1M rows) instead of a page of each memory-mapped table per row."""
+        """Every TIER2_FIRST_STEP-th row's codes and norms, copied together on first use (about 1.1 bytes
+        per Gaussian, counted by ``nbytes``): the estimate then reads them in one run instead of a page of
+        each memory-mapped table per row."""
         rows = torch.arange(0, self.num, TIER2_FIRST_STEP)
-        codes1 = self.coeffs[rows].contiguous()
         return _Codes(
-            codes1.numpy(),
+            self.coeffs[rows].contiguous().numpy(),
             self.tier2.codes[rows].contiguous().numpy(),
             self.canonical_max[rows].contiguous().numpy(),
             self._err[rows].contiguous().numpy(),
             self.tier2.bounds[rows].contiguous().numpy(),
             self._res[rows].contiguous().numpy(),
-            codes1.float(),
         )
 
     @property
@@ -351,7 +353,7 @@ class EmbeddingIndex:
         """Every row's codes and norms, as the tier-2 kernels read them."""
         return _Codes(
             self.coeffs.numpy(), self.tier2.codes.numpy(), self.canonical_max.numpy(), self._err.numpy(),
-            self.tier2.bounds.numpy(), self._res.numpy(), None,
+            self.tier2.bounds.numpy(), self._res.numpy(),
         )  # fmt: skip
 
     def _uppers(self, q: torch.Tensor, cv: torch.Tensor | None, direct: list[int]) -> torch.Tensor:

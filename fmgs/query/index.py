@@ -227,7 +227,7 @@ class EmbeddingIndex:
         if self.tier2 is not None:
             t += [self.tier2.basis, self.tier2.scales]
             t += [] if self.tier2.mapped else [self.tier2.codes, self.tier2.bounds]
-            if self.num // TIER2_FIRST_STEP >= TIER2_FIRST_MIN_SAMPLE:
+            if self._estimates_first_pass:
                 per_row = self.state.rank + self.tier2.rank + 4 * 3 + 8  # codes, three norms, bounds2
                 sample = -(-self.num // TIER2_FIRST_STEP) * per_row
         return sum(x.numel() * x.element_size() for x in t) + sample
@@ -319,8 +319,7 @@ class EmbeddingIndex:
         and absent queries): their first pass is the second tier over every row. Estimated on every
         TIER2_FIRST_STEP-th row: the first tier's upper bounds against the sample's best second-tier
         lower bounds (a speed decision only: either pass gives exact answers)."""
-        M = self.num
-        if self.tier2 is None or M // TIER2_FIRST_STEP < TIER2_FIRST_MIN_SAMPLE:
+        if not self._estimates_first_pass:
             return []
         s = self._sample
         n_s = len(s.shift)
@@ -332,6 +331,11 @@ class EmbeddingIndex:
         L = torch.topk(lo2, min(ks, n_s), dim=1).values[:, -1:]
         frac = (up1.double() >= L).double().mean(1)
         return [j for j in range(len(q)) if float(frac[j]) > TIER2_FIRST_FRACTION]
+
+    @property
+    def _estimates_first_pass(self) -> bool:
+        """Whether ``_tier2_first`` estimates (a second tier, and a sample of TIER2_FIRST_MIN_SAMPLE rows)."""
+        return self.tier2 is not None and self.num // TIER2_FIRST_STEP >= TIER2_FIRST_MIN_SAMPLE
 
     @functools.cached_property
     def _sample(self) -> _Codes:
@@ -601,9 +605,9 @@ class _Scorer:
 
 
 def _empty32(n: int, m: int) -> torch.Tensor:
-    """An uninitialised float32 [n,m] from numpy's allocator: glibc hands a freed block of this size back
-    without new page faults, where torch's large CPU allocations took 10K fresh pages (13 ms) per query at
-    10M Gaussians (measured)."""
+    """An uninitialised float32 [n,m] from numpy's allocator, which asks for huge pages on large arrays:
+    torch's large CPU allocations took 10K fresh 4 KB pages (13 ms) per query at 10M Gaussians, numpy's
+    152 huge pages for 8 x 10M (measured)."""
     return torch.from_numpy(np.empty((n, m), np.float32))
 
 

@@ -142,27 +142,24 @@ def _dots4(A1, W1, A2, W2, i, k):  # pragma: no cover
 def _dots8(A1, W1, A2, W2, i, k):  # pragma: no cover
     """``_dots4`` for texts k..k+7: eight independent sums per sweep of the row (12% faster than two
     sweeps of four for a batch of 8 at ranks 64 + 192, measured)."""
-    a0 = a1 = a2 = a3 = a4 = a5 = a6 = a7 = np.float32(0.0)
-    for j in range(A1.shape[1]):
-        x = np.float32(A1[i, j])
-        a0 += x * W1[k, j]
-        a1 += x * W1[k + 1, j]
-        a2 += x * W1[k + 2, j]
-        a3 += x * W1[k + 3, j]
-        a4 += x * W1[k + 4, j]
-        a5 += x * W1[k + 5, j]
-        a6 += x * W1[k + 6, j]
-        a7 += x * W1[k + 7, j]
-    for j in range(A2.shape[1]):
-        x = np.float32(A2[i, j])
-        a0 += x * W2[k, j]
-        a1 += x * W2[k + 1, j]
-        a2 += x * W2[k + 2, j]
-        a3 += x * W2[k + 3, j]
-        a4 += x * W2[k + 4, j]
-        a5 += x * W2[k + 5, j]
-        a6 += x * W2[k + 6, j]
-        a7 += x * W2[k + 7, j]
+    z = np.float32(0.0)
+    return _sweep8(A2, W2, i, k, _sweep8(A1, W1, i, k, (z, z, z, z, z, z, z, z)))
+
+
+@numba.njit(inline="always", cache=True)
+def _sweep8(A, W, i, k, acc):  # pragma: no cover
+    """acc (eight float32 sums) plus row i of one tier's codes A dotted with texts k..k+7 of W."""
+    a0, a1, a2, a3, a4, a5, a6, a7 = acc
+    for j in range(A.shape[1]):
+        x = np.float32(A[i, j])
+        a0 += x * W[k, j]
+        a1 += x * W[k + 1, j]
+        a2 += x * W[k + 2, j]
+        a3 += x * W[k + 3, j]
+        a4 += x * W[k + 4, j]
+        a5 += x * W[k + 5, j]
+        a6 += x * W[k + 6, j]
+        a7 += x * W[k + 7, j]
     return a0, a1, a2, a3, a4, a5, a6, a7
 
 

@@ -130,3 +130,64 @@ def test_fused_bounds_name_the_first_damaged_row():
     assert kernels.half_bounds(A, rows, V, np.zeros(200, np.float32), lo, up) == 90
     ok = rows[5:80]
     assert kernels.half_bounds(A, ok, V, np.zeros(200, np.float32), lo[:, :75], up[:, :75]) == -1
+
+
+def _codes_and_texts(rng, M: int, r: int, n: int):
+    """Int8 codes spanning their range (extremes included) and text weights of mixed scales per text (a
+    transposing sum that put a text's total in another's lane would be far off)."""
+    A = rng.integers(-127, 128, (M, r), dtype=np.int8)
+    A[0], A[1] = 127, -127
+    W = (rng.standard_normal((n, r)) * np.geomspace(1e-3, 10, n)[:, None]).astype(np.float32)
+    return A, W
+
+
+def _sum_tolerance(A: np.ndarray, W: np.ndarray, *terms: np.ndarray) -> np.ndarray:
+    """[n,M] bound on a float32 sum of r products in any order plus a few float32 terms, fused or not."""
+    mag = np.abs(A.astype(np.float64)) @ np.abs(W.astype(np.float64)).T
+    return ((A.shape[1] + 8) * 2.0**-24 * (mag.T + sum(np.abs(t) for t in terms))) + 1e-30
+
+
+@pytest.mark.parametrize("r", [16, 64, 40])  # multiples of 16 take fmgs.query.simd's sums, 40 the loops
+@pytest.mark.parametrize("n", [1, 3, 4, 8, 13, 16])
+def test_first_tier_upper_bounds_match_their_twin(r, n):
+    rng = np.random.default_rng(r * 100 + n)
+    M = 700
+    A, W = _codes_and_texts(rng, M, r, n)
+    shift = rng.standard_normal(M).astype(np.float32)
+    err, res = rng.random(M).astype(np.float32), rng.random(M).astype(np.float32)
+    wn, vn = rng.random(n).astype(np.float32), rng.random(n).astype(np.float32)
+    out = np.full((n, M), np.nan, np.float32)
+    kernels.int8_upper(A, W, shift, err, res, wn, vn, np.float32(1e-6), out)
+    e, v = err.astype(np.float64), res.astype(np.float64)
+    ew, rv = e[None] * wn[:, None], v[None] * vn[:, None]
+    ref = (A.astype(np.float64) @ W.astype(np.float64).T).T - shift[None] + ew + rv + 1e-6
+    tol = _sum_tolerance(A, W, shift[None], ew, rv)
+    assert np.all(np.abs(out - ref) <= tol)
+
+
+@pytest.mark.parametrize("ranks", [(64, 192), (16, 32), (64, 40)])  # (64, 40): the loops
+@pytest.mark.parametrize("n", [1, 3, 4, 8, 12, 17])
+def test_second_tier_kernels_match_their_twin(ranks, n):
+    rng = np.random.default_rng(ranks[1] * 100 + n)
+    M = 600
+    A1, W1 = _codes_and_texts(rng, M, ranks[0], n)
+    A2, W2 = _codes_and_texts(rng, M, ranks[1], n)
+    shift = rng.standard_normal(M).astype(np.float32)
+    err1 = rng.random(M).astype(np.float32)
+    bounds2 = rng.random((M, 2)).astype(np.float32)
+    wn1, wn2, vn2 = (rng.random(n) for _ in range(3))
+    picked = rng.choice(np.arange(2, M - 1), 200, replace=False)
+    rows = np.concatenate([[M - 1, 0, 1], picked]).astype(np.int64)
+    lo, up = np.full((n, len(rows)), np.nan), np.full((n, len(rows)), np.nan)
+    args = (shift, err1, bounds2, wn1, wn2, vn2, 1e-6)
+    kernels.tier2_bounds(A1, W1, A2, W2, rows, *args, lo, up)
+    rlo, rup = kernels.tier2_bounds_reference(A1, W1, A2, W2, rows, *args)
+    A, W = np.concatenate([A1, A2], 1), np.concatenate([W1, W2], 1)
+    tol = _sum_tolerance(A, W)
+    assert np.all(np.abs(lo - rlo) <= tol[:, rows]) and np.all(np.abs(up - rup) <= tol[:, rows])
+    every = np.arange(M, dtype=np.int64)
+    up32 = np.full((n, M), np.nan, np.float32)
+    kernels.tier2_upper(A1, W1, A2, W2, *args, up32)
+    _, rup_all = kernels.tier2_bounds_reference(A1, W1, A2, W2, every, *args)
+    assert np.all(up32 >= rup_all - tol)  # rounded up: never below the sum's own error
+    assert np.all(up32 - rup_all <= tol + np.abs(rup_all) * 2.0**-21)

@@ -10,6 +10,8 @@ from __future__ import annotations
 import numba
 import numpy as np
 
+from fmgs.query.simd import LANES, row_dots4, row_dots4x2, row_dots8, row_dots8x2
+
 
 @numba.njit(parallel=True, fastmath=True, cache=True)
 def int8_dots(A: np.ndarray, W: np.ndarray, shift: np.ndarray, out: np.ndarray) -> None:  # pragma: no cover
@@ -42,9 +44,21 @@ def int8_upper(
     out [n,M]: each query's bounds contiguous, as certification reads them."""
     M, r = A.shape
     n = W.shape[0]
+    vector = r % LANES == 0
     for i in numba.prange(M):
         k = 0
-        if n >= 4:  # a row converted once, four queries per sweep (for fewer, converting costs more)
+        if vector:  # fmgs.query.simd: eight (then four) texts per row, one transposing sum
+            while k + 7 < n:
+                a = row_dots8(A, W, i, k)
+                for u in range(8):
+                    out[k + u, i] = a[u] - shift[i] + err[i] * wn[k + u] + res[i] * vn[k + u] + slack
+                k += 8
+            while k + 3 < n:
+                a = row_dots4(A, W, i, k)
+                for u in range(4):
+                    out[k + u, i] = a[u] - shift[i] + err[i] * wn[k + u] + res[i] * vn[k + u] + slack
+                k += 4
+        elif n >= 4:  # a row converted once, four queries per sweep (for fewer, converting costs more)
             buf = np.empty(r, np.float32)
             for j in range(r):
                 buf[j] = np.float32(A[i, j])
@@ -95,10 +109,22 @@ def tier2_bounds(
     A2 [M,r2] int8; W1 [n,r1], W2 [n,r2] float32; err1 [M], shift [M] float32; bounds2 [M,2] float32;
     wn1, wn2, vn2 [n] float64; lo, up [n,m] float64. Twin: ``tier2_bounds_reference``."""
     n = W1.shape[0]
+    vector = A1.shape[1] % LANES == 0 and A2.shape[1] % LANES == 0
     for t in numba.prange(rows.shape[0]):
         i = rows[t]
         sh, e1, e2, res = _row_terms(shift, err1, bounds2, i)
         k = 0
+        if vector:  # fmgs.query.simd
+            while k + 7 < n:
+                a = row_dots8x2(A1, W1, A2, W2, i, k)
+                for u in range(8):
+                    _put_tier2(a[u], sh, e1, e2, res, wn1, wn2, vn2, slack, lo, up, k + u, t)
+                k += 8
+            while k + 3 < n:
+                a = row_dots4x2(A1, W1, A2, W2, i, k)
+                for u in range(4):
+                    _put_tier2(a[u], sh, e1, e2, res, wn1, wn2, vn2, slack, lo, up, k + u, t)
+                k += 4
         while k + 7 < n:  # eight texts per sweep of the row: one conversion feeds eight products
             a = _dots8(A1, W1, A2, W2, i, k)
             for u in range(8):
@@ -212,9 +238,21 @@ def tier2_upper(
     """``tier2_bounds``'s upper bound for every row i (up [n,M] float32, rounded up: the float64 bound u
     plus |u| 2^-22 + 1e-30 before float32's round-to-nearest, which moves it by at most |u| 2^-24)."""
     n = W1.shape[0]
+    vector = A1.shape[1] % LANES == 0 and A2.shape[1] % LANES == 0
     for i in numba.prange(A1.shape[0]):
         sh, e1, e2, res = _row_terms(shift, err1, bounds2, i)
         k = 0
+        if vector:  # fmgs.query.simd
+            while k + 7 < n:
+                a = row_dots8x2(A1, W1, A2, W2, i, k)
+                for u in range(8):
+                    up[k + u, i] = _up32(a[u], sh, e1, e2, res, wn1, wn2, vn2, slack, k + u)
+                k += 8
+            while k + 3 < n:
+                a = row_dots4x2(A1, W1, A2, W2, i, k)
+                for u in range(4):
+                    up[k + u, i] = _up32(a[u], sh, e1, e2, res, wn1, wn2, vn2, slack, k + u)
+                k += 4
         while k + 7 < n:
             a = _dots8(A1, W1, A2, W2, i, k)
             for u in range(8):

@@ -318,6 +318,26 @@ def test_top_rows_selects_the_largest_values_like_topk():
         assert torch.equal(x[rows].sort().values, twin)
 
 
+def test_certify_start_reuses_the_candidates_only_when_they_hold_every_row_left():
+    """Rows still to settle are every row whose bound reaches L, not yet scored: taken from top_rows'
+    candidates when L is at or above their cut, from a pass over every row otherwise (exact margins far
+    below, near and at the bounds; tied, spiked and NaN bounds)."""
+    g = torch.Generator().manual_seed(6)
+    M = 100_000
+    smooth = torch.randn(M, generator=g, dtype=torch.float64)
+    tied = torch.randint(0, 40, (M,), generator=g).double()
+    spiked = torch.zeros(M, dtype=torch.float64)
+    spiked[::TOP_SAMPLE_STEP] = 1 + torch.rand(-(-M // TOP_SAMPLE_STEP), generator=g, dtype=torch.float64)
+    holed = smooth.clone()
+    holed[::97] = float("nan")
+    for up in (smooth, tied, spiked, holed):
+        for gap in (0.0, 1e-3, 0.5, 3.0):  # exact margins this far below the bounds
+            for k, first in ((1, 40), (10, 400), (100, 100)):
+                p = certify_start(up, k, lambda r, up=up, gap=gap: up[r] - gap, first=first)
+                want = _drop_sorted(rows_at_least(up, p.bound), p.rows1)
+                assert torch.equal(p.rows2, want)
+
+
 def test_sorted_row_helpers_match_set_operations():
     """rows_at_least against torch.nonzero (ties at the cut, NaN never selected, float64 too); the sorted
     difference and intersection against Python sets, empty and disjoint inputs included."""

@@ -98,14 +98,20 @@ def top_rows(x: torch.Tensor, n: int) -> torch.Tensor:
     is unspecified, as for torch.topk, its twin). A cut from a strided sample (twice the share of n it
     should hold) leaves a few thousand candidates to select from: one pass over x, not a full top-n
     selection (6 ms at 1M rows)."""
+    return _top_rows_and_candidates(x, n)[0]
+
+
+def _top_rows_and_candidates(x: torch.Tensor, n: int) -> tuple[torch.Tensor, float, torch.Tensor | None]:
+    """``top_rows`` and what it selected from: (rows, cut, candidates), candidates [c] being every row
+    with x >= cut, sorted (None, cut +inf, when it selected over every value)."""
     n = min(int(n), len(x))
     if len(x) >= 16 * TOP_SAMPLE_STEP and 0 < n <= len(x) // 8:  # about 2n candidates: a saving
         s = x[::TOP_SAMPLE_STEP]
-        cut = torch.topk(s, min(len(s), 2 * -(-n // TOP_SAMPLE_STEP) + 8), sorted=False).values.min()
-        cand = rows_at_least(x, float(cut))
+        cut = float(torch.topk(s, min(len(s), 2 * -(-n // TOP_SAMPLE_STEP) + 8), sorted=False).values.min())
+        cand = rows_at_least(x, cut)
         if len(cand) >= n:  # else the sample misjudged the cut: select over every value
-            return cand[torch.topk(x[cand], n, sorted=False).indices].sort().values
-    return torch.topk(x, n, sorted=False).indices.sort().values
+            return cand[torch.topk(x[cand], n, sorted=False).indices].sort().values, cut, cand
+    return torch.topk(x, n, sorted=False).indices.sort().values, math.inf, None
 
 
 def order_rows(margin: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
@@ -142,10 +148,14 @@ def certify_start(
     """Step 1: rescore the ``first`` rows of highest upper bound (at least k), find L and what remains."""
     up = upper.detach().cpu()
     n1 = min(len(up), max(int(first), k))
-    rows1 = top_rows(up, n1)
+    rows1, cut, cand = _top_rows_and_candidates(up, n1)
     m1 = exact(rows1)
     L = max(m_min, kth_largest(m1, k))
-    return Pending(rows1, m1, L, _drop_sorted(rows_at_least(up, L), rows1))
+    if cand is not None and L >= cut:  # every row reaching L is a candidate already: no second pass
+        above = cand[up[cand] >= L]
+    else:
+        above = rows_at_least(up, L)
+    return Pending(rows1, m1, L, _drop_sorted(above, rows1))
 
 
 def _raise_bound(p: Pending, k: int, refined: Refined) -> tuple[float, torch.Tensor]:

@@ -145,22 +145,20 @@ def tier2_bounds(
 @numba.njit(inline="always", cache=True)
 def _dots4(A1, W1, A2, W2, i, k):  # pragma: no cover
     """Row i's codes (both tiers) dotted with texts k..k+3's weights, float32, the row converted once."""
-    a0 = np.float32(0.0)
-    a1 = np.float32(0.0)
-    a2 = np.float32(0.0)
-    a3 = np.float32(0.0)
-    for j in range(A1.shape[1]):
-        x = np.float32(A1[i, j])
-        a0 += x * W1[k, j]
-        a1 += x * W1[k + 1, j]
-        a2 += x * W1[k + 2, j]
-        a3 += x * W1[k + 3, j]
-    for j in range(A2.shape[1]):
-        x = np.float32(A2[i, j])
-        a0 += x * W2[k, j]
-        a1 += x * W2[k + 1, j]
-        a2 += x * W2[k + 2, j]
-        a3 += x * W2[k + 3, j]
+    z = np.float32(0.0)
+    return _sweep4(A2, W2, i, k, _sweep4(A1, W1, i, k, (z, z, z, z)))
+
+
+@numba.njit(inline="always", cache=True)
+def _sweep4(A, W, i, k, acc):  # pragma: no cover
+    """acc (four float32 sums) plus row i of one tier's codes A dotted with texts k..k+3 of W."""
+    a0, a1, a2, a3 = acc
+    for j in range(A.shape[1]):
+        x = np.float32(A[i, j])
+        a0 += x * W[k, j]
+        a1 += x * W[k + 1, j]
+        a2 += x * W[k + 2, j]
+        a3 += x * W[k + 3, j]
     return a0, a1, a2, a3
 
 

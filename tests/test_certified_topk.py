@@ -40,24 +40,35 @@ def scene():
 
 
 def _indexes(emb, canon):
-    """The paths on the same scene: the exact one (below exact_below), the compact one (two tiers) and
-    the compact one with its first tier alone."""
+    """The paths on the same scene: the exact one (below exact_below), the compact one (two tiers), the
+    compact one with its second tier split into a head and a tail, and the compact one with its first
+    tier alone."""
     exact = EmbeddingIndex.build(emb, canon, IndexConfig(exact_below=M + 1))
-    compact = EmbeddingIndex.build(emb.half(), canon, IndexConfig(rank=16, exact_below=M - 1, rerank=2))
+    cfg = IndexConfig(rank=16, exact_below=M - 1, rerank=2)
+    compact = EmbeddingIndex.build(emb.half(), canon, cfg)
+    split = EmbeddingIndex.build(emb.half(), canon, cfg, state=build_state(emb.half(), 16, head=32))
     tier1 = EmbeddingIndex.build(emb.half(), canon, IndexConfig(rank=16, rank2=0, exact_below=0, rerank=2))
     assert exact.exact and not compact.exact and compact.tier2 is not None and tier1.tier2 is None
-    return {"exact": exact, "compact": compact, "tier1": tier1}
+    assert compact.tier2.tail is None and split.tier2.tail is not None and split.tier2.head == 32
+    return {"exact": exact, "compact": compact, "split": split, "tier1": tier1}
 
 
 def _index(scene, path, monkeypatch):
-    """The index for ``path``: "exact", "compact", "tier1" (no second tier), or either compact one with
-    "-refined" (every rescoring set goes through the second tier and the float32 refinement first)."""
+    """The index for ``path``: "exact", "compact", "split" (its second tier as head and tail), "tier1" (no
+    second tier), or a compact one with "-refined" (every rescoring set goes through the second tier and
+    the float32 refinement first), "-direct" (texts take their first pass as the size of the scene would
+    choose it were it large: the whole second tier, or the head for the split one, per text) or "-head"
+    (every text's first pass through the first tier and the head)."""
     emb, _, canon, _, _ = scene
     if path.endswith("-refined"):
         monkeypatch.setattr(index_mod, "REFINE_ABOVE", 0)
-    if path.endswith("-direct"):  # every text's first pass is the second tier over every row
+    if path.endswith(("-direct", "-head")):  # every text's first pass is over the second tier
         monkeypatch.setattr(index_mod, "TIER2_FIRST_MIN_SAMPLE", 0)
+        monkeypatch.setattr(index_mod, "TIER2_FIRST_STEP", 64)
         monkeypatch.setattr(index_mod, "TIER2_FIRST_FRACTION", -1.0)
+    if path.endswith("-head"):
+        monkeypatch.setattr(index_mod, "HEAD_FRACTION", 2.0)
+        monkeypatch.setattr(index_mod, "HEAD_TEXTS", 1000)
     return _indexes(emb, canon)[path.split("-")[0]]
 
 
@@ -78,7 +89,18 @@ def test_query_sets_span_the_range(scene):
 
 
 @pytest.mark.parametrize(
-    "path", ["exact", "compact", "compact-refined", "compact-direct", "tier1", "tier1-refined"]
+    "path",
+    [
+        "exact",
+        "compact",
+        "compact-refined",
+        "compact-direct",
+        "split",
+        "split-direct",
+        "split-head",
+        "tier1",
+        "tier1-refined",
+    ],
 )
 @pytest.mark.parametrize("k", [1, 7, 100, 1000, M])
 def test_top_k_equals_brute_force_on_every_query_set(scene, path, k, monkeypatch):
@@ -111,7 +133,9 @@ def test_ties_at_the_kth_place_break_by_row(scene, path):
     assert groups >= 5
 
 
-@pytest.mark.parametrize("path", ["exact", "compact", "compact-refined", "compact-direct", "tier1-refined"])
+@pytest.mark.parametrize(
+    "path", ["exact", "compact", "compact-refined", "compact-direct", "split-head", "tier1-refined"]
+)
 def test_threshold_queries_are_certified(scene, path, monkeypatch):
     emb, _, canon, _, sets = scene
     idx = _index(scene, path, monkeypatch)
@@ -124,7 +148,9 @@ def test_threshold_queries_are_certified(scene, path, monkeypatch):
                 assert bool((a.relevancy >= thr).all())
 
 
-@pytest.mark.parametrize("path", ["exact", "compact", "compact-refined", "compact-direct", "tier1-refined"])
+@pytest.mark.parametrize(
+    "path", ["exact", "compact", "compact-refined", "compact-direct", "split-head", "tier1-refined"]
+)
 def test_custom_canonical_and_batches(scene, path, monkeypatch):
     emb, _, canon, canon_vecs, sets = scene
     idx = _index(scene, path, monkeypatch)
@@ -190,9 +216,9 @@ def test_second_tier_bounds_hold_are_tight_and_match_their_twin(scene):
     W1 = (v64 @ idx._W_basis.T).float().numpy()
     W2 = (v64 @ idx._W_basis2.T).float().numpy()
     rlo, rup = tier2_bounds_reference(
-        idx.coeffs.numpy(), W1, t2.codes.numpy(), W2, rows.numpy(), idx.canonical_max.numpy(),
-        idx._err.numpy(), t2.bounds.numpy(), w1.norm(dim=1).numpy(), w2.norm(dim=1).numpy(),
-        perp.norm(dim=1).numpy(), idx.slack2,
+        idx.coeffs.numpy(), W1, t2.codes.numpy(), W2, *_no_tail(M, len(q)), rows.numpy(),
+        idx.canonical_max.numpy(), idx._err.numpy(), t2.bounds.numpy(), w1.norm(dim=1).numpy(),
+        w2.norm(dim=1).numpy(), perp.norm(dim=1).numpy(), idx.slack2,
     )  # fmt: skip
     assert np.allclose(lo.numpy(), rlo, rtol=0, atol=idx.slack2) and np.allclose(
         up.numpy(), rup, atol=idx.slack2
@@ -209,13 +235,61 @@ def test_second_tier_bounds_hold_are_tight_and_match_their_twin(scene):
     )
 
 
+def _no_tail(m: int, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """An empty third table and its weights (the kernels' twin for a tier stored whole, or a head alone)."""
+    return np.zeros((m, 0), np.int8), np.zeros((n, 0), np.float32)
+
+
+def test_split_second_tier_bounds_hold_and_match_the_whole_tier(scene):
+    from fmgs.query.kernels import tier2_bounds_reference
+
+    emb, _, canon, _, sets = scene
+    ix = _indexes(emb, canon)
+    split, whole = ix["split"], ix["compact"]
+    t2 = split.tier2
+    q = torch.cat([sets[n] for n in QUERY_SETS])
+    rows = torch.arange(M)
+    exact = (emb.double() @ q.double().T - canon.amax(1).double()[:, None]).T
+    # Head and tail together are the whole second tier: the same bounds up to the float32 sum's order.
+    lo, up = split._tier2_bounds(rows, q)
+    wlo, wup = whole._tier2_bounds(rows, q)
+    assert bool((lo <= exact).all() and (exact <= up).all())
+    assert torch.allclose(lo, wlo, rtol=0, atol=split.slack2) and torch.allclose(
+        up, wup, rtol=0, atol=split.slack2
+    )
+    up32 = split._tier2_upper(q, torch.empty(len(q), M))
+    assert bool((up32.double() >= exact).all()) and torch.allclose(
+        up32.double(), wup, rtol=0, atol=split.slack2
+    )
+    # The head pass: every row's upper bound from the first tier and the head, never below the margin,
+    # equal to its float64 twin up to the float32 sum, looser than the whole tier and tighter than the first.
+    head = split._head_upper(q, torch.empty(len(q), M)).double()
+    assert bool((head >= exact).all())
+    v64 = q.double()
+    w1, w2 = v64 @ split.basis.T, v64 @ t2.basis[:32].T
+    perp = v64 - w1 @ split.basis - w2 @ t2.basis[:32]
+    _, rup = tier2_bounds_reference(
+        split.coeffs.numpy(), (v64 @ split._W_basis.T).float().numpy(), t2.codes.numpy(),
+        (v64 @ split._W_basis2[:32].T).float().numpy(), *_no_tail(M, len(q)), rows.numpy(),
+        split.canonical_max.numpy(), split._err.numpy(), t2.head_bounds.numpy(), w1.norm(dim=1).numpy(),
+        w2.norm(dim=1).numpy(), perp.norm(dim=1).numpy(), split.slack2,
+    )  # fmt: skip
+    assert np.allclose(head.numpy(), rup, rtol=0, atol=split.slack2)
+    first = split._upper(q, None).double().T
+    assert float((head - exact).median()) < float((first - exact).median())
+    assert float((head - exact).median()) > float((up - exact).median())
+
+
 def test_texts_the_first_tier_cannot_settle_go_straight_to_the_second(scene, monkeypatch):
     emb, _, canon, _, sets = scene
     monkeypatch.setattr(index_mod, "TIER2_FIRST_MIN_SAMPLE", 0)
     monkeypatch.setattr(index_mod, "TIER2_FIRST_STEP", 64)  # a 94-row sample of this small scene
-    idx = _indexes(emb, canon)["compact"]
+    ix = _indexes(emb, canon)
+    idx = ix["compact"]
     q = torch.cat([sets[n] for n in QUERY_SETS])
-    chosen = set(idx._tier2_first(q, 10))
+    direct, head = idx._tier2_first(q, 10)
+    assert head == []  # a second tier stored whole has no head pass
+    chosen = set(direct)
     # What the first tier actually leaves: the share of rows whose upper bound reaches the 10th margin.
     exact = emb.double() @ q.double().T - canon.amax(1).double()[:, None]
     left = (idx._upper(q, None).double() >= torch.topk(exact, 10, dim=0).values[-1]).double().mean(0)
@@ -223,6 +297,23 @@ def test_texts_the_first_tier_cannot_settle_go_straight_to_the_second(scene, mon
     assert not {j for j in range(len(q)) if left[j] < 0.05} & chosen  # settled by the first tier
     # Each text of a mixed batch takes its own first pass; answers exact either way.
     for qi, a in zip(q, idx.rank_many(q, 10), strict=True):
+        _same(a, rank_reference(emb, canon, qi, 10))
+    # Split: the same texts leave the first tier; those whose head pass is estimated to leave at most
+    # HEAD_FRACTION of the rows take it (all of them at 2, none at -1), the others the whole tier.
+    split = ix["split"]
+    monkeypatch.setattr(index_mod, "HEAD_TEXTS", len(q))
+    for frac, want_head in ((2.0, chosen), (-1.0, set())):
+        monkeypatch.setattr(index_mod, "HEAD_FRACTION", frac)
+        direct, head = split._tier2_first(q, 10)
+        assert set(head) == want_head and set(direct) | set(head) == chosen and not set(direct) & set(head)
+    monkeypatch.setattr(index_mod, "HEAD_FRACTION", 0.1)
+    direct, head = split._tier2_first(q, 10)
+    assert direct and head  # this scene's texts take all three passes
+    # More texts leaving the first tier than HEAD_TEXTS: none takes the head pass.
+    monkeypatch.setattr(index_mod, "HEAD_TEXTS", len(chosen) - 1)
+    assert split._tier2_first(q, 10) == (sorted(chosen), [])
+    monkeypatch.setattr(index_mod, "HEAD_TEXTS", len(q))
+    for qi, a in zip(q, split.rank_many(q, 10), strict=True):
         _same(a, rank_reference(emb, canon, qi, 10))
 
 
@@ -383,6 +474,11 @@ def test_second_tier_sample_holds_the_strided_rows(scene, monkeypatch):
     assert np.array_equal(s.bounds2, idx.tier2.bounds[rows].numpy())
     assert np.array_equal(s.shift, idx.canonical_max[rows].numpy())
     assert np.array_equal(s.err1, idx._err[rows].numpy()) and np.array_equal(s.res1, idx._res[rows].numpy())
+    assert s.codes3.shape == (len(rows), 0) and s.head_bounds.shape == (len(rows), 0)  # stored whole
+    split = _indexes(emb, canon)["split"]
+    t = split._sample
+    assert np.array_equal(t.codes3, split.tier2.tail[rows].numpy())
+    assert np.array_equal(t.head_bounds, split.tier2.head_bounds[rows].numpy())
     # Counted as resident where the estimate runs (scenes of TIER2_FIRST_MIN_SAMPLE sample rows or more).
     without = idx.nbytes()
     monkeypatch.setattr(index_mod, "TIER2_FIRST_MIN_SAMPLE", 0)

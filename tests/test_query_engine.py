@@ -211,7 +211,8 @@ def test_query_state_bytes_per_gaussian():
     two = EmbeddingIndex.build(emb, canon, IndexConfig(rank=32, rank2=256, exact_below=0))
     assert two.tier2 is not None and not two.tier2.mapped and two.tier2.rank == 256 - 32
     small = two.basis.numel() * 8 + two.scales.numel() * 4 + two.tier2.basis.numel() * 8 + 224 * 4
-    assert two.nbytes() - small == M * (32 + 12 + 224 + 8)
+    assert two.tier2.head == 128 and two.tier2.tail.shape[1] == 224 - 128
+    assert two.nbytes() - small == M * (32 + 12 + 224 + 8 + 8)  # ... and the head's two norms
 
 
 def test_engine_config_rejects_nonsense():

@@ -147,17 +147,28 @@ def _sum_tolerance(A: np.ndarray, W: np.ndarray, *terms: np.ndarray) -> np.ndarr
     return ((A.shape[1] + 8) * 2.0**-24 * (mag.T + sum(np.abs(t) for t in terms))) + 1e-30
 
 
+def _with_guard(n: int, m: int, dtype) -> tuple[np.ndarray, np.ndarray]:
+    """An [n,m] output of NaN with four guard rows after it in the same buffer (a kernel writing a padded
+    text's row would fill them)."""
+    big = np.full((n + 4, m), np.nan, dtype)
+    return big[:n], big[n:]
+
+
 @pytest.mark.parametrize("r", [16, 64, 40])  # multiples of 16 take fmgs.query.simd's sums, 40 the loops
-@pytest.mark.parametrize("n", [1, 3, 4, 8, 13, 16])
-def test_first_tier_upper_bounds_match_their_twin(r, n):
+@pytest.mark.parametrize("n", [1, 2, 3, 4, 6, 7, 8, 13, 16])
+@pytest.mark.parametrize("padded", [False, True])  # kernels.pad_texts: zero weight rows past n
+def test_first_tier_upper_bounds_match_their_twin(r, n, padded):
     rng = np.random.default_rng(r * 100 + n)
     M = 700
     A, W = _codes_and_texts(rng, M, r, n)
     shift = rng.standard_normal(M).astype(np.float32)
     err, res = rng.random(M).astype(np.float32), rng.random(M).astype(np.float32)
     wn, vn = rng.random(n).astype(np.float32), rng.random(n).astype(np.float32)
-    out = np.full((n, M), np.nan, np.float32)
-    kernels.int8_upper(A, W, shift, err, res, wn, vn, np.float32(1e-6), out)
+    out, guard = _with_guard(n, M, np.float32)
+    Wk = kernels.pad_texts(W)[0] if padded else W
+    assert len(Wk) == (n + 4 - n % 4 if padded and n % 4 >= 2 and n != 2 else n)
+    kernels.int8_upper(A, Wk, shift, err, res, wn, vn, np.float32(1e-6), out)
+    assert np.isnan(guard).all()
     e, v = err.astype(np.float64), res.astype(np.float64)
     ew, rv = e[None] * wn[:, None], v[None] * vn[:, None]
     ref = (A.astype(np.float64) @ W.astype(np.float64).T).T - shift[None] + ew + rv + 1e-6
@@ -165,29 +176,39 @@ def test_first_tier_upper_bounds_match_their_twin(r, n):
     assert np.all(np.abs(out - ref) <= tol)
 
 
-@pytest.mark.parametrize("ranks", [(64, 192), (16, 32), (64, 40)])  # (64, 40): the loops
-@pytest.mark.parametrize("n", [1, 3, 4, 8, 12, 17])
-def test_second_tier_kernels_match_their_twin(ranks, n):
-    rng = np.random.default_rng(ranks[1] * 100 + n)
+# (first tier, second tier's head, its tail): (64, 40, 0) and (64, 128, 40) take the loops; a tail of 0
+# is a second tier stored whole.
+@pytest.mark.parametrize(
+    "ranks", [(64, 192, 0), (16, 32, 0), (64, 40, 0), (64, 128, 64), (16, 16, 32), (64, 128, 40)]
+)
+@pytest.mark.parametrize("n", [1, 2, 3, 4, 7, 8, 12, 17])
+@pytest.mark.parametrize("padded", [False, True])
+def test_second_tier_kernels_match_their_twin(ranks, n, padded):
+    rng = np.random.default_rng(ranks[1] * 100 + ranks[2] * 7 + n)
     M = 600
     A1, W1 = _codes_and_texts(rng, M, ranks[0], n)
     A2, W2 = _codes_and_texts(rng, M, ranks[1], n)
+    A3, W3 = _codes_and_texts(rng, M, ranks[2], n)
     shift = rng.standard_normal(M).astype(np.float32)
     err1 = rng.random(M).astype(np.float32)
     bounds2 = rng.random((M, 2)).astype(np.float32)
     wn1, wn2, vn2 = (rng.random(n) for _ in range(3))
     picked = rng.choice(np.arange(2, M - 1), 200, replace=False)
     rows = np.concatenate([[M - 1, 0, 1], picked]).astype(np.int64)
-    lo, up = np.full((n, len(rows)), np.nan), np.full((n, len(rows)), np.nan)
+    (lo, lo_guard), (up, up_guard) = _with_guard(n, len(rows), float), _with_guard(n, len(rows), float)
     args = (shift, err1, bounds2, wn1, wn2, vn2, 1e-6)
-    kernels.tier2_bounds(A1, W1, A2, W2, rows, *args, lo, up)
-    rlo, rup = kernels.tier2_bounds_reference(A1, W1, A2, W2, rows, *args)
-    A, W = np.concatenate([A1, A2], 1), np.concatenate([W1, W2], 1)
+    Wk = kernels.pad_texts(W1, W2, W3) if padded else (W1, W2, W3)
+    tiers = [x for pair in zip((A1, A2, A3), Wk, strict=True) for x in pair]
+    kernels.tier2_bounds(*tiers, rows, *args, lo, up)
+    assert np.isnan(lo_guard).all() and np.isnan(up_guard).all()
+    rlo, rup = kernels.tier2_bounds_reference(A1, W1, A2, W2, A3, W3, rows, *args)
+    A, W = np.concatenate([A1, A2, A3], 1), np.concatenate([W1, W2, W3], 1)
     tol = _sum_tolerance(A, W)
     assert np.all(np.abs(lo - rlo) <= tol[:, rows]) and np.all(np.abs(up - rup) <= tol[:, rows])
     every = np.arange(M, dtype=np.int64)
-    up32 = np.full((n, M), np.nan, np.float32)
-    kernels.tier2_upper(A1, W1, A2, W2, *args, up32)
-    _, rup_all = kernels.tier2_bounds_reference(A1, W1, A2, W2, every, *args)
+    up32, guard = _with_guard(n, M, np.float32)
+    kernels.tier2_upper(*tiers, *args, up32)
+    assert np.isnan(guard).all()
+    _, rup_all = kernels.tier2_bounds_reference(A1, W1, A2, W2, A3, W3, every, *args)
     assert np.all(up32 >= rup_all - tol)  # rounded up: never below the sum's own error
     assert np.all(up32 - rup_all <= tol + np.abs(rup_all) * 2.0**-21)

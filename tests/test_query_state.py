@@ -159,3 +159,70 @@ def test_second_tier_is_stored_mapped_and_checked(tmp_path):
     save_file(tensors, str(f), metadata=meta)
     eng = SceneEngine.open(p, EngineConfig(index=IndexConfig(rank=R, rank2=0, exact_below=0)))
     assert eng.index.tier2 is None
+
+
+def test_split_second_tier_round_trips_and_version_2_still_loads(tmp_path):
+    from safetensors import safe_open
+    from safetensors.torch import load_file, save_file
+
+    from fmgs.query.state import build_state, save_state
+
+    emb, _ = scene_embeddings(M, D, seed=3)
+    src = "fingerprint"
+    f = tmp_path / STATE_FILE
+    st = build_state(emb.half(), R, head=3)  # ranks 12 + 3 + the rest (32: TIER2_TAIL_MIN)
+    t2 = st.tier2
+    assert t2.head == 3 and t2.tail is not None and t2.tail.shape[1] >= 32 and t2.rank == 3 + t2.tail.shape[1]
+    # The head's norms bound what it leaves: f.v - c'.w - c2a'.w2a within e1|w| + e2a|w2a| + res2a|v_perp|.
+    v = safe_normalize(torch.randn(5, D, dtype=torch.float64, generator=torch.Generator().manual_seed(1)))
+    B, B2a = st.basis, t2.basis[:3]
+    approx = (
+        st.codes.double() * st.scales.double() @ (v @ B.T).T
+        + t2.codes.double() * t2.scales[:3].double() @ (v @ B2a.T).T
+    )
+    perp = (v - (v @ B.T) @ B - (v @ B2a.T) @ B2a).norm(dim=1)
+    width = (
+        st.err_norm.double()[:, None] * (v @ B.T).norm(dim=1)
+        + t2.head_bounds[:, :1].double() * (v @ B2a.T).norm(dim=1)
+        + t2.head_bounds[:, 1:].double() * perp
+    )
+    err = (emb.half().double() @ v.T - approx).abs()
+    assert bool((err <= width + 1e-12).all()) and float((width - err).median()) < 0.5
+    save_state(st, f, src)
+    back = load_state(f, M, D, src)
+    for a, b in (
+        (t2.codes, back.tier2.codes),
+        (t2.tail, back.tier2.tail),
+        (t2.head_bounds, back.tier2.head_bounds),
+    ):
+        assert torch.equal(a, b)
+    assert back.tier2.head == 3 and back.tier2.mapped
+    with safe_open(str(f), framework="pt") as h:
+        meta = dict(h.metadata())
+    tensors = load_file(str(f))
+    # Declared but missing, or damaged.
+    save_file({k: v for k, v in tensors.items() if k != "codes2_tail"}, str(f), metadata=meta)
+    with pytest.raises(ValidationError, match="second tier declared"):
+        load_state(f, M, D, src)
+    bad = dict(tensors)
+    bad["bounds2_head"] = bad["bounds2_head"].clone()
+    bad["bounds2_head"][7, 0] = -1.0
+    save_file(bad, str(f), metadata=meta)
+    with pytest.raises(ValidationError, match="bounds2_head must be finite and non-negative"):
+        load_state(f, M, D, src)
+    save_file(tensors, str(f), metadata=meta | {"head2": str(t2.rank + 1)})
+    with pytest.raises(ValidationError, match="head"):
+        load_state(f, M, D, src)
+    # A version-2 state (the second tier stored whole, no head2) loads without a tail.
+    whole = build_state(emb.half(), R, head=0)
+    assert whole.tier2.tail is None and whole.tier2.head == whole.tier2.rank
+    save_state(whole, f, src)
+    with safe_open(str(f), framework="pt") as h:
+        meta = {k: v for k, v in dict(h.metadata()).items() if k != "head2"} | {"version": "2"}
+    save_file(load_file(str(f)), str(f), metadata=meta)
+    old = load_state(f, M, D, src)
+    assert (
+        old.tier2.tail is None
+        and old.tier2.head_bounds is None
+        and torch.equal(old.tier2.codes, whole.tier2.codes)
+    )

@@ -54,6 +54,19 @@ TIER2_FIRST_FRACTION = 0.35
 more than this fraction of the rows: measured at 1M rows, the first tier costs 9 ms and the second 27 ms
 over every row, and what the first leaves costs the second again plus about 8 ms of selections and
 masks, so the two break even near a third (benchmarks/TEXT.md)."""
+HEAD_FRACTION = 0.1
+"""Of those texts, the ones whose pass through the first tier and the second tier's head is estimated to
+leave at most this fraction of the rows take that pass (the rows it leaves then read the tail); the others
+read the whole second tier over every row. 1M rows, ranks 64 + 128 + 64: the head pass costs 27 ms and the
+whole tier 36 ms, and a CLIP-like text at k = 10,000, whose head pass left most rows, took 64 against
+55 ms (measured)."""
+HEAD_TEXTS = 2
+"""The head pass is taken only when at most this many texts of a request leave the first tier: for more,
+the pass is bound by its multiply-adds rather than by reading the codes, and the rows the head leaves
+cost more than the tail saves. 1M rows, k = 100, one thread, head against whole tier: 1 CLIP-like text
+34-35 against 37-38 ms, 2 texts 57-58 against 62-63 ms, 4 texts 68 against 61-63 ms, 8 texts 108-110
+against 101-102 ms (absent texts: 35-37 against 37-38, 62-64 against 62-64, 77 against 64-66, 116-119
+against 97-102 ms; measured)."""
 TIER2_FIRST_STEP = 256
 """Every this-many-th row makes the sample that estimates it."""
 TIER2_FIRST_MIN_SAMPLE = 256
@@ -67,7 +80,7 @@ class _Codes(NamedTuple):
     codes1: np.ndarray
     """[m,r] int8 first-tier codes."""
     codes2: np.ndarray
-    """[m,r2] int8 second-tier codes."""
+    """[m,h] int8 second-tier codes: its head (all of it when stored whole)."""
     shift: np.ndarray
     """[m] float32 canonical maxima."""
     err1: np.ndarray
@@ -76,6 +89,10 @@ class _Codes(NamedTuple):
     """[m,2] float32 second-tier error and residual norms."""
     res1: np.ndarray
     """[m] float32 first-tier residual norms."""
+    codes3: np.ndarray
+    """[m,r2-h] int8 second-tier codes after the head ([m,0] when stored whole)."""
+    head_bounds: np.ndarray
+    """[m,2] float32 the head's error and residual norms ([m,0] when stored whole)."""
 
 
 class Ranked(NamedTuple):
@@ -160,6 +177,12 @@ class EmbeddingIndex:
             """The state's second tier (None: rows the first leaves go to the float16 embeddings)."""
             if t2 is not None:
                 self._W_basis2 = (t2.basis * t2.scales.double()[:, None]).contiguous()  # [r2,D] float64
+                self._tail = (
+                    t2.tail if t2.tail is not None else torch.empty(len(t2.codes), 0, dtype=torch.int8)
+                )
+                self._head_bounds = (
+                    t2.head_bounds if t2.head_bounds is not None else torch.empty(len(t2.codes), 0)
+                )
                 self.slack2 = 8 * (r + t2.rank + 8) * _U32 * max(1.0, t2.code_norm_max) + 1e-6
         else:
             self.coeffs = table
@@ -230,9 +253,11 @@ class EmbeddingIndex:
         sample = 0
         if self.tier2 is not None:
             t += [self.tier2.basis, self.tier2.scales]
-            t += [] if self.tier2.mapped else [self.tier2.codes, self.tier2.bounds]
+            if not self.tier2.mapped:
+                t += [self.tier2.codes, self.tier2.bounds, self._tail, self._head_bounds]
             if self._estimates_first_pass:
-                per_row = self.state.rank + self.tier2.rank + 4 * 3 + 8  # codes, three norms, bounds2
+                # codes, three norms, bounds2 and the head's bounds (when stored apart)
+                per_row = self.state.rank + self.tier2.rank + 4 * 3 + 8 + self._head_bounds.shape[1] * 4
                 sample = -(-self.num // TIER2_FIRST_STEP) * per_row
         return sum(x.numel() * x.element_size() for x in t) + sample
 
@@ -283,12 +308,12 @@ class EmbeddingIndex:
             if self.state is None:
                 a, b = self._bounds(q, self.canonical_max)
                 return a + b
-            from fmgs.query.kernels import int8_upper
+            from fmgs.query.kernels import int8_upper, pad_texts
 
             W, wn, vn = self._weights(q)
             out = np.empty((n, self.num), np.float32)
             int8_upper(
-                self.coeffs.numpy(), W.numpy(), self.canonical_max.numpy(), self._err.numpy(),
+                self.coeffs.numpy(), *pad_texts(W.numpy()), self.canonical_max.numpy(), self._err.numpy(),
                 self._res.numpy(), wn.numpy(), vn.numpy(), np.float32(self.slack), out,
             )  # fmt: skip
             return torch.from_numpy(out).T  # [M,n] view of per-query rows
@@ -318,13 +343,16 @@ class EmbeddingIndex:
         _check_finite(out, uniq)
         return out[torch.from_numpy(inv).to(self.device)]
 
-    def _tier2_first(self, q: torch.Tensor, k: int) -> list[int]:
+    def _tier2_first(self, q: torch.Tensor, k: int) -> tuple[list[int], list[int]]:
         """Texts whose first-tier bound would leave more than TIER2_FIRST_FRACTION of the rows (CLIP-like
-        and absent queries): their first pass is the second tier over every row. Estimated on every
-        TIER2_FIRST_STEP-th row: the first tier's upper bounds against the sample's best second-tier
-        lower bounds (a speed decision only: either pass gives exact answers)."""
+        and absent queries), as (direct, head): the head's take their first pass through the first tier
+        and the second tier's head when that is estimated to leave at most HEAD_FRACTION of the rows (and
+        no more than HEAD_TEXTS texts leave the first tier), the direct ones through the whole second tier
+        over every row. Estimated on every TIER2_FIRST_STEP-th
+        row: each pass's upper bounds against the sample's best second-tier lower bounds (a speed decision
+        only: every pass gives exact answers)."""
         if not self._estimates_first_pass:
-            return []
+            return [], []
         s = self._sample
         n_s = len(s.shift)
         lo2, _ = self._tier2_bounds(torch.arange(n_s), q, codes=s)
@@ -334,7 +362,18 @@ class EmbeddingIndex:
         ks = max(1, -(-k // TIER2_FIRST_STEP))
         L = torch.topk(lo2, min(ks, n_s), dim=1).values[:, -1:]
         frac = (up1.double() >= L).double().mean(1)
-        return [j for j in range(len(q)) if float(frac[j]) > TIER2_FIRST_FRACTION]
+        second = [j for j in range(len(q)) if float(frac[j]) > TIER2_FIRST_FRACTION]
+        if not second or not self._has_head or len(second) > HEAD_TEXTS:
+            return second, []
+        up15 = self._head_upper(q[second], _empty32(len(second), n_s), codes=s)
+        frac15 = (up15.double() >= L[second]).double().mean(1)
+        head = [j for c, j in enumerate(second) if float(frac15[c]) <= HEAD_FRACTION]
+        return [j for j in second if j not in head], head
+
+    @property
+    def _has_head(self) -> bool:
+        """Whether the second tier is stored as a head and a tail (state version 3)."""
+        return self.tier2 is not None and self.tier2.tail is not None
 
     @property
     def _estimates_first_pass(self) -> bool:
@@ -354,6 +393,8 @@ class EmbeddingIndex:
             self._err[rows].contiguous().numpy(),
             self.tier2.bounds[rows].contiguous().numpy(),
             self._res[rows].contiguous().numpy(),
+            self._tail[rows].contiguous().numpy(),
+            self._head_bounds[rows].contiguous().numpy(),
         )
 
     @property
@@ -361,22 +402,28 @@ class EmbeddingIndex:
         """Every row's codes and norms, as the tier-2 kernels read them."""
         return _Codes(
             self.coeffs.numpy(), self.tier2.codes.numpy(), self.canonical_max.numpy(), self._err.numpy(),
-            self.tier2.bounds.numpy(), self._res.numpy(),
+            self.tier2.bounds.numpy(), self._res.numpy(), self._tail.numpy(), self._head_bounds.numpy(),
         )  # fmt: skip
 
-    def _uppers(self, q: torch.Tensor, cv: torch.Tensor | None, direct: list[int]) -> torch.Tensor:
+    def _uppers(
+        self, q: torch.Tensor, cv: torch.Tensor | None, direct: list[int], head: list[int] = ()
+    ) -> torch.Tensor:
         """[n,M] upper bounds on every row's margin: the first tier's, or for the texts in ``direct`` the
-        second tier's (rounded up to float32)."""
+        whole second tier's, for those in ``head`` the first tier's and the second's head (both rounded up
+        to float32)."""
         n, M = len(q), self.num
-        rest = [j for j in range(n) if j not in direct]
-        if not direct:
+        passes = [(list(direct), self._tier2_upper), (list(head), self._head_upper)]
+        rest = [j for j in range(n) if j not in direct and j not in head]
+        if len(rest) == n:
             return self._upper(q, cv).T.contiguous()
         out = _empty32(n, M)
         if rest:
             out[rest] = self._upper(q[rest], cv).T
-        if len(direct) == n:
-            return self._tier2_upper(q, out)
-        out[direct] = self._tier2_upper(q[direct], _empty32(len(direct), M))
+        for texts, run in passes:
+            if len(texts) == n:
+                return run(q, out)
+            if texts:
+                out[texts] = run(q[texts], _empty32(len(texts), M))
         return out
 
     def _narrow_pending(
@@ -412,16 +459,22 @@ class EmbeddingIndex:
             out[j] = certify_narrow(pending[j], k, Refined(rows, lo, up))
         return out
 
-    def _tier2_weights(self, q: torch.Tensor) -> tuple:
-        """Both tiers' kernel weights for queries q [n,D]: W1 [n,r], W2 [n,r2] float32 and the norms
-        |B v|, |B2 v|, |v - B^T B v - B2^T B2 v| [n] float64 (float64 maths)."""
+    def _tier2_weights(self, q: torch.Tensor, head: bool = False) -> tuple:
+        """Both tiers' kernel weights for queries q [n,D]: W1 [n,r], W2 [n,h] (the head's), W3 [n,r2-h]
+        (the tail's) float32 and the norms |B v|, |B2 v|, |v - B^T B v - B2^T B2 v| [n] float64 (float64
+        maths). ``head``: for the first tier and the head alone (W3 [n,0]; norms |B v|, |B2a v|,
+        |v - B^T B v - B2a^T B2a v|)."""
         v64 = q.double()
+        h = self.tier2.head
         w1 = v64 @ self.basis.T
         w2 = v64 @ self.tier2.basis.T
-        perp = v64 - w1 @ self.basis - w2 @ self.tier2.basis
         W1 = (v64 @ self._W_basis.T).float().contiguous().numpy()
-        W2 = (v64 @ self._W_basis2.T).float().contiguous().numpy()
-        return (W1, W2, *(x.norm(dim=1).contiguous().numpy() for x in (w1, w2, perp)))
+        W = (v64 @ self._W_basis2.T).float()
+        W2, W3 = W[:, :h].contiguous().numpy(), W[:, h:].contiguous().numpy()
+        if head:
+            w2, W3 = w2[:, :h], W3[:, :0]
+        perp = v64 - w1 @ self.basis - w2 @ self.tier2.basis[: w2.shape[1]]
+        return (W1, W2, W3, *(x.norm(dim=1).contiguous().numpy() for x in (w1, w2, perp)))
 
     def _tier2_bounds(
         self,
@@ -433,29 +486,47 @@ class EmbeddingIndex:
         """Float64 (lower, upper) [n,k] bounds on the margins of sorted rows [k] for queries q [n,D] from
         both tiers of the compact state (kernels.tier2_bounds), written ``into`` when given. ``codes``:
         the tables the rows index (default: every row's)."""
-        from fmgs.query.kernels import tier2_bounds
+        from fmgs.query.kernels import pad_texts, tier2_bounds
 
         c = self._codes if codes is None else codes
-        W1, W2, *norms = self._tier2_weights(q)
+        W1, W2, W3, *norms = self._tier2_weights(q)
+        W1, W2, W3 = pad_texts(W1, W2, W3)
         if into is None:
             into = tuple(torch.empty(len(q), len(rows), dtype=torch.float64) for _ in range(2))
         lo, up = into
         r = np.ascontiguousarray(rows.numpy(), np.int64)  # no copy for the int64 rows callers pass
         tier2_bounds(
-            c.codes1, W1, c.codes2, W2, r, c.shift, c.err1, c.bounds2, *norms, self.slack2, lo.numpy(),
-            up.numpy(),
+            c.codes1, W1, c.codes2, W2, c.codes3, W3, r, c.shift, c.err1, c.bounds2, *norms, self.slack2,
+            lo.numpy(), up.numpy(),
         )  # fmt: skip
         return lo, up
 
     def _tier2_upper(self, q: torch.Tensor, out: torch.Tensor) -> torch.Tensor:
         """Every row's upper bound [n,M] from both tiers for queries q [n,D], float32 rounded up
         (kernels.tier2_upper), written into ``out`` (contiguous)."""
-        from fmgs.query.kernels import tier2_upper
+        from fmgs.query.kernels import pad_texts, tier2_upper
 
-        W1, W2, *norms = self._tier2_weights(q)
+        c = self._codes
+        W1, W2, W3, *norms = self._tier2_weights(q)
+        W1, W2, W3 = pad_texts(W1, W2, W3)
         tier2_upper(
-            self.coeffs.numpy(), W1, self.tier2.codes.numpy(), W2, self.canonical_max.numpy(),
-            self._err.numpy(), self.tier2.bounds.numpy(), *norms, self.slack2, out.numpy(),
+            c.codes1, W1, c.codes2, W2, c.codes3, W3, c.shift, c.err1, c.bounds2, *norms, self.slack2,
+            out.numpy(),
+        )  # fmt: skip
+        return out
+
+    def _head_upper(self, q: torch.Tensor, out: torch.Tensor, codes: _Codes | None = None) -> torch.Tensor:
+        """Every row's upper bound [n,m] from the first tier and the second tier's head alone for queries
+        q [n,D] (the head's norms bound what the tail holds), float32 rounded up, written into ``out``;
+        ``codes``: the tables the rows are (default: every row's)."""
+        from fmgs.query.kernels import pad_texts, tier2_upper
+
+        c = self._codes if codes is None else codes
+        W1, W2, W3, *norms = self._tier2_weights(q, head=True)
+        W1, W2, W3 = pad_texts(W1, W2, W3)
+        tier2_upper(
+            c.codes1, W1, c.codes2, W2, c.codes3[:, :0], W3, c.shift, c.err1, c.head_bounds, *norms,
+            self.slack2, out.numpy(),
         )  # fmt: skip
         return out
 
@@ -546,8 +617,8 @@ class EmbeddingIndex:
             return [Ranked(torch.zeros(0, dtype=torch.int64), e, e, 0) for _ in range(n)]
         q = queries.float().to(self.device)
         cv = None if canonical_vectors is None else canonical_vectors.float().to(self.device)
-        direct = self._tier2_first(q, k) if cv is None else []
-        upper = self._uppers(q, cv, direct)  # [n,M]: each text's bounds in one run of memory
+        direct, head = self._tier2_first(q, k) if cv is None else ([], [])
+        upper = self._uppers(q, cv, direct, head)  # [n,M]: each text's bounds in one run of memory
         m_min = _threshold_margin(float(threshold))
         # First candidates: rerank * k, but at most REFINE_ABOVE beyond k (a large k would pay float64
         # rescoring for rows the refinement pass settles more cheaply).

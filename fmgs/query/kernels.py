@@ -10,7 +10,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from fmgs.query.simd import LANES, row_dots4, row_dots4x2, row_dots8, row_dots8x2
+from fmgs.query.simd import LANES, prefetch_row, row_dots4, row_dots4x3, row_dots8, row_dots8x3
 
 
 @numba.njit(parallel=True, fastmath=True, cache=True)
@@ -40,10 +40,11 @@ def int8_upper(
     out: np.ndarray,
 ) -> None:  # pragma: no cover
     """out[k,i] = sum_j A[i,j] W[k,j] - shift[i] + err[i] wn[k] + res[i] vn[k] + slack: an upper bound on
-    every row's margin for each query (fmgs.query.state); W [n,r], err, res [M] float32, wn, vn [n];
-    out [n,M]: each query's bounds contiguous, as certification reads them."""
+    every row's margin for each query (fmgs.query.state); W [nw,r] (nw >= n: rows past n are padding,
+    see ``pad_texts``), err, res [M] float32, wn, vn [n]; out [n,M]: each query's bounds contiguous, as
+    certification reads them."""
     M, r = A.shape
-    n = W.shape[0]
+    n, nw = out.shape[0], W.shape[0]
     vector = r % LANES == 0
     for i in numba.prange(M):
         k = 0
@@ -51,13 +52,25 @@ def int8_upper(
             while k + 7 < n:
                 a = row_dots8(A, W, i, k)
                 for u in range(8):
-                    out[k + u, i] = a[u] - shift[i] + err[i] * wn[k + u] + res[i] * vn[k + u] + slack
+                    _put_upper(out, a[u], k + u, i, shift, err, res, wn, vn, slack)
                 k += 8
             while k + 3 < n:
                 a = row_dots4(A, W, i, k)
                 for u in range(4):
-                    out[k + u, i] = a[u] - shift[i] + err[i] * wn[k + u] + res[i] * vn[k + u] + slack
+                    _put_upper(out, a[u], k + u, i, shift, err, res, wn, vn, slack)
                 k += 4
+            if k < n and k + 7 < nw:  # padded weights (pad_texts): the last texts in one group
+                a = row_dots8(A, W, i, k)
+                for u in range(8):
+                    if k + u < n:
+                        _put_upper(out, a[u], k + u, i, shift, err, res, wn, vn, slack)
+                k = n
+            elif k < n and k + 3 < nw:
+                a = row_dots4(A, W, i, k)
+                for u in range(4):
+                    if k + u < n:
+                        _put_upper(out, a[u], k + u, i, shift, err, res, wn, vn, slack)
+                k = n
         elif n >= 4:  # a row converted once, four queries per sweep (for fewer, converting costs more)
             buf = np.empty(r, np.float32)
             for j in range(r):
@@ -86,12 +99,37 @@ def int8_upper(
             k += 1
 
 
+def pad_texts(*weights: np.ndarray) -> tuple[np.ndarray, ...]:
+    """Weights [n,r] with zero rows appended up to a multiple of four when n % 4 is 3, or 2 with n > 2:
+    the kernels' vector code then takes the last texts four at a time and writes only the first n.
+    1M rows, k = 100, one thread, padded against not (measured): 3 CLIP-like texts (the whole second
+    tier) 67 against 90 ms, 6 typical texts (first tier) 52 against 68 ms, 6 CLIP-like 129 against 144 ms;
+    but 2 texts alone 68 against 58 ms (CLIP-like) and 28 against 26 ms (typical): one or two texts'
+    pass is bound by reading the codes, and their own loops cost less than four texts' products."""
+    n = weights[0].shape[0]
+    if n % 4 < 2 or n == 2:
+        return weights
+    pad = 4 - n % 4
+    return tuple(np.concatenate([w, np.zeros((pad, w.shape[1]), w.dtype)]) for w in weights)
+
+
+_AHEAD_CODES = 8
+"""Rows of ``tier2_bounds`` whose codes and norms are asked for ahead of the row being summed."""
+
+
+@numba.njit(inline="always", cache=True)
+def _put_upper(out, a, k, i, shift, err, res, wn, vn, slack):  # pragma: no cover
+    out[k, i] = a - shift[i] + err[i] * wn[k] + res[i] * vn[k] + slack
+
+
 @numba.njit(parallel=True, fastmath=True, cache=True)
 def tier2_bounds(
     A1: np.ndarray,
     W1: np.ndarray,
     A2: np.ndarray,
     W2: np.ndarray,
+    A3: np.ndarray,
+    W3: np.ndarray,
     rows: np.ndarray,
     shift: np.ndarray,
     err1: np.ndarray,
@@ -104,49 +142,74 @@ def tier2_bounds(
     up: np.ndarray,
 ) -> None:  # pragma: no cover
     """Float64 bounds lo[k,t] <= f.v_k - shift[i] <= up[k,t] for rows i = rows[t] from both tiers of the
-    compact state (fmgs.query.state): a = A1[i].W1[k] + A2[i].W2[k] in float32, error err1[i] wn1[k] +
-    bounds2[i,0] wn2[k] + bounds2[i,1] vn2[k] + slack (slack covers the float32 sum). A1 [M,r1],
-    A2 [M,r2] int8; W1 [n,r1], W2 [n,r2] float32; err1 [M], shift [M] float32; bounds2 [M,2] float32;
-    wn1, wn2, vn2 [n] float64; lo, up [n,m] float64. Twin: ``tier2_bounds_reference``."""
-    n = W1.shape[0]
-    vector = A1.shape[1] % LANES == 0 and A2.shape[1] % LANES == 0
-    for t in numba.prange(rows.shape[0]):
+    compact state (fmgs.query.state): a = A1[i].W1[k] + A2[i].W2[k] + A3[i].W3[k] in float32, error
+    err1[i] wn1[k] + bounds2[i,0] wn2[k] + bounds2[i,1] vn2[k] + slack (slack covers the float32 sum).
+    A1 [M,r1], A2 [M,r2], A3 [M,r3] int8 (the second tier's head and tail; r3 may be 0); W1 [n,r1],
+    W2 [n,r2], W3 [n,r3] float32; err1 [M], shift [M] float32; bounds2 [M,2] float32;
+    wn1, wn2, vn2 [n] float64; lo, up [n,m] float64; the weights may hold padding rows past n
+    (``pad_texts``). Twin: ``tier2_bounds_reference``."""
+    n, nw = lo.shape[0], W1.shape[0]
+    m = rows.shape[0]
+    vector = A1.shape[1] % LANES == 0 and A2.shape[1] % LANES == 0 and A3.shape[1] % LANES == 0
+    for t in numba.prange(m):
+        if t + _AHEAD_CODES < m:  # sparse rows: their six tables' lines asked for ahead of the sums
+            ahead = rows[t + _AHEAD_CODES]
+            prefetch_row(A1, ahead)
+            prefetch_row(A2, ahead)
+            prefetch_row(A3, ahead)
+            prefetch_row(shift, ahead)
+            prefetch_row(err1, ahead)
+            prefetch_row(bounds2, ahead)
         i = rows[t]
         sh, e1, e2, res = _row_terms(shift, err1, bounds2, i)
         k = 0
         if vector:  # fmgs.query.simd
             while k + 7 < n:
-                a = row_dots8x2(A1, W1, A2, W2, i, k)
+                a = row_dots8x3(A1, W1, A2, W2, A3, W3, i, k)
                 for u in range(8):
                     _put_tier2(a[u], sh, e1, e2, res, wn1, wn2, vn2, slack, lo, up, k + u, t)
                 k += 8
             while k + 3 < n:
-                a = row_dots4x2(A1, W1, A2, W2, i, k)
+                a = row_dots4x3(A1, W1, A2, W2, A3, W3, i, k)
                 for u in range(4):
                     _put_tier2(a[u], sh, e1, e2, res, wn1, wn2, vn2, slack, lo, up, k + u, t)
                 k += 4
+            if k < n and k + 7 < nw:  # padded weights (pad_texts): the last texts in one group
+                a = row_dots8x3(A1, W1, A2, W2, A3, W3, i, k)
+                for u in range(8):
+                    if k + u < n:
+                        _put_tier2(a[u], sh, e1, e2, res, wn1, wn2, vn2, slack, lo, up, k + u, t)
+                k = n
+            elif k < n and k + 3 < nw:
+                a = row_dots4x3(A1, W1, A2, W2, A3, W3, i, k)
+                for u in range(4):
+                    if k + u < n:
+                        _put_tier2(a[u], sh, e1, e2, res, wn1, wn2, vn2, slack, lo, up, k + u, t)
+                k = n
         while k + 7 < n:  # eight texts per sweep of the row: one conversion feeds eight products
-            a = _dots8(A1, W1, A2, W2, i, k)
+            a = _dots8(A1, W1, A2, W2, A3, W3, i, k)
             for u in range(8):
                 _put_tier2(a[u], sh, e1, e2, res, wn1, wn2, vn2, slack, lo, up, k + u, t)
             k += 8
         while k + 3 < n:  # four texts per sweep
-            a0, a1, a2, a3 = _dots4(A1, W1, A2, W2, i, k)
+            a0, a1, a2, a3 = _dots4(A1, W1, A2, W2, A3, W3, i, k)
             _put_tier2(a0, sh, e1, e2, res, wn1, wn2, vn2, slack, lo, up, k, t)
             _put_tier2(a1, sh, e1, e2, res, wn1, wn2, vn2, slack, lo, up, k + 1, t)
             _put_tier2(a2, sh, e1, e2, res, wn1, wn2, vn2, slack, lo, up, k + 2, t)
             _put_tier2(a3, sh, e1, e2, res, wn1, wn2, vn2, slack, lo, up, k + 3, t)
             k += 4
         while k < n:
-            _put_tier2(_dots1(A1, W1, A2, W2, i, k), sh, e1, e2, res, wn1, wn2, vn2, slack, lo, up, k, t)
+            _put_tier2(
+                _dots1(A1, W1, A2, W2, A3, W3, i, k), sh, e1, e2, res, wn1, wn2, vn2, slack, lo, up, k, t
+            )
             k += 1
 
 
 @numba.njit(inline="always", cache=True)
-def _dots4(A1, W1, A2, W2, i, k):  # pragma: no cover
-    """Row i's codes (both tiers) dotted with texts k..k+3's weights, float32, the row converted once."""
+def _dots4(A1, W1, A2, W2, A3, W3, i, k):  # pragma: no cover
+    """Row i's codes (all tiers) dotted with texts k..k+3's weights, float32, the row converted once."""
     z = np.float32(0.0)
-    return _sweep4(A2, W2, i, k, _sweep4(A1, W1, i, k, (z, z, z, z)))
+    return _sweep4(A3, W3, i, k, _sweep4(A2, W2, i, k, _sweep4(A1, W1, i, k, (z, z, z, z))))
 
 
 @numba.njit(inline="always", cache=True)
@@ -163,11 +226,12 @@ def _sweep4(A, W, i, k, acc):  # pragma: no cover
 
 
 @numba.njit(inline="always", cache=True)
-def _dots8(A1, W1, A2, W2, i, k):  # pragma: no cover
+def _dots8(A1, W1, A2, W2, A3, W3, i, k):  # pragma: no cover
     """``_dots4`` for texts k..k+7: eight independent sums per sweep of the row (12% faster than two
     sweeps of four for a batch of 8 at ranks 64 + 192, measured)."""
     z = np.float32(0.0)
-    return _sweep8(A2, W2, i, k, _sweep8(A1, W1, i, k, (z, z, z, z, z, z, z, z)))
+    acc = _sweep8(A1, W1, i, k, (z, z, z, z, z, z, z, z))
+    return _sweep8(A3, W3, i, k, _sweep8(A2, W2, i, k, acc))
 
 
 @numba.njit(inline="always", cache=True)
@@ -188,13 +252,15 @@ def _sweep8(A, W, i, k, acc):  # pragma: no cover
 
 
 @numba.njit(inline="always", cache=True)
-def _dots1(A1, W1, A2, W2, i, k):  # pragma: no cover
-    """Row i's codes (both tiers) dotted with text k's weights, float32."""
+def _dots1(A1, W1, A2, W2, A3, W3, i, k):  # pragma: no cover
+    """Row i's codes (all tiers) dotted with text k's weights, float32."""
     a0 = np.float32(0.0)
     for j in range(A1.shape[1]):
         a0 += np.float32(A1[i, j]) * W1[k, j]
     for j in range(A2.shape[1]):
         a0 += np.float32(A2[i, j]) * W2[k, j]
+    for j in range(A3.shape[1]):
+        a0 += np.float32(A3[i, j]) * W3[k, j]
     return a0
 
 
@@ -224,6 +290,8 @@ def tier2_upper(
     W1: np.ndarray,
     A2: np.ndarray,
     W2: np.ndarray,
+    A3: np.ndarray,
+    W3: np.ndarray,
     shift: np.ndarray,
     err1: np.ndarray,
     bounds2: np.ndarray,
@@ -235,36 +303,48 @@ def tier2_upper(
 ) -> None:  # pragma: no cover
     """``tier2_bounds``'s upper bound for every row i (up [n,M] float32, rounded up: the float64 bound u
     plus |u| 2^-22 + 1e-30 before float32's round-to-nearest, which moves it by at most |u| 2^-24)."""
-    n = W1.shape[0]
-    vector = A1.shape[1] % LANES == 0 and A2.shape[1] % LANES == 0
+    n, nw = up.shape[0], W1.shape[0]
+    vector = A1.shape[1] % LANES == 0 and A2.shape[1] % LANES == 0 and A3.shape[1] % LANES == 0
     for i in numba.prange(A1.shape[0]):
         sh, e1, e2, res = _row_terms(shift, err1, bounds2, i)
         k = 0
         if vector:  # fmgs.query.simd
             while k + 7 < n:
-                a = row_dots8x2(A1, W1, A2, W2, i, k)
+                a = row_dots8x3(A1, W1, A2, W2, A3, W3, i, k)
                 for u in range(8):
                     up[k + u, i] = _up32(a[u], sh, e1, e2, res, wn1, wn2, vn2, slack, k + u)
                 k += 8
             while k + 3 < n:
-                a = row_dots4x2(A1, W1, A2, W2, i, k)
+                a = row_dots4x3(A1, W1, A2, W2, A3, W3, i, k)
                 for u in range(4):
                     up[k + u, i] = _up32(a[u], sh, e1, e2, res, wn1, wn2, vn2, slack, k + u)
                 k += 4
+            if k < n and k + 7 < nw:  # padded weights (pad_texts): the last texts in one group
+                a = row_dots8x3(A1, W1, A2, W2, A3, W3, i, k)
+                for u in range(8):
+                    if k + u < n:
+                        up[k + u, i] = _up32(a[u], sh, e1, e2, res, wn1, wn2, vn2, slack, k + u)
+                k = n
+            elif k < n and k + 3 < nw:
+                a = row_dots4x3(A1, W1, A2, W2, A3, W3, i, k)
+                for u in range(4):
+                    if k + u < n:
+                        up[k + u, i] = _up32(a[u], sh, e1, e2, res, wn1, wn2, vn2, slack, k + u)
+                k = n
         while k + 7 < n:
-            a = _dots8(A1, W1, A2, W2, i, k)
+            a = _dots8(A1, W1, A2, W2, A3, W3, i, k)
             for u in range(8):
                 up[k + u, i] = _up32(a[u], sh, e1, e2, res, wn1, wn2, vn2, slack, k + u)
             k += 8
         while k + 3 < n:
-            a0, a1, a2, a3 = _dots4(A1, W1, A2, W2, i, k)
+            a0, a1, a2, a3 = _dots4(A1, W1, A2, W2, A3, W3, i, k)
             up[k, i] = _up32(a0, sh, e1, e2, res, wn1, wn2, vn2, slack, k)
             up[k + 1, i] = _up32(a1, sh, e1, e2, res, wn1, wn2, vn2, slack, k + 1)
             up[k + 2, i] = _up32(a2, sh, e1, e2, res, wn1, wn2, vn2, slack, k + 2)
             up[k + 3, i] = _up32(a3, sh, e1, e2, res, wn1, wn2, vn2, slack, k + 3)
             k += 4
         while k < n:
-            up[k, i] = _up32(_dots1(A1, W1, A2, W2, i, k), sh, e1, e2, res, wn1, wn2, vn2, slack, k)
+            up[k, i] = _up32(_dots1(A1, W1, A2, W2, A3, W3, i, k), sh, e1, e2, res, wn1, wn2, vn2, slack, k)
             k += 1
 
 
@@ -274,12 +354,9 @@ def _up32(acc, sh, e1, e2, res, wn1, wn2, vn2, slack, k):  # pragma: no cover
     return np.float32(u + abs(u) * 2.0**-22 + 1e-30)
 
 
-def tier2_bounds_reference(A1, W1, A2, W2, rows, shift, err1, bounds2, wn1, wn2, vn2, slack):
+def tier2_bounds_reference(A1, W1, A2, W2, A3, W3, rows, shift, err1, bounds2, wn1, wn2, vn2, slack):
     """Twin of ``tier2_bounds`` in float64 numpy: (lo, up) [n,m]."""
-    a = (
-        A1[rows].astype(np.float64) @ W1.astype(np.float64).T
-        + A2[rows].astype(np.float64) @ W2.astype(np.float64).T
-    )
+    a = sum(A[rows].astype(np.float64) @ W.astype(np.float64).T for A, W in ((A1, W1), (A2, W2), (A3, W3)))
     d = a - shift[rows].astype(np.float64)[:, None]
     b2 = bounds2[rows].astype(np.float64)
     g = err1[rows].astype(np.float64)[:, None] * wn1[None] + b2[:, :1] * wn2[None] + b2[:, 1:] * vn2[None]

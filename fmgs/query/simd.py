@@ -1,5 +1,5 @@
 """Explicit vector code for the text kernels (fmgs.query.kernels): one row of int8 codes dotted with
-several texts' float32 weights.
+several texts' float32 weights, and a prefetch of a table's row.
 
 Written from numba as plain loops, a row times T texts vectorises along the row and ends in T separate
 horizontal sums; each costs a handful of shuffles, and for eight texts those sums, not the products,
@@ -99,6 +99,41 @@ def _row_dots_codegen(texts: int, tiers: int):
     return codegen
 
 
+_I8P = ir.IntType(8).as_pointer()
+
+
+def _prefetch_codegen(context, builder, signature, args):
+    array, row = args
+    A = context.make_array(signature.args[0])(context, builder, array)
+    row = context.cast(builder, row, signature.args[1], types.intp)
+    size = cgutils.unpack_tuple(builder, A.strides, signature.args[0].ndim)[0]  # bytes per row
+    start = builder.gep(builder.bitcast(A.data, _I8P), [builder.mul(row, size)])
+    # Unmangled: LLVM names the overload itself (typed and opaque pointers alike).
+    fn = cgutils.get_or_insert_function(
+        builder.module, ir.FunctionType(ir.VoidType(), [_I8P, _I32, _I32, _I32]), "llvm.prefetch"
+    )
+    hint = [ir.Constant(_I32, 0), ir.Constant(_I32, 3), ir.Constant(_I32, 1)]  # read, keep, data
+    line = ir.Constant(size.type, 64)
+    with builder.if_then(builder.icmp_signed(">", size, ir.Constant(size.type, 0))):
+        lines = builder.udiv(builder.add(size, ir.Constant(size.type, 63)), line)
+        with cgutils.for_range(builder, lines) as loop:  # a line per 64 bytes from the row's first byte
+            builder.call(fn, [builder.gep(start, [builder.mul(loop.index, line)]), *hint])
+        last = builder.gep(start, [builder.sub(size, ir.Constant(size.type, 1))])
+        builder.call(fn, [last, *hint])  # and its last byte's (a row need not start a line)
+    return context.get_dummy_value()
+
+
+@intrinsic
+def prefetch_row(typingctx, A, row):
+    """Ask for row ``row`` of a C-contiguous array (an element of a 1-D one) to be brought into the cache,
+    without waiting for it: a kernel reading rows in an order the hardware cannot guess (sorted but
+    sparse rows of a memory-mapped table) issues it a few rows ahead so that the misses overlap its
+    sums. Rows of zero bytes ask for nothing."""
+    if not (isinstance(A, types.Array) and A.ndim in (1, 2) and A.layout == "C"):
+        raise TypeError(f"prefetch_row wants a C-contiguous 1-D or 2-D array, got {A}")
+    return types.void(A, row), _prefetch_codegen
+
+
 def _check(pairs) -> None:
     for A, W in zip(pairs[::2], pairs[1::2], strict=True):
         ok = (
@@ -125,14 +160,15 @@ def row_dots4(typingctx, A, W, row, first):
 
 
 @intrinsic
-def row_dots8x2(typingctx, A1, W1, A2, W2, row, first):
-    """Both tiers of a row: sum_j A1[row,j] W1[first+t,j] + sum_j A2[row,j] W2[first+t,j], t < 8."""
-    _check((A1, W1, A2, W2))
-    return types.UniTuple(types.float32, 8)(A1, W1, A2, W2, row, first), _row_dots_codegen(8, 2)
+def row_dots8x3(typingctx, A1, W1, A2, W2, A3, W3, row, first):
+    """Three tables of a row's codes (the first tier, the second's head and tail): the sum over them of
+    sum_j A[row,j] W[first+t,j], t < 8. A table may have no columns."""
+    _check((A1, W1, A2, W2, A3, W3))
+    return types.UniTuple(types.float32, 8)(A1, W1, A2, W2, A3, W3, row, first), _row_dots_codegen(8, 3)
 
 
 @intrinsic
-def row_dots4x2(typingctx, A1, W1, A2, W2, row, first):
-    """``row_dots8x2`` for four texts."""
-    _check((A1, W1, A2, W2))
-    return types.UniTuple(types.float32, 4)(A1, W1, A2, W2, row, first), _row_dots_codegen(4, 2)
+def row_dots4x3(typingctx, A1, W1, A2, W2, A3, W3, row, first):
+    """``row_dots8x3`` for four texts."""
+    _check((A1, W1, A2, W2, A3, W3))
+    return types.UniTuple(types.float32, 4)(A1, W1, A2, W2, A3, W3, row, first), _row_dots_codegen(4, 3)

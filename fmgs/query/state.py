@@ -16,12 +16,19 @@ Field embeddings have low rank (the language head's hidden width + 1, e.g. 257 o
 vectors up to that rank leave a residual near float16 rounding and bound CLIP-like queries tightly. The
 second tier stays memory-mapped: it is read only for the rows the first one leaves.
 
+The second tier is stored in two tables, its first ``head`` basis vectors' codes (B2a, c2a) and the rest
+(B2b, c2b), with the head's own norms |c2a - c2a'| and |f_i - B^T c_i - B2a^T c2a_i|: texts the first tier
+cannot settle (CLIP-like, absent) take their pass over every row through the first tier and the head
+alone (128 + 64 of 256 bytes per row at the defaults), and only the rows that leaves read the tail.
+
 File ``query_state.safetensors`` in the package (written by ``export_scene``):
   basis [r,D] float64, scales [r] float32, codes [M,r] int8, err_norm [M] float16, res_norm [M] float16,
-  and with a second tier basis2 [r2,D] float64, scales2 [r2] float32, codes2 [M,r2] int8, bounds2 [M,2]
-  float32 (its error and residual norms, rounded up);
-  metadata {format: "fmgs-query-state", version, rank, rank2, num, dim, code_norm_max, code_norm_max2,
-  source}. Version 1 files (no second tier) still load; the index then runs on the first tier alone.
+  and with a second tier basis2 [r2,D] float64, scales2 [r2] float32, codes2 [M,h] int8 (its head: all
+  r2 when it is stored whole), bounds2 [M,2] float32 (its error and residual norms, rounded up), and when
+  h < r2 codes2_tail [M,r2-h] int8 and bounds2_head [M,2] float32 (the head's error and residual norms);
+  metadata {format: "fmgs-query-state", version, rank, rank2, head2, num, dim, code_norm_max,
+  code_norm_max2, source}. Version 1 files (no second tier) still load, and the index then runs on the
+  first tier alone; version 2 files (no head2: the second tier stored whole) load without the head pass.
 ``source`` fingerprints the embeddings file (size and sampled blocks), so a state that does not belong to
 the embeddings beside it is refused and rebuilt in memory.
 """
@@ -39,10 +46,19 @@ from fmgs.errors import ValidationError
 
 STATE_FILE = "query_state.safetensors"
 STATE_FORMAT = "fmgs-query-state"
-STATE_VERSION = 2
-READS_VERSIONS = ("1", "2")
+STATE_VERSION = 3
+READS_VERSIONS = ("1", "2", "3")
 TIER2_RANK = 256
 """Default total rank of both tiers (first tier + second tier basis vectors)."""
+TIER2_HEAD = 128
+"""Basis vectors of the second tier's head (see the module docstring). 1M rows, ranks 64 + 192, one
+thread: a CLIP-like text at k = 100 took 32-33 ms through a head of 128 against 39-40 ms through the whole
+second tier, an absent one 36 against 39 ms; a head of 96 left several times more rows to the tail and
+made absent texts slower than the whole tier (41-43 ms); a head of 64 left 20-70% of the rows (measured
+on benchmarks/query_sets.py's sets)."""
+TIER2_TAIL_MIN = 32
+"""The second tier is split only when its tail would hold at least this many basis vectors (else the head
+pass saves too little over the whole tier to pay for the rows it leaves)."""
 TIER2_ENERGY = 1e-6
 """The second tier stops at the embeddings' numerical rank: where the sample's remaining energy falls
 below this fraction (float16 rounding leaves about 1e-8)."""
@@ -66,10 +82,20 @@ class Tier2:
     """max_i |(c'_i, c2'_i)| over both tiers' dequantised codes (bounds the float32 rounding)."""
     mapped: bool = False
     """Codes and bounds are memory-mapped (not resident)."""
+    tail: torch.Tensor | None = None
+    """[M,r2-h] int8 coefficients of the basis vectors after the head (None: ``codes`` holds all r2)."""
+    head_bounds: torch.Tensor | None = None
+    """[M,2] float32: |c2a_i - c2a'_i| and |f_i - B^T c_i - B2a^T c2a_i| for the head alone, rounded up
+    (None when the tier is stored whole)."""
 
     @property
     def rank(self) -> int:
         return int(self.basis.shape[0])
+
+    @property
+    def head(self) -> int:
+        """Basis vectors in ``codes`` (all of them when there is no tail)."""
+        return int(self.codes.shape[1])
 
 
 @dataclass
@@ -101,16 +127,21 @@ class QueryState:
 
 
 def build_state(
-    embeddings: torch.Tensor, rank: int, basis_sample: int = 100_000, rank2: int = TIER2_RANK
+    embeddings: torch.Tensor,
+    rank: int,
+    basis_sample: int = 100_000,
+    rank2: int = TIER2_RANK,
+    head: int = TIER2_HEAD,
 ) -> QueryState:
     """From embeddings [M,D] (any float dtype, e.g. a float16 memory map); two chunked passes, never a
     float32 copy of the whole table. ``rank2``: the total rank of both tiers at most (capped at the
-    embeddings' numerical rank; no second tier when that leaves nothing beyond ``rank``)."""
+    embeddings' numerical rank; no second tier when that leaves nothing beyond ``rank``). ``head``: basis
+    vectors of the second tier's head (split only when at least TIER2_TAIL_MIN remain; 0: never split)."""
     M, D = embeddings.shape
     if not 0 < rank < D:
         raise ValueError(f"rank must lie in (0, {D}), got {rank}")
-    if rank2 < 0:
-        raise ValueError(f"rank2 must be >= 0, got {rank2}")
+    if rank2 < 0 or head < 0:
+        raise ValueError(f"rank2 and head must be >= 0, got {rank2}, {head}")
     full, energy = _basis(embeddings, basis_sample)
     top = max(rank, _tier2_rank(energy, rank, rank2))
     basis = torch.linalg.qr(full[:top].T).Q.T.contiguous()  # orthonormal to float64 rounding
@@ -120,28 +151,37 @@ def build_state(
     scales = (amax / 127).clamp_min(1e-30).float()
     s64 = scales.double()
     codes = torch.empty(M, rank, dtype=torch.int8)
-    codes2 = torch.empty(M, top - rank, dtype=torch.int8)
-    norms = torch.empty(M, 4, dtype=torch.float64)  # err, res (first tier), err2, res2
+    h = head if 0 < head and top - rank - head >= TIER2_TAIL_MIN else top - rank
+    split = rank + h  # the head's last basis vector + 1
+    codes2 = torch.empty(M, h, dtype=torch.int8)
+    tail = torch.empty(M, top - split, dtype=torch.int8)
+    norms = torch.empty(M, 6, dtype=torch.float64)  # err, res (first tier), err2, res2, err2a, res2a
     cmax = cmax2 = 0.0
     for s in range(0, M, _CHUNK):
         f = embeddings[s : s + _CHUNK].double()
         c = f @ basis.T
         q = (c / s64).round().clamp(-127, 127)
         codes[s : s + _CHUNK] = q[:, :rank].to(torch.int8)
-        codes2[s : s + _CHUNK] = q[:, rank:].to(torch.int8)
+        codes2[s : s + _CHUNK] = q[:, rank:split].to(torch.int8)
+        tail[s : s + _CHUNK] = q[:, split:].to(torch.int8)
         deq = q * s64
         n = norms[s : s + _CHUNK]
         n[:, 0] = (c[:, :rank] - deq[:, :rank]).norm(dim=1)
         n[:, 1] = (f - c[:, :rank] @ basis[:rank]).norm(dim=1)
         n[:, 2] = (c[:, rank:] - deq[:, rank:]).norm(dim=1)
         n[:, 3] = (f - c @ basis).norm(dim=1)
+        n[:, 4] = (c[:, rank:split] - deq[:, rank:split]).norm(dim=1)
+        n[:, 5] = (f - c[:, :split] @ basis[:split]).norm(dim=1)
         if len(deq):
             cmax = max(cmax, float(deq[:, :rank].norm(dim=1).max()))
             cmax2 = max(cmax2, float(deq.norm(dim=1).max()))
     tier2 = None
     if top > rank:
-        bounds = torch.from_numpy(round_up_single(norms[:, 2:].numpy()))
+        bounds = torch.from_numpy(round_up_single(norms[:, 2:4].numpy()))
         tier2 = Tier2(basis[rank:].contiguous(), scales[rank:].contiguous(), codes2, bounds, cmax2)
+        if split < top:
+            tier2.tail = tail
+            tier2.head_bounds = torch.from_numpy(round_up_single(norms[:, 4:].numpy()))
     return QueryState(
         basis[:rank].contiguous(),
         scales[:rank].contiguous(),
@@ -233,12 +273,15 @@ def save_state(state: QueryState, path: Path, source: str) -> None:
     if t2 is not None:
         meta["rank2"] = str(t2.rank)
         meta["code_norm_max2"] = repr(float(t2.code_norm_max))
+        meta["head2"] = str(t2.head)
         tensors |= {
             "basis2": t2.basis.contiguous(),
             "scales2": t2.scales.contiguous(),
             "codes2": t2.codes.contiguous(),
             "bounds2": t2.bounds.contiguous(),
         }
+        if t2.tail is not None:
+            tensors |= {"codes2_tail": t2.tail.contiguous(), "bounds2_head": t2.head_bounds.contiguous()}
     save_blocks(path, tensors, meta)
 
 
@@ -294,7 +337,8 @@ def load_state(path: Path, num: int, dim: int, source: str) -> QueryState:
 
 
 def _load_tier2(path: Path, meta: dict, n: int, d: int, r: int) -> Tier2 | None:
-    """The second tier of a version-2 state (None when it has none), codes and bounds memory-mapped."""
+    """The second tier of a version-2 or 3 state (None when it has none), codes and bounds memory-mapped;
+    version 2 has no head2 (the tier stored whole)."""
     from safetensors import safe_open
 
     from fmgs.io.mmap_tensors import mmap_torch
@@ -303,29 +347,42 @@ def _load_tier2(path: Path, meta: dict, n: int, d: int, r: int) -> Tier2 | None:
     try:
         r2 = int(meta.get("rank2", "0"))
         cmax2 = float(meta.get("code_norm_max2", "0"))
+        h = int(meta.get("head2", str(r2)))
     except ValueError as e:
         raise ValidationError(where, f"bad metadata ({e})") from e
     if r2 == 0:
         return None
     if not 0 < r + r2 < d or not np.isfinite(cmax2) or cmax2 < 0:
         raise ValidationError(where, f"second tier rank {r2} (first {r}, dim {d}) or code_norm_max2 invalid")
+    if not 0 < h <= r2:
+        raise ValidationError(where, f"second tier head {h} must lie in [1, rank2 = {r2}]")
+    names = {"basis2", "scales2", "codes2", "bounds2"}
+    names |= {"codes2_tail", "bounds2_head"} if h < r2 else set()
     with safe_open(where, framework="pt") as f:
-        if not {"basis2", "scales2", "codes2", "bounds2"} <= set(f.keys()):
-            raise ValidationError(where, "second tier declared (rank2) but its tensors are missing")
+        if not names <= set(f.keys()):
+            raise ValidationError(where, "second tier declared (rank2, head2) but its tensors are missing")
         basis2, scales2 = f.get_tensor("basis2"), f.get_tensor("scales2")
     codes2, bounds2 = mmap_torch(path, "codes2"), mmap_torch(path, "bounds2")
     want = {
         "basis2": (basis2, (r2, d), torch.float64),
         "scales2": (scales2, (r2,), torch.float32),
-        "codes2": (codes2, (n, r2), torch.int8),
+        "codes2": (codes2, (n, h), torch.int8),
         "bounds2": (bounds2, (n, 2), torch.float32),
     }
+    tail = head_bounds = None
+    if h < r2:
+        tail, head_bounds = mmap_torch(path, "codes2_tail"), mmap_torch(path, "bounds2_head")
+        want |= {
+            "codes2_tail": (tail, (n, r2 - h), torch.int8),
+            "bounds2_head": (head_bounds, (n, 2), torch.float32),
+        }
     for k, (t, shape, dtype) in want.items():
         if tuple(t.shape) != shape or t.dtype != dtype:
             raise ValidationError(where, f"{k} must be {dtype} {list(shape)}, got {t.dtype} {list(t.shape)}")
-    for k, t in (("basis2", basis2), ("scales2", scales2), ("bounds2", bounds2)):
+    checked = [("basis2", basis2), ("scales2", scales2), ("bounds2", bounds2)]
+    for k, t in checked + ([("bounds2_head", head_bounds)] if head_bounds is not None else []):
         for s in range(0, len(t), 1 << 20):  # chunked: a memory map is paged, not copied
             part = t[s : s + (1 << 20)]
             if not bool(torch.isfinite(part).all()) or (k != "basis2" and bool((part < 0).any())):
                 raise ValidationError(where, f"{k} must be finite and non-negative")
-    return Tier2(basis2, scales2, codes2, bounds2, cmax2, mapped=True)
+    return Tier2(basis2, scales2, codes2, bounds2, cmax2, mapped=True, tail=tail, head_bounds=head_bounds)

@@ -12,8 +12,10 @@ Compact path (large scenes, CPU): the package's query state (fmgs.query.state: r
 error norms per row, memory-mapped) read by a numba kernel, r bytes per Gaussian; the rows it leaves go
 through the state's second tier (the next basis vectors up to the embeddings' numerical rank, read only
 for those rows), then a float32 pass over the float16 embeddings (memory-mapped from the package), then
-float64. How many rows each step takes depends on how well the basis describes the scene's embeddings in
-the query's direction (benchmarks/TEXT.md).
+float64. Texts the first tier cannot settle (CLIP-like, absent) start with a pass over every row through
+the first tier and the second tier's head, or the whole second tier (``_tier2_first``). How many rows
+each step takes depends on how well the basis describes the scene's embeddings in the query's direction
+(benchmarks/TEXT.md).
 """
 
 from __future__ import annotations

@@ -10,7 +10,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from fmgs.query.simd import LANES, prefetch_row, row_dots4, row_dots4x3, row_dots8, row_dots8x3
+from fmgs.query.simd import LANES, prefetch_row, row_dots4, row_dots4x3, row_dots8, row_dots8x3, row_upper8
 
 
 @numba.njit(parallel=True, fastmath=True, cache=True)
@@ -49,10 +49,10 @@ def int8_upper(
     for i in numba.prange(M):
         k = 0
         if vector:  # fmgs.query.simd: eight (then four) texts per row, one transposing sum
-            while k + 7 < n:
-                a = row_dots8(A, W, i, k)
+            while k + 7 < n:  # the bound's terms as 8-lane arithmetic too
+                a = row_upper8(A, W, i, k, shift, err, res, wn, vn, slack)
                 for u in range(8):
-                    _put_upper(out, a[u], k + u, i, shift, err, res, wn, vn, slack)
+                    out[k + u, i] = a[u]
                 k += 8
             while k + 3 < n:
                 a = row_dots4(A, W, i, k)

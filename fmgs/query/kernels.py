@@ -10,7 +10,16 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from fmgs.query.simd import LANES, prefetch_row, row_dots4, row_dots4x3, row_dots8, row_dots8x3, row_upper8
+from fmgs.query.simd import (
+    LANES,
+    prefetch_row,
+    row_dots4,
+    row_dots4x3,
+    row_dots8,
+    row_dots8x3,
+    row_tier2_upper8,
+    row_upper8,
+)
 
 
 @numba.njit(parallel=True, fastmath=True, cache=True)
@@ -309,10 +318,10 @@ def tier2_upper(
         sh, e1, e2, res = _row_terms(shift, err1, bounds2, i)
         k = 0
         if vector:  # fmgs.query.simd
-            while k + 7 < n:
-                a = row_dots8x3(A1, W1, A2, W2, A3, W3, i, k)
+            while k + 7 < n:  # the bound's float64 terms as 8-lane arithmetic too
+                a = row_tier2_upper8(A1, W1, A2, W2, A3, W3, i, k, sh, e1, e2, res, wn1, wn2, vn2, slack)
                 for u in range(8):
-                    up[k + u, i] = _up32(a[u], sh, e1, e2, res, wn1, wn2, vn2, slack, k + u)
+                    up[k + u, i] = a[u]
                 k += 8
             while k + 3 < n:
                 a = row_dots4x3(A1, W1, A2, W2, A3, W3, i, k)

@@ -204,6 +204,9 @@ def measure(n: int, queries: int, tmp: Path, peers: bool = True) -> dict:
     units = {name: eng.unit(sets[name]) for name in QUERY_SETS}  # the vectors the engine ranks by
     page_in(pkg)
     eng.text_query(sets["near"][0], 10)  # compile the kernels
+    # The batch first, as a served scene is (paged in, nothing else held): after the brute force over
+    # 10M float16 rows below, the same eight-text pass took 3x its time in this process.
+    batch(eng, sets, res)
     rows: dict = {}  # (set, k) -> per-query lists
     truth: dict = {}  # (set, k, j) -> the exact top k rows, best first
     for name in QUERY_SETS:
@@ -222,7 +225,6 @@ def measure(n: int, queries: int, tmp: Path, peers: bool = True) -> dict:
                 assert np.array_equal(a.index.numpy(), t), f"{name} k={k}: not the exact ranking"
         del m
         print(name, "ours done", flush=True)
-    batch(eng, sets, res)
     del eng, ix
     gc.collect()
     flat = 4 * (D + 1) * n < 0.4 * _mem_total()

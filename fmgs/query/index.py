@@ -503,34 +503,27 @@ class EmbeddingIndex:
         )  # fmt: skip
         return lo, up
 
-    def _tier2_upper(self, q: torch.Tensor, out: torch.Tensor) -> torch.Tensor:
-        """Every row's upper bound [n,M] from both tiers for queries q [n,D], float32 rounded up
-        (kernels.tier2_upper), written into ``out`` (contiguous)."""
-        from fmgs.query.kernels import pad_texts, tier2_upper
-
-        c = self._codes
-        W1, W2, W3, *norms = self._tier2_weights(q)
-        W1, W2, W3 = pad_texts(W1, W2, W3)
-        tier2_upper(
-            c.codes1, W1, c.codes2, W2, c.codes3, W3, c.shift, c.err1, c.bounds2, *norms, self.slack2,
-            out.numpy(),
-        )  # fmt: skip
-        return out
-
-    def _head_upper(self, q: torch.Tensor, out: torch.Tensor, codes: _Codes | None = None) -> torch.Tensor:
-        """Every row's upper bound [n,m] from the first tier and the second tier's head alone for queries
-        q [n,D] (the head's norms bound what the tail holds), float32 rounded up, written into ``out``;
-        ``codes``: the tables the rows are (default: every row's)."""
+    def _tier2_upper(
+        self, q: torch.Tensor, out: torch.Tensor, codes: _Codes | None = None, head: bool = False
+    ) -> torch.Tensor:
+        """Every row's upper bound [n,m] from both tiers for queries q [n,D], float32 rounded up
+        (kernels.tier2_upper), written into ``out`` (contiguous). ``head``: from the first tier and the
+        second tier's head alone (the head's norms bound what the tail holds). ``codes``: the tables the
+        rows are (default: every row's)."""
         from fmgs.query.kernels import pad_texts, tier2_upper
 
         c = self._codes if codes is None else codes
-        W1, W2, W3, *norms = self._tier2_weights(q, head=True)
+        W1, W2, W3, *norms = self._tier2_weights(q, head=head)
         W1, W2, W3 = pad_texts(W1, W2, W3)
+        A3, bounds2 = (c.codes3[:, :0], c.head_bounds) if head else (c.codes3, c.bounds2)
         tier2_upper(
-            c.codes1, W1, c.codes2, W2, c.codes3[:, :0], W3, c.shift, c.err1, c.head_bounds, *norms,
-            self.slack2, out.numpy(),
-        )  # fmt: skip
+            c.codes1, W1, c.codes2, W2, A3, W3, c.shift, c.err1, bounds2, *norms, self.slack2, out.numpy()
+        )
         return out
+
+    def _head_upper(self, q: torch.Tensor, out: torch.Tensor, codes: _Codes | None = None) -> torch.Tensor:
+        """``_tier2_upper`` from the first tier and the second tier's head alone."""
+        return self._tier2_upper(q, out, codes, head=True)
 
     def _refine_pending(self, pending: list, q: torch.Tensor, cv: torch.Tensor | None) -> dict:
         """Tighter bounds for the texts with more than REFINE_ABOVE rows left: one float32 pass over the

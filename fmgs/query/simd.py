@@ -114,6 +114,20 @@ def _row_dots_codegen(texts: int, tiers: int):
     return codegen
 
 
+def _splat(builder: ir.IRBuilder, x: ir.Value, vec: ir.VectorType) -> ir.Value:
+    """The scalar x in every lane of ``vec``."""
+    one = builder.insert_element(ir.Constant(vec, ir.Undefined), x, ir.Constant(_I32, 0))
+    return builder.shuffle_vector(one, one, ir.Constant(ir.VectorType(_I32, vec.count), [0] * vec.count))
+
+
+def _texts_of(context, builder, arr, typ, first: ir.Value, vec: ir.VectorType) -> ir.Value:
+    """Elements first..first+T-1 of a C-contiguous 1-D array as one ``vec`` (T lanes), aligned only to
+    its element."""
+    a = context.make_array(typ)(context, builder, arr)
+    ptr = builder.bitcast(builder.gep(a.data, [first]), vec.as_pointer())
+    return builder.load(ptr, align=typ.dtype.bitwidth // 8)
+
+
 def _row_upper_codegen(texts: int):
     """``row_upper8``: one tier's sums, then the bound's terms for the T texts as T-lane vector arithmetic
     (per text, the same operations in the same order as the scalar code it replaces)."""
@@ -126,22 +140,17 @@ def _row_upper_codegen(texts: int):
         total = _row_sums(context, builder, at, [A, W], row, first, texts, 1)
         vec = ir.VectorType(_F32, texts)
 
-        def splat(x: ir.Value) -> ir.Value:
-            one = builder.insert_element(ir.Constant(vec, ir.Undefined), x, ir.Constant(_I32, 0))
-            return builder.shuffle_vector(one, one, ir.Constant(ir.VectorType(_I32, texts), [0] * texts))
-
-        def at_row(arr, typ, i) -> ir.Value:
+        def row_of(arr, typ) -> ir.Value:
             a = context.make_array(typ)(context, builder, arr)
-            return builder.load(builder.gep(a.data, [i]))
+            return _splat(builder, builder.load(builder.gep(a.data, [row])), vec)
 
         def texts_of(arr, typ) -> ir.Value:
-            a = context.make_array(typ)(context, builder, arr)
-            return builder.load(builder.bitcast(builder.gep(a.data, [first]), vec.as_pointer()), align=4)
+            return _texts_of(context, builder, arr, typ, first, vec)
 
-        u = builder.fsub(total, splat(at_row(shift, at[4], row)))
-        u = builder.fadd(u, builder.fmul(splat(at_row(err, at[5], row)), texts_of(wn, at[7])))
-        u = builder.fadd(u, builder.fmul(splat(at_row(res, at[6], row)), texts_of(vn, at[8])))
-        u = builder.fadd(u, splat(context.cast(builder, slack, at[9], types.float32)))
+        u = builder.fsub(total, row_of(shift, at[4]))
+        u = builder.fadd(u, builder.fmul(row_of(err, at[5]), texts_of(wn, at[7])))
+        u = builder.fadd(u, builder.fmul(row_of(res, at[6]), texts_of(vn, at[8])))
+        u = builder.fadd(u, _splat(builder, context.cast(builder, slack, at[9], types.float32), vec))
         return _lanes(context, builder, signature, u, texts)
 
     return codegen
@@ -160,19 +169,16 @@ def _tier2_upper_codegen(texts: int):
         vec = ir.VectorType(_F64, texts)
 
         def splat(x: ir.Value) -> ir.Value:
-            one = builder.insert_element(ir.Constant(vec, ir.Undefined), x, ir.Constant(_I32, 0))
-            return builder.shuffle_vector(one, one, ir.Constant(ir.VectorType(_I32, texts), [0] * texts))
+            return _splat(builder, x, vec)
 
         def texts_of(arr, typ) -> ir.Value:
-            a = context.make_array(typ)(context, builder, arr)
-            return builder.load(builder.bitcast(builder.gep(a.data, [first]), vec.as_pointer()), align=8)
+            return _texts_of(context, builder, arr, typ, first, vec)
 
         width = builder.fmul(splat(e1), texts_of(wn1, at[12]))
         width = builder.fadd(width, builder.fmul(splat(e2), texts_of(wn2, at[13])))
         width = builder.fadd(width, builder.fmul(splat(res), texts_of(vn2, at[14])))
         width = builder.fadd(width, splat(slack))
-        d = builder.fsub(builder.fpext(total, vec), splat(sh))
-        u = builder.fadd(d, width)
+        u = builder.fadd(builder.fsub(builder.fpext(total, vec), splat(sh)), width)
         fabs = cgutils.get_or_insert_function(
             builder.module, ir.FunctionType(vec, [vec]), f"llvm.fabs.v{texts}f64"
         )
@@ -228,6 +234,12 @@ def _check(pairs) -> None:
             raise TypeError(f"row_dots wants C-contiguous int8 codes and float32 weights, got {A}, {W}")
 
 
+def _check_vectors(name: str, dtype, *vectors) -> None:
+    for v in vectors:
+        if not (isinstance(v, types.Array) and v.ndim == 1 and v.dtype == dtype and v.layout == "C"):
+            raise TypeError(f"{name} wants C-contiguous {dtype} vectors, got {v}")
+
+
 @intrinsic
 def row_dots8(typingctx, A, W, row, first):
     """(sum_j A[row,j] W[first+t,j] for t < 8) as float32; A [M,r] int8, W [n,r] float32, both
@@ -242,9 +254,7 @@ def row_upper8(typingctx, A, W, row, first, shift, err, res, wn, vn, slack):
     sum_j A[row,j] W[first+t,j] - shift[row] + err[row] wn[first+t] + res[row] vn[first+t] + slack, t < 8,
     float32; shift, err, res [M] and wn, vn [n] C-contiguous float32, slack float32."""
     _check((A, W))
-    for v in (shift, err, res, wn, vn):
-        if not (isinstance(v, types.Array) and v.ndim == 1 and v.dtype == types.float32 and v.layout == "C"):
-            raise TypeError(f"row_upper8 wants C-contiguous float32 vectors, got {v}")
+    _check_vectors("row_upper8", types.float32, shift, err, res, wn, vn)
     sig = types.UniTuple(types.float32, 8)(A, W, row, first, shift, err, res, wn, vn, slack)
     return sig, _row_upper_codegen(8)
 
@@ -277,18 +287,12 @@ def row_tier2_upper8(typingctx, A1, W1, A2, W2, A3, W3, row, first, sh, e1, e2, 
     e2 wn2[first+t] + res vn2[first+t] + slack in float64 (a: ``row_dots8x3``'s float32 sum), returned
     as float32 rounded up, u + |u| 2^-22 + 1e-30; sh, e1, e2, res, slack float64, wn1, wn2, vn2 [n]
     C-contiguous float64."""
-    _check_tier2(A1, W1, A2, W2, A3, W3, sh, e1, e2, res, wn1, wn2, vn2, slack)
+    _check((A1, W1, A2, W2, A3, W3))
+    _check_vectors("row_tier2_upper8", types.float64, wn1, wn2, vn2)
+    for x in (sh, e1, e2, res, slack):
+        if x != types.float64:
+            raise TypeError(f"row_tier2_upper8 wants float64 scalars, got {x}")
     sig = types.UniTuple(types.float32, 8)(
         A1, W1, A2, W2, A3, W3, row, first, sh, e1, e2, res, wn1, wn2, vn2, slack
     )
     return sig, _tier2_upper_codegen(8)
-
-
-def _check_tier2(A1, W1, A2, W2, A3, W3, sh, e1, e2, res, wn1, wn2, vn2, slack) -> None:
-    _check((A1, W1, A2, W2, A3, W3))
-    for v in (wn1, wn2, vn2):
-        if not (isinstance(v, types.Array) and v.ndim == 1 and v.dtype == types.float64 and v.layout == "C"):
-            raise TypeError(f"row_tier2 wants C-contiguous float64 vectors, got {v}")
-    for x in (sh, e1, e2, res, slack):
-        if x != types.float64:
-            raise TypeError(f"row_tier2 wants float64 scalars, got {x}")

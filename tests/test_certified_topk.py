@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import torch
 
+import fmgs.query.certify as certify_mod
 import fmgs.query.index as index_mod
 from benchmarks.query_sets import QUERY_SETS, query_sets, scene_embeddings
 from fmgs.errors import ValidationError
@@ -287,7 +288,7 @@ def test_texts_the_first_tier_cannot_settle_go_straight_to_the_second(scene, mon
     ix = _indexes(emb, canon)
     idx = ix["compact"]
     q = torch.cat([sets[n] for n in QUERY_SETS])
-    direct, head = idx._tier2_first(q, 10)
+    direct, head, _ = idx._tier2_first(q, 10, 40)
     assert head == []  # a second tier stored whole has no head pass
     chosen = set(direct)
     # What the first tier actually leaves: the share of rows whose upper bound reaches the 10th margin.
@@ -304,17 +305,53 @@ def test_texts_the_first_tier_cannot_settle_go_straight_to_the_second(scene, mon
     monkeypatch.setattr(index_mod, "HEAD_TEXTS", len(q))
     for frac, want_head in ((2.0, chosen), (-1.0, set())):
         monkeypatch.setattr(index_mod, "HEAD_FRACTION", frac)
-        direct, head = split._tier2_first(q, 10)
+        direct, head, _ = split._tier2_first(q, 10, 40)
         assert set(head) == want_head and set(direct) | set(head) == chosen and not set(direct) & set(head)
     monkeypatch.setattr(index_mod, "HEAD_FRACTION", 0.1)
-    direct, head = split._tier2_first(q, 10)
+    direct, head, _ = split._tier2_first(q, 10, 40)
     assert direct and head  # this scene's texts take all three passes
     # More texts leaving the first tier than HEAD_TEXTS: none takes the head pass.
     monkeypatch.setattr(index_mod, "HEAD_TEXTS", len(chosen) - 1)
-    assert split._tier2_first(q, 10) == (sorted(chosen), [])
+    assert split._tier2_first(q, 10, 40)[:2] == (sorted(chosen), [])
     monkeypatch.setattr(index_mod, "HEAD_TEXTS", len(q))
     for qi, a in zip(q, split.rank_many(q, 10), strict=True):
         _same(a, rank_reference(emb, canon, qi, 10))
+
+
+@pytest.mark.parametrize("hint", ["estimated", "above every row", "near the top", "below every row"])
+def test_hinted_selections_keep_answers_exact(scene, monkeypatch, hint):
+    """certify_start's hint (a cut estimated from the sample) replaces its scans when it holds the first
+    candidates and every row reaching L, and costs one more scan when it does not: answers are exact
+    either way."""
+    emb, _, canon, _, sets = scene
+    monkeypatch.setattr(index_mod, "TIER2_FIRST_MIN_SAMPLE", 0)
+    monkeypatch.setattr(index_mod, "TIER2_FIRST_STEP", 64)
+    q = torch.cat([sets[n] for n in QUERY_SETS])
+    scans = []
+    monkeypatch.setattr(certify_mod, "rows_at_least", lambda x, c: scans.append(c) or rows_at_least(x, c))
+    exact = emb.double() @ q.double().T - canon.amax(1).double()[:, None]  # [M,n]
+    if hint != "estimated":
+
+        def forced(self, est, low, first):
+            if hint == "near the top":  # above L: enough rows for the first candidates, not all of L's
+                return torch.topk(exact, 2, dim=0).values[-1].numpy()
+            return np.full(len(est), 1e30 if hint == "above every row" else -1e30)
+
+        monkeypatch.setattr(index_mod.EmbeddingIndex, "_hints", forced)
+    for name in ("compact", "split"):
+        idx = _indexes(emb, canon)[name]
+        for k in (1, 10, 300):
+            scans.clear()
+            for qi, a in zip(q, idx.rank_many(q, k), strict=True):
+                _same(a, rank_reference(emb, canon, qi, k))
+            if hint == "below every row":  # one scan per text, which keeps every row
+                assert scans == [-1e30] * len(q)
+            if hint == "above every row":  # the hint's scan, then the text's own two
+                assert len(scans) >= 2 * len(q)
+            if hint == "near the top" and k > 1:  # L falls below the hint: a second scan for L
+                assert len(scans) > len(q)
+    if hint == "estimated":  # one scan per text on this scene (k = 300)
+        assert len(scans) == len(q)
 
 
 def test_certified_top_k_with_loose_bounds_is_still_exact():
@@ -429,15 +466,20 @@ def test_certify_start_reuses_the_candidates_only_when_they_hold_every_row_left(
                 assert torch.equal(p.rows2, want)
 
 
-def test_sorted_row_helpers_match_set_operations():
-    """rows_at_least against torch.nonzero (ties at the cut, NaN never selected, float64 too); the sorted
-    difference and intersection against Python sets, empty and disjoint inputs included."""
+@pytest.mark.parametrize("room", [1 << 15, 64])  # 64: most selections overflow the kernel's buffer
+def test_sorted_row_helpers_match_set_operations(monkeypatch, room):
+    """rows_at_least against torch.nonzero in float64 (ties at the cut, cuts between two float32 values,
+    NaN never selected, float64 and strided input too, a length that is not a multiple of the kernel's
+    lanes); the sorted difference and intersection against Python sets, empty and disjoint inputs
+    included."""
+    monkeypatch.setattr(certify_mod, "SELECT_ROOM", room)
     g = torch.Generator().manual_seed(11)
-    x = torch.randint(0, 20, (5000,), generator=g).float()
+    x = torch.randint(0, 20, (5003,), generator=g).float()
     x[::97] = float("nan")
-    for cut in (-1.0, 0.0, 7.0, 19.0, 20.0, float("nan")):
-        for v in (x, x.double()):
-            want = torch.nonzero(v >= cut).reshape(-1)
+    x[5] = 7.0 + 2.0**-20  # the float32 just above 7 (a cut between them keeps it and not 7)
+    for cut in (-1.0, 0.0, 7.0, 7.0 + 1e-9, 7.0 - 1e-9, 19.0, 20.0, float("nan"), -math.inf):
+        for v in (x, x.double(), x[::2]):
+            want = torch.nonzero(v.double() >= cut).reshape(-1)
             assert torch.equal(rows_at_least(v, cut), want)
     for na, nb in ((0, 0), (0, 10), (10, 0), (300, 50), (50, 300), (2000, 2000)):
         a = torch.randperm(4000, generator=g)[:na].sort().values

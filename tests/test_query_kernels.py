@@ -212,3 +212,18 @@ def test_second_tier_kernels_match_their_twin(ranks, n, padded):
     _, rup_all = kernels.tier2_bounds_reference(A1, W1, A2, W2, A3, W3, every, *args)
     assert np.all(up32 >= rup_all - tol)  # rounded up: never below the sum's own error
     assert np.all(up32 - rup_all <= tol + np.abs(rup_all) * 2.0**-21)
+
+
+def test_at_least_matches_flatnonzero_and_says_when_its_buffer_is_short():
+    rng = np.random.default_rng(5)
+    for m in (0, 7, 16, 1000, 4099):
+        x = rng.standard_normal(m).astype(np.float32)
+        x[::13] = np.nan  # never selected
+        for cut in (-np.inf, -0.5, 0.0, 1.5, np.inf):
+            want = np.flatnonzero(x >= np.float32(cut))
+            out = np.empty(m + kernels.LANES, np.int64)
+            got = kernels.at_least(x, np.float32(cut), out)
+            assert got == len(want) and np.array_equal(out[:got], want)
+            if len(want) > kernels.LANES:  # a buffer too short for them: -1, not a partial answer
+                short = np.empty(len(want) - 1, np.int64)
+                assert kernels.at_least(x, np.float32(cut), short) == -1

@@ -71,6 +71,9 @@ against 101-102 ms (absent texts: 35-37 against 37-38, 62-64 against 62-64, 77 a
 against 97-102 ms; measured)."""
 TIER2_FIRST_STEP = 256
 """Every this-many-th row makes the sample that estimates it."""
+HINT_BELOW = 2
+"""A text's hint for certify_start is at most its sample's (HINT_BELOW ks + 1)-th best lower bound
+(``_hints``)."""
 TIER2_FIRST_MIN_SAMPLE = 256
 """Smaller scenes (under 64K rows) skip the estimate: the first tier is cheap there."""
 _U32 = 2.0**-24
@@ -95,6 +98,17 @@ class _Codes(NamedTuple):
     """[m,r2-h] int8 second-tier codes after the head ([m,0] when stored whole)."""
     head_bounds: np.ndarray
     """[m,2] float32 the head's error and residual norms ([m,0] when stored whole)."""
+
+
+class _FirstPass(NamedTuple):
+    """How each text of a request takes its pass over every row (``_tier2_first``)."""
+
+    direct: list[int]
+    """Texts through the whole second tier."""
+    head: list[int]
+    """Texts through the first tier and the second tier's head."""
+    hint: np.ndarray | None
+    """[n] float64: each text's cut for certify_start (``_hints``; None: not estimated)."""
 
 
 class Ranked(NamedTuple):
@@ -345,32 +359,50 @@ class EmbeddingIndex:
         _check_finite(out, uniq)
         return out[torch.from_numpy(inv).to(self.device)]
 
-    def _tier2_first(self, q: torch.Tensor, k: int) -> tuple[list[int], list[int]]:
+    def _tier2_first(self, q: torch.Tensor, k: int, first: int) -> _FirstPass:
         """Texts whose first-tier bound would leave more than TIER2_FIRST_FRACTION of the rows (CLIP-like
-        and absent queries), as (direct, head): the head's take their first pass through the first tier
-        and the second tier's head when that is estimated to leave at most HEAD_FRACTION of the rows (and
-        no more than HEAD_TEXTS texts leave the first tier), the direct ones through the whole second tier
-        over every row. Estimated on every TIER2_FIRST_STEP-th
-        row: each pass's upper bounds against the sample's best second-tier lower bounds (a speed decision
-        only: every pass gives exact answers)."""
+        and absent queries): the head's take their first pass through the first tier and the second
+        tier's head when that is estimated to leave at most HEAD_FRACTION of the rows (and no more than
+        HEAD_TEXTS texts leave the first tier), the direct ones through the whole second tier over every
+        row. Estimated on every TIER2_FIRST_STEP-th row: each pass's upper bounds against the sample's
+        best second-tier lower bounds. Also each text's hint for certify_start (``_hints``). Speed
+        decisions only: every pass gives exact answers."""
         if not self._estimates_first_pass:
-            return [], []
+            return _FirstPass([], [], None)
         s = self._sample
         n_s = len(s.shift)
-        lo2, _ = self._tier2_bounds(torch.arange(n_s), q, codes=s)
+        lo2, up2 = self._tier2_bounds(torch.arange(n_s), q, codes=s)
         W, wn, vn = self._weights(q)
         up1 = (torch.from_numpy(s.codes1).float() @ W.T - torch.from_numpy(s.shift)[:, None]).T  # [n,S]
         up1 = up1 + torch.from_numpy(s.err1) * wn[:, None] + torch.from_numpy(s.res1) * vn[:, None]
         ks = max(1, -(-k // TIER2_FIRST_STEP))
-        L = torch.topk(lo2, min(ks, n_s), dim=1).values[:, -1:]
+        best = torch.topk(lo2, min(HINT_BELOW * ks + 1, n_s), dim=1).values
+        L = best[:, min(ks, n_s) - 1 :][:, :1]
         frac = (up1.double() >= L).double().mean(1)
         second = [j for j in range(len(q)) if float(frac[j]) > TIER2_FIRST_FRACTION]
-        if not second or not self._has_head or len(second) > HEAD_TEXTS:
-            return second, []
-        up15 = self._head_upper(q[second], _empty32(len(second), n_s), codes=s)
-        frac15 = (up15.double() >= L[second]).double().mean(1)
-        head = [j for c, j in enumerate(second) if float(frac15[c]) <= HEAD_FRACTION]
-        return [j for j in second if j not in head], head
+        est = up1.double()  # each text's sample bounds from the pass it will take
+        head = []
+        if second and self._has_head and len(second) <= HEAD_TEXTS:
+            up15 = self._head_upper(q[second], _empty32(len(second), n_s), codes=s).double()
+            frac15 = (up15 >= L[second]).double().mean(1)
+            head = [j for c, j in enumerate(second) if float(frac15[c]) <= HEAD_FRACTION]
+            est[head] = up15[[second.index(j) for j in head]]
+        direct = [j for j in second if j not in head]
+        est[direct] = up2[direct]
+        return _FirstPass(direct, head, self._hints(est, best[:, -1], first))
+
+    def _hints(self, est: torch.Tensor, low: torch.Tensor, first: int) -> np.ndarray:
+        """Each text's hint [n] for certify_start (float32 values as float64), from its sample's upper
+        bounds est [n,S] (of the pass it takes) and low [n], the sample's (HINT_BELOW ks + 1)-th best
+        lower bound: low enough that the ``first`` rows of highest bound reach it (twice their share of
+        the sample, as certify.top_rows estimates), and that, most often, so does every row reaching the
+        k-th exact margin (a sample of 1/256 of the rows rarely holds HINT_BELOW ks + 1 of the k best).
+        At 1M rows it held for 299 of 300 texts (benchmarks/query_sets.py's five sets of 12, k from 1 to
+        10,000; measured)."""
+        n_s = est.shape[1]
+        take = min(n_s, 2 * -(-first * n_s // self.num) + 8)
+        top = torch.topk(est, take, dim=1).values[:, -1]
+        return torch.minimum(top, low).float().double().numpy()
 
     @property
     def _has_head(self) -> bool:
@@ -407,15 +439,13 @@ class EmbeddingIndex:
             self.tier2.bounds.numpy(), self._res.numpy(), self._tail.numpy(), self._head_bounds.numpy(),
         )  # fmt: skip
 
-    def _uppers(
-        self, q: torch.Tensor, cv: torch.Tensor | None, direct: list[int], head: list[int] = ()
-    ) -> torch.Tensor:
-        """[n,M] upper bounds on every row's margin: the first tier's, or for the texts in ``direct`` the
-        whole second tier's, for those in ``head`` the first tier's and the second's head (both rounded up
-        to float32)."""
+    def _uppers(self, q: torch.Tensor, cv: torch.Tensor | None, fp: _FirstPass) -> torch.Tensor:
+        """[n,M] upper bounds on every row's margin: the first tier's, or for the texts in ``fp.direct``
+        the whole second tier's, for those in ``fp.head`` the first tier's and the second's head (both
+        rounded up to float32)."""
         n, M = len(q), self.num
-        passes = [(list(direct), self._tier2_upper), (list(head), self._head_upper)]
-        rest = [j for j in range(n) if j not in direct and j not in head]
+        passes = [(fp.direct, self._tier2_upper), (fp.head, self._head_upper)]
+        rest = [j for j in range(n) if j not in fp.direct and j not in fp.head]
         if len(rest) == n:
             return self._upper(q, cv).T.contiguous()
         out = _empty32(n, M)
@@ -612,12 +642,12 @@ class EmbeddingIndex:
             return [Ranked(torch.zeros(0, dtype=torch.int64), e, e, 0) for _ in range(n)]
         q = queries.float().to(self.device)
         cv = None if canonical_vectors is None else canonical_vectors.float().to(self.device)
-        direct, head = self._tier2_first(q, k) if cv is None else ([], [])
-        upper = self._uppers(q, cv, direct, head)  # [n,M]: each text's bounds in one run of memory
         m_min = _threshold_margin(float(threshold))
         # First candidates: rerank * k, but at most REFINE_ABOVE beyond k (a large k would pay float64
         # rescoring for rows the refinement pass settles more cheaply).
         first = k if self.state is None else min(M, max(k, min(self.cfg.rerank * k, k + REFINE_ABOVE)))
+        fp = self._tier2_first(q, k, first) if cv is None else _FirstPass([], [], None)
+        upper = self._uppers(q, cv, fp)  # [n,M]: each text's bounds in one run of memory
         # None: margins against the custom vectors. Float32 maxima, widened per scored row (a float64 copy
         # of all M would cost 80 MB of fresh pages per query at 10M Gaussians).
         stored = None if cv is not None else self.canonical_max
@@ -629,9 +659,10 @@ class EmbeddingIndex:
         for j in range(n):
             if between is not None:
                 between(j)
-            pending.append(certify_start(upper[j], k, scorers[j], m_min, first))
+            hint = None if fp.hint is None else float(fp.hint[j])
+            pending.append(certify_start(upper[j], k, scorers[j], m_min, first, hint))
         if cv is None:
-            pending = self._narrow_pending(pending, q, k, skip=direct)
+            pending = self._narrow_pending(pending, q, k, skip=fp.direct)
         refined = self._refine_pending(pending, q, cv)
         out = []
         for j, p in enumerate(pending):

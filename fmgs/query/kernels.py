@@ -12,6 +12,7 @@ import numpy as np
 
 from fmgs.query.simd import (
     LANES,
+    compress_at_least,
     prefetch_row,
     row_dots4,
     row_dots4x3,
@@ -106,6 +107,28 @@ def int8_upper(
                 acc += np.float32(A[i, j]) * W[k, j]
             out[k, i] = acc - shift[i] + err[i] * wn[k] + res[i] * vn[k] + slack
             k += 1
+
+
+@numba.njit(cache=True)
+def at_least(x: np.ndarray, cut: float, out: np.ndarray) -> int:  # pragma: no cover
+    """Positions i of x [M] float32 with x[i] >= cut, in order, written to out (int64); returns how many,
+    or -1 when out is too small for them (then it holds a part: call again with len(out) >= M + LANES).
+    Twin: numpy's flatnonzero(x >= cut)."""
+    m, i, n = 0, 0, x.shape[0]
+    c = np.float32(cut)
+    while i + LANES <= n:  # fmgs.query.simd: sixteen values per compare, no branch per value
+        if m + LANES > out.shape[0]:
+            return -1
+        m += compress_at_least(x, i, c, out, m)
+        i += LANES
+    while i < n:
+        if x[i] >= c:
+            if m >= out.shape[0]:
+                return -1
+            out[m] = i
+            m += 1
+        i += 1
+    return m
 
 
 def pad_texts(*weights: np.ndarray) -> tuple[np.ndarray, ...]:

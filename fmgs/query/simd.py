@@ -18,6 +18,11 @@ Ranks must be multiples of ``LANES`` (the callers keep their loop for other rank
 the loops' only in their order (float32, fused multiply-adds), which the kernels' slack already covers:
 the twins in tests/test_query_kernels.py check both paths.
 
+Selections (``compress_at_least``): the rows of a float32 vector at or above a cut, sixteen values per
+compare, the positions of those that pass written by one masked compress store (AVX-512's vpcompressq;
+LLVM emulates it elsewhere) and counted by a popcount: no branch per value. At 1M values and 0.5% (2%)
+kept, 0.18 (0.20) ms against numpy's compare and flatnonzero's 0.46 (0.82) ms (measured).
+
 numba caches the kernels' machine code keyed on fmgs/query/kernels.py alone: after a change here, clear
 fmgs/query/__pycache__ (or touch kernels.py) so they are compiled again.
 """
@@ -296,3 +301,40 @@ def row_tier2_upper8(typingctx, A1, W1, A2, W2, A3, W3, row, first, sh, e1, e2, 
         A1, W1, A2, W2, A3, W3, row, first, sh, e1, e2, res, wn1, wn2, vn2, slack
     )
     return sig, _tier2_upper_codegen(8)
+
+
+def _compress_codegen(context, builder, signature, args):
+    x, at, cut, out, m = args
+    xt, _, _, ot, _ = signature.args
+    X = context.make_array(xt)(context, builder, x)
+    O = context.make_array(ot)(context, builder, out)
+    at = context.cast(builder, at, signature.args[1], types.intp)
+    m = context.cast(builder, m, signature.args[4], types.intp)
+    vec = ir.VectorType(_F32, LANES)
+    rows = ir.VectorType(ir.IntType(64), LANES)
+    values = builder.load(builder.bitcast(builder.gep(X.data, [at]), vec.as_pointer()), align=4)
+    cut = context.cast(builder, cut, signature.args[2], types.float32)
+    keep = builder.fcmp_ordered(">=", values, _splat(builder, cut, vec))
+    first = _splat(builder, builder.sext(at, ir.IntType(64)), rows)
+    index = builder.add(first, ir.Constant(rows, list(range(LANES))))
+    mask = ir.VectorType(ir.IntType(1), LANES)
+    store = cgutils.get_or_insert_function(
+        builder.module,
+        ir.FunctionType(ir.VoidType(), [rows, ir.IntType(64).as_pointer(), mask]),
+        f"llvm.masked.compressstore.v{LANES}i64",
+    )
+    builder.call(store, [index, builder.gep(O.data, [m]), keep])
+    bits = builder.bitcast(keep, ir.IntType(LANES))
+    popcount = cgutils.get_or_insert_function(
+        builder.module, ir.FunctionType(ir.IntType(LANES), [ir.IntType(LANES)]), f"llvm.ctpop.i{LANES}"
+    )
+    return builder.zext(builder.call(popcount, [bits]), ir.IntType(64))
+
+
+@intrinsic
+def compress_at_least(typingctx, x, at, cut, out, m):
+    """Of x[at:at+LANES] (float32, C-contiguous 1-D), the positions whose value is >= cut written to
+    out[m:] (int64, in order); returns how many. Writes only those (out needs room for LANES more)."""
+    _check_vectors("compress_at_least", types.float32, x)
+    _check_vectors("compress_at_least", types.int64, out)
+    return types.int64(x, at, cut, out, m), _compress_codegen

@@ -612,6 +612,14 @@ class EmbeddingIndex:
             into[1].copy_(up.T)
         return lo, up
 
+    def _first(self, k: int) -> int:
+        """How many rows of highest bound certification rescores first for the top k: rerank * k, but at
+        most REFINE_ABOVE beyond k (a large k would pay float64 rescoring for rows the refinement pass
+        settles more cheaply); k on the exact path."""
+        if self.state is None:
+            return k
+        return min(self.num, max(k, min(self.cfg.rerank * k, k + REFINE_ABOVE)))
+
     def rank(
         self,
         query: torch.Tensor,
@@ -643,9 +651,7 @@ class EmbeddingIndex:
         q = queries.float().to(self.device)
         cv = None if canonical_vectors is None else canonical_vectors.float().to(self.device)
         m_min = _threshold_margin(float(threshold))
-        # First candidates: rerank * k, but at most REFINE_ABOVE beyond k (a large k would pay float64
-        # rescoring for rows the refinement pass settles more cheaply).
-        first = k if self.state is None else min(M, max(k, min(self.cfg.rerank * k, k + REFINE_ABOVE)))
+        first = self._first(k)
         fp = self._tier2_first(q, k, first) if cv is None else _FirstPass([], [], None)
         upper = self._uppers(q, cv, fp)  # [n,M]: each text's bounds in one run of memory
         # None: margins against the custom vectors. Float32 maxima, widened per scored row (a float64 copy

@@ -20,6 +20,7 @@ import datetime as dt
 import gc
 import json
 import math
+import resource
 import statistics
 import sys
 import tempfile
@@ -276,37 +277,63 @@ def batch(eng: SceneEngine, sets: dict, res: dict) -> None:
         # "One" is each text of the batch asked alone (the median over the 8 and the rounds), so the
         # ratio does not hang on how easy the first text happens to be.
         one, first, eight = [], [], []
+        faults = {"one": [0, 0, 0], "eight": [0, 0, 0]}  # _faults() over the timed calls
         for _ in range(3):
             for j, qj in enumerate(qs):
-                t0 = time.perf_counter()
+                t0, f0 = time.perf_counter(), _faults()
                 eng.text_query(qj, 100)
                 one.append(time.perf_counter() - t0)
+                faults["one"] = [a + b - c for a, b, c in zip(faults["one"], _faults(), f0, strict=True)]
                 if j == 0:
                     first.append(one[-1])
-            t0 = time.perf_counter()
+            t0, f0 = time.perf_counter(), _faults()
             eng.text_query_many(qs, 100)
             eight.append(time.perf_counter() - t0)
+            faults["eight"] = [a + b - c for a, b, c in zip(faults["eight"], _faults(), f0, strict=True)]
         # The bound pass alone (every row bounded for the texts, as rank_many starts): its own ratio is a
         # floor under the batch's, whatever the rest costs.
         # Each takes the pass rank_many would choose for it: a text alone, or the eight together.
         qu = eng.unit(qs)
-        passes = ix._tier2_first(qu, 100)
-        alone = [ix._tier2_first(qu[j : j + 1], 100) for j in range(8)]
+        passes = ix._tier2_first(qu, 100, ix._first(100))
+        alone = [ix._tier2_first(qu[j : j + 1], 100, ix._first(100)) for j in range(8)]
         kone, keight = [], []
         for _ in range(3):
             for j in range(8):
                 t0 = time.perf_counter()
-                ix._uppers(qu[j : j + 1], None, *alone[j])
+                ix._uppers(qu[j : j + 1], None, alone[j])
                 kone.append(time.perf_counter() - t0)
             t0 = time.perf_counter()
-            ix._uppers(qu, None, *passes)
+            ix._uppers(qu, None, passes)
             keight.append(time.perf_counter() - t0)
+        # Per call: the eight-text batch's, and the 24 single texts' together over 3 (one batch's worth).
+        res[f"batch8_{name}_faults"] = [x / 3 for x in faults["eight"]]
+        res[f"one8_{name}_faults"] = [x / 3 for x in faults["one"]]
         res[f"bound8_{name}_ms"] = 1e3 * statistics.median(keight)
         res[f"bound1_{name}_ms"] = 1e3 * statistics.median(kone)
         res[f"batch8_{name}_ratio"] = statistics.median(eight) / statistics.median(one)
         res[f"batch8_{name}_ratio_first"] = statistics.median(eight) / statistics.median(first)
         res[f"batch8_{name}_ms"] = 1e3 * statistics.median(eight)
         res[f"one_{name}_ms"] = 1e3 * statistics.median(one)
+
+
+def _faults() -> tuple[int, int, int]:
+    """This process's (major, minor) page faults and bytes read from storage so far. Major faults read the
+    disk synchronously, minor ones map a cached page or a fresh one; storage reads also count what the
+    kernel's readahead fetched for a sequential pass (/proc/self/io read_bytes; 0 where absent): pages of
+    the package that had left the page cache."""
+    r = resource.getrusage(resource.RUSAGE_SELF)
+    read = 0
+    try:
+        with open("/proc/self/io") as f:
+            read = next((int(x.split()[1]) for x in f if x.startswith("read_bytes:")), 0)
+    except OSError:
+        pass
+    return r.ru_majflt, r.ru_minflt, read
+
+
+def _io(f: list[float]) -> str:
+    """_faults() differences as the report prints them."""
+    return f"{f[0]:,.0f} / {f[1]:,.0f} faults, {f[2] / 1e6:,.0f} MB"
 
 
 def _mem_total() -> int:
@@ -432,7 +459,14 @@ def size_section(res: dict) -> list[str]:
         f"measured): typical queries {res['batch8_typical_ms']:.0f} ms against {res['one_typical_ms']:.1f} "
         f"ms, **{res['batch8_typical_ratio']:.2f}x** ({res['batch8_typical_ratio_first']:.2f}x); CLIP-like "
         f"{res['batch8_clip_ms']:.0f} ms against {res['one_clip_ms']:.1f} ms, "
-        f"**{res['batch8_clip_ratio']:.2f}x** ({res['batch8_clip_ratio_first']:.2f}x); batch medians of 3.",
+        f"**{res['batch8_clip_ratio']:.2f}x** ({res['batch8_clip_ratio_first']:.2f}x); batch medians of 3. "
+        "Per batch, against its 8 texts asked alone: page faults (major, which read the disk, / minor) and "
+        "MB read from storage (readahead included: pages of the package that had left the page cache): "
+        + "; ".join(
+            f"{label} {_io(res[f'batch8_{name}_faults'])} against {_io(res[f'one8_{name}_faults'])}"
+            for name, label in (("typical", "typical"), ("clip", "CLIP-like"))
+        )
+        + ".",
         "",
         "The pass that bounds every row (the first tier for typical texts; for CLIP-like ones, the first "
         "tier and the second tier's head for one text, the whole second tier for eight) alone, 8 texts "

@@ -283,13 +283,13 @@ def batch(eng: SceneEngine, sets: dict, res: dict) -> None:
                 t0, f0 = time.perf_counter(), _faults()
                 eng.text_query(qj, 100)
                 one.append(time.perf_counter() - t0)
-                faults["one"] = [a + b - c for a, b, c in zip(faults["one"], _faults(), f0, strict=True)]
+                _add_since(faults["one"], f0)
                 if j == 0:
                     first.append(one[-1])
             t0, f0 = time.perf_counter(), _faults()
             eng.text_query_many(qs, 100)
             eight.append(time.perf_counter() - t0)
-            faults["eight"] = [a + b - c for a, b, c in zip(faults["eight"], _faults(), f0, strict=True)]
+            _add_since(faults["eight"], f0)
         # The bound pass alone (every row bounded for the texts, as rank_many starts): its own ratio is a
         # floor under the batch's, whatever the rest costs.
         # Each takes the pass rank_many would choose for it: a text alone, or the eight together.
@@ -329,6 +329,12 @@ def _faults() -> tuple[int, int, int]:
     except OSError:
         pass
     return r.ru_majflt, r.ru_minflt, read
+
+
+def _add_since(total: list[int], before: tuple[int, int, int]) -> None:
+    """Adds what _faults() counted since ``before`` to ``total``, in place."""
+    for i, (now, then) in enumerate(zip(_faults(), before, strict=True)):
+        total[i] += now - then
 
 
 def _io(f: list[float]) -> str:

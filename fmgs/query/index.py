@@ -377,7 +377,7 @@ class EmbeddingIndex:
         up1 = up1 + torch.from_numpy(s.err1) * wn[:, None] + torch.from_numpy(s.res1) * vn[:, None]
         ks = max(1, -(-k // TIER2_FIRST_STEP))
         best = torch.topk(lo2, min(HINT_BELOW * ks + 1, n_s), dim=1).values
-        L = best[:, min(ks, n_s) - 1 :][:, :1]
+        L = best[:, min(ks, n_s) - 1, None]  # [n,1]: the sample's ks-th best lower bound
         frac = (up1.double() >= L).double().mean(1)
         second = [j for j in range(len(q)) if float(frac[j]) > TIER2_FIRST_FRACTION]
         est = up1.double()  # each text's sample bounds from the pass it will take

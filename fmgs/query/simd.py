@@ -306,13 +306,12 @@ def row_tier2_upper8(typingctx, A1, W1, A2, W2, A3, W3, row, first, sh, e1, e2, 
 def _compress_codegen(context, builder, signature, args):
     x, at, cut, out, m = args
     xt, _, _, ot, _ = signature.args
-    X = context.make_array(xt)(context, builder, x)
     O = context.make_array(ot)(context, builder, out)
     at = context.cast(builder, at, signature.args[1], types.intp)
     m = context.cast(builder, m, signature.args[4], types.intp)
     vec = ir.VectorType(_F32, LANES)
     rows = ir.VectorType(ir.IntType(64), LANES)
-    values = builder.load(builder.bitcast(builder.gep(X.data, [at]), vec.as_pointer()), align=4)
+    values = _texts_of(context, builder, x, xt, at, vec)
     cut = context.cast(builder, cut, signature.args[2], types.float32)
     keep = builder.fcmp_ordered(">=", values, _splat(builder, cut, vec))
     first = _splat(builder, builder.sext(at, ir.IntType(64)), rows)

@@ -131,21 +131,58 @@ def build_scene(
     return data
 
 
-def evaluate_scene(out: Path, seed: int, data: Path) -> dict:
-    """Every score of one built scene, from its package opened as the server opens it."""
+def repackage(package: Path, out: Path, neighbours: int, encoder) -> Path:
+    """Write package ``out`` from ``package``'s own field and selection with another
+    ``embedding_neighbours`` (the build's packaging, fmgs.build.package_from_field)."""
+    from fmgs.build import package_from_field
+    from fmgs.field.select import Selection
+    from fmgs.scene.package import load_scene
+    from fmgs.train.field import FieldTrainResult
+
+    pkg = load_scene(package, mmap=False)
+    res = FieldTrainResult(pkg.field, Selection(pkg.selected, pkg.gaussians.num), 0.0, [])
+    extra = {k: v for k, v in pkg.manifest.extra.items() if k != "embedding_neighbours"}
+    return package_from_field(out, pkg.gaussians, res, encoder, extra=extra, neighbours=neighbours)
+
+
+def neighbours_of(package: Path) -> int:
+    """The package's ``embedding_neighbours`` (1 when it predates the neighbour mean)."""
+    from fmgs.scene.manifest import Manifest
+
+    return int(Manifest.read(package).extra.get("embedding_neighbours", 1))
+
+
+def evaluate_scene(out: Path, seed: int, data: Path, ablate: int | None = None) -> dict:
+    """Every score of one built scene, from its package opened as the server opens it; with ``ablate``,
+    also the scores of the same field packaged with that many embedding neighbours."""
     from fmgs.data import HOLDOUT_EVERY
     from fmgs.data.dataset import load_dataset
     from fmgs.features.text import MiniLMTextEncoder
     from fmgs.query.engine import SceneEngine
     from fmgs.train.evaluate_field import evaluate_field
 
-    engine = SceneEngine.open(out / "models" / f"s{seed}")
+    package = out / "models" / f"s{seed}"
+    engine = SceneEngine.open(package)
     ds = load_dataset(data)
     enc = MiniLMTextEncoder()
     _, test = ds.split(HOLDOUT_EVERY)
     q = evaluate_field(engine, ds, enc, test, data / "scene.json")
     names = json.loads((data / "scene.json").read_text())["label_names"]
     gs_eval = json.loads((out / "models" / ".work" / f"s{seed}" / "geometry.json").read_text())
+    variant = None
+    if ablate is not None:
+        vpath = repackage(package, out / "models" / f"s{seed}-k{ablate}", ablate, enc)
+        veng = SceneEngine.open(vpath)
+        vq = evaluate_field(veng, ds, enc, test, data / "scene.json")
+        variant = {
+            "embedding_neighbours": ablate,
+            "localisation_2d": vq.localisation_2d,
+            "localisation_3d": vq.localisation_3d,
+            "miou": vq.miou,
+            "class_iou": vq.per_class_iou,
+            "failures": vq.failures,
+            "presence": score_presence(veng, enc, names),
+        }
     return {
         "seed": seed,
         "objects": names[2:],
@@ -156,6 +193,8 @@ def evaluate_scene(out: Path, seed: int, data: Path) -> dict:
         "miou": q.miou,
         "class_iou": q.per_class_iou,
         "failures": q.failures,
+        "embedding_neighbours": neighbours_of(package),
+        "variant": variant,
         "presence": score_presence(engine, enc, names),
         "build_seconds": json.loads((out / f"build-{seed}.json").read_text())["seconds"],
         "embedded": engine.num_embedded,
@@ -180,6 +219,55 @@ def _note(scene: dict) -> str:
     if scene.get("built"):
         notes.append(f"built at commit {scene['built']}")
     return f" ({'; '.join(notes)})" if notes else ""
+
+
+def _present_absent(rows: list[dict]) -> tuple[str, str]:
+    """'found/present' and 'not found/absent' counts of presence rows."""
+    rates = presence_rates(rows)
+    p_ok, p_n = (sum(rates[k][i] for k in PRESENT_KINDS) for i in (0, 1))
+    a_ok, a_n = (sum(rates[k][i] for k in KINDS if k not in PRESENT_KINDS) for i in (0, 1))
+    return f"{p_ok}/{p_n}", f"{a_ok}/{a_n}"
+
+
+def neighbours_section(scenes: list[dict]) -> list[str]:
+    """The embedding-neighbours knob: each scene's package against its field packaged with the
+    variant's k (``--ablate-neighbours``); empty when no scene has a variant."""
+    import numpy as np
+
+    if not any(s.get("variant") for s in scenes):
+        return []
+    lines = [
+        "",
+        "Embedding neighbours (`--embedding-neighbours K`, fmgs.field.neighbours): each stored embedding "
+        "is the unit mean of the field at the Gaussian's mean and at its K-1 nearest embedded neighbours'; "
+        "K=1 is the field at each mean alone (the paper). The same trained field, packaged both ways:",
+        "",
+        "| seed | K | 2D loc. | 3D loc. | mIoU | worst class | present found | absent not found |",
+        "|---:|---:|---:|---:|---:|---|---:|---:|",
+    ]
+    per_k: dict[int, list[tuple[int, dict]]] = {}
+    for s in scenes:
+        for v in (s, s.get("variant")):
+            if not v:
+                continue
+            k = v.get("embedding_neighbours", 1)
+            per_k.setdefault(k, []).append((s["seed"], v))
+            worst = min(v["class_iou"].items(), key=lambda kv: kv[1])
+            found, absent = _present_absent(v["presence"])
+            lines.append(
+                f"| {s['seed']} | {k} | {v['localisation_2d']:.1%} | {v['localisation_3d']:.1%} | "
+                f"{v['miou']:.3f} | {worst[0]} {worst[1]:.2f} | {found} | {absent} |"
+            )
+    for k, vs in sorted(per_k.items()):
+        keys = ("localisation_2d", "localisation_3d", "miou")
+        m2, m3, mi = (float(np.mean([v[key] for _, v in vs])) for key in keys)
+        found, absent = _present_absent([r for _, v in vs for r in v["presence"]])
+        lines.append(f"| **mean** | {k} | {m2:.1%} | {m3:.1%} | {mi:.3f} | | {found} | {absent} |")
+    lines += ["", "3D localisation failures:", ""]
+    for k, vs in sorted(per_k.items()):
+        fails = [f"seed {seed} {f[3:]}" for seed, v in vs for f in v["failures"] if f.startswith("3d ")]
+        lines.append(f"- K={k}: " + ("; ".join(fails) if fails else "none"))
+    return lines
 
 
 def report(scenes: list[dict], info: dict, cmd: str) -> str:
@@ -237,6 +325,7 @@ def report(scenes: list[dict], info: dict, cmd: str) -> str:
     for s in scenes:
         ious = ", ".join(f"{k} {v:.2f}" for k, v in sorted(s["class_iou"].items(), key=lambda kv: -kv[1]))
         lines.append(f"- seed {s['seed']}: {ious}")
+    lines += neighbours_section(scenes)
     rows = [r for s in scenes for r in s["presence"]]
     rates = presence_rates(rows)
     lines += [
@@ -285,6 +374,11 @@ def main() -> int:
     ap.add_argument(
         "--grad-threshold", type=float, help="3DGS densification threshold (default: the build's)"
     )
+    ap.add_argument(
+        "--ablate-neighbours",
+        type=int,
+        help="also score each scene's field packaged with this many embedding neighbours (1: the paper)",
+    )
     ap.add_argument("--quick", action="store_true", help="CI size: one 64x48 scene, short stages")
     ap.add_argument("--report", action="store_true", help="also write benchmarks/FIELD.md")
     ap.add_argument("--from-json", help="only write the report from this unseen.json (its recorded command)")
@@ -324,7 +418,7 @@ def main() -> int:
             data = build_scene(
                 out, seed, args.views, args.size, args.gs_steps, args.field_steps, args.grad_threshold
             )
-        s = evaluate_scene(out, seed, data)
+        s = evaluate_scene(out, seed, data, args.ablate_neighbours)
         if args.evaluate_only:
             s.update({k: before[seed][k] for k in ("built", "build_note") if k in before[seed]})
         scenes.append(s)

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import torch
 
-from fmgs.build_config import BuildConfig, TargetSpec
+from fmgs.build_config import EMBEDDING_NEIGHBOURS, MAX_EMBEDDING_NEIGHBOURS, BuildConfig, TargetSpec
 from fmgs.errors import ValidationError
 from fmgs.gaussians import GaussianSet
 from fmgs.io.atomic import atomic_path
@@ -36,13 +36,21 @@ def package_from_field(
     include_dino: bool = False,
     extra: dict | None = None,
     field_dtype: str = "float32",
+    neighbours: int = EMBEDDING_NEIGHBOURS,
 ) -> Path:
-    """Decode each selected Gaussian's embedding once and write the scene package to ``out``
-    (``field_dtype``: storage of the field's tensors, see ``export_scene``)."""
+    """Decode each selected Gaussian's embedding once, average it over its ``neighbours`` nearest
+    selected Gaussians within its reach (fmgs.field.neighbours; 1: none) and write the scene package
+    to ``out`` (``field_dtype``: storage of the field's tensors, see ``export_scene``). The manifest's
+    extra records ``embedding_neighbours``."""
     from fmgs.field.model import FeatureField
+    from fmgs.field.neighbours import neighbour_mean, reach_of
     from fmgs.query.relevancy import CANONICAL_PHRASES
     from fmgs.scene.package import export_scene
 
+    if not 1 <= neighbours <= MAX_EMBEDDING_NEIGHBOURS:
+        raise ValidationError(
+            "embedding neighbours", f"must lie in [1, {MAX_EMBEDDING_NEIGHBOURS}], got {neighbours}"
+        )
     g = gaussians.subset(result.selection.index)
     model = result.model.cpu()
     with torch.no_grad():
@@ -53,6 +61,7 @@ def package_from_field(
             emb = model.decode_index(torch.arange(g.num), dino=False).clip
             field = None
         canon = encoder.encode_text(list(CANONICAL_PHRASES)).float().cpu()
+    emb = neighbour_mean(g.means, reach_of(g.scales), emb, neighbours, workers=torch.get_num_threads())
     return export_scene(
         out,
         gaussians,
@@ -62,7 +71,7 @@ def package_from_field(
         canon,
         field=field,
         include_dino=include_dino,
-        extra=extra,
+        extra={**(extra or {}), "embedding_neighbours": neighbours},
         field_dtype=field_dtype,
     )
 
@@ -222,4 +231,6 @@ def build_scene(source: str | Path, cfg: BuildConfig, progress: bool = True) -> 
 
         extra["label_names"] = read_label_names(cfg.targets.names or ds.root / "scene.json")
     extra.update(cfg.extra)
-    return package_from_field(out, gaussians, res, encoder, cfg.include_dino, extra, cfg.field_dtype)
+    return package_from_field(
+        out, gaussians, res, encoder, cfg.include_dino, extra, cfg.field_dtype, cfg.embedding_neighbours
+    )

@@ -300,7 +300,13 @@ def cmd_train_field(args: argparse.Namespace) -> int:
     if args.package:
         enc = load_text_encoder(cache.targets["clip"].encoder)
         out = package_from_field(
-            args.package, g, res, enc, include_dino=args.include_dino, field_dtype=args.field_dtype
+            args.package,
+            g,
+            res,
+            enc,
+            include_dino=args.include_dino,
+            field_dtype=args.field_dtype,
+            neighbours=args.embedding_neighbours,
         )
         print(f"wrote scene package {out}")
     return 0
@@ -362,12 +368,24 @@ def _config_flag(p: argparse.ArgumentParser, what: str) -> None:
 
 
 def _add_package_args(p: argparse.ArgumentParser) -> None:
+    from fmgs.build_config import EMBEDDING_NEIGHBOURS, MAX_EMBEDDING_NEIGHBOURS
+
     p.add_argument("--include-dino", action="store_true", help="keep the DINO head in the package")
     p.add_argument(
         "--field-dtype",
         default="float32",
         choices=["float32", "float16"],
         help="storage of the field's table and heads in the package (float16: half the size)",
+    )
+    p.add_argument(
+        "--embedding-neighbours",
+        type=int,
+        default=EMBEDDING_NEIGHBOURS,
+        metavar="K",
+        help="each stored embedding is the mean over the Gaussian and the embedded Gaussians among its K "
+        "nearest within twice its largest scale, so a query's best Gaussians lie in an object's midst "
+        f"(1: the field at each mean alone, as in the paper; 1..{MAX_EMBEDDING_NEIGHBOURS}; default "
+        f"{EMBEDDING_NEIGHBOURS})",
     )
 
 

@@ -60,3 +60,46 @@ def test_unseen_scene_meets_the_floors(unseen):
     assert rates["colour swap"][0] / rates["colour swap"][1] >= COLOUR_SWAP_FLOOR, seen
     assert q.localisation_2d >= 0.8 and q.localisation_3d >= 0.8, seen
     assert rates["absent object"][1] == 3 and rates["colour swap"][1] == 7  # every kind was asked
+
+
+def test_the_neighbours_knob_is_packaged_from_the_same_field(unseen):
+    import torch
+
+    from benchmarks.unseen import neighbours_of, neighbours_section, repackage
+    from fmgs.features.text import MiniLMTextEncoder
+    from fmgs.field.neighbours import neighbour_mean, reach_of
+    from fmgs.scene.package import load_scene
+
+    tmp, _ = unseen
+    default = tmp / "models" / "u"
+    avg = repackage(default, tmp / "models" / "u-k8", 8, MiniLMTextEncoder())
+    assert (neighbours_of(default), neighbours_of(avg)) == (1, 8)
+    b, a = load_scene(default, mmap=False), load_scene(avg, mmap=False)
+    assert (
+        torch.equal(a.selected, b.selected)
+        and a.manifest.extra["label_names"] == b.manifest.extra["label_names"]
+    )
+    g = a.gaussians.subset(a.selected)
+    means = g.means
+    with torch.no_grad():
+        field = a.field(means, dino=False).clip
+    assert (b.embeddings - field).abs().max() < 2e-3  # the default K=1: the field at each mean
+    assert (a.embeddings - neighbour_mean(means, reach_of(g.scales), field, 8)).abs().max() < 2e-3
+    row = {
+        "localisation_2d": 1.0,
+        "localisation_3d": 0.9,
+        "miou": 0.8,
+        "class_iou": {"x": 0.5},
+        "presence": [],
+    }
+    fails = ["3d 'x': top Gaussian's mean 0.010 outside its box (its largest scale 0.050)"]
+    scene = {
+        "seed": 7,
+        **row,
+        "failures": [],
+        "embedding_neighbours": 8,
+        "variant": {**row, "failures": fails},
+    }
+    text = "\n".join(neighbours_section([scene]))
+    assert "| 7 | 8 | 100.0% | 90.0% | 0.800 | x 0.50 | 0/0 | 0/0 |" in text
+    assert "- K=1: seed 7 'x': top Gaussian's mean 0.010" in text and "- K=8: none" in text

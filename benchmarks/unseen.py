@@ -239,7 +239,8 @@ def neighbours_section(scenes: list[dict]) -> list[str]:
     lines = [
         "",
         "Embedding neighbours (`--embedding-neighbours K`, fmgs.field.neighbours): each stored embedding "
-        "is the unit mean of the field at the Gaussian's mean and at its K-1 nearest embedded neighbours'; "
+        "is the unit mean of the field at the Gaussian's mean and at the means of the embedded Gaussians "
+        "among its K nearest within twice its largest scale; "
         "K=1 is the field at each mean alone (the paper). The same trained field, packaged both ways:",
         "",
         "| seed | K | 2D loc. | 3D loc. | mIoU | worst class | present found | absent not found |",

@@ -147,9 +147,25 @@ def repackage(package: Path, out: Path, neighbours: int, encoder) -> Path:
 
 def neighbours_of(package: Path) -> int:
     """The package's ``embedding_neighbours`` (1 when it predates the neighbour mean)."""
+    from fmgs.field.neighbours import stored_neighbours
     from fmgs.scene.manifest import Manifest
 
-    return int(Manifest.read(package).extra.get("embedding_neighbours", 1))
+    return stored_neighbours(Manifest.read(package).extra)
+
+
+def _quality(engine, ds, enc, test: list[int], data: Path, names: list[str]) -> dict:
+    """Localisation, segmentation and presence of one opened package on held-out views ``test``."""
+    from fmgs.train.evaluate_field import evaluate_field
+
+    q = evaluate_field(engine, ds, enc, test, data / "scene.json")
+    return {
+        "localisation_2d": q.localisation_2d,
+        "localisation_3d": q.localisation_3d,
+        "miou": q.miou,
+        "class_iou": q.per_class_iou,
+        "failures": q.failures,
+        "presence": score_presence(engine, enc, names),
+    }
 
 
 def evaluate_scene(out: Path, seed: int, data: Path, ablate: int | None = None) -> dict:
@@ -159,43 +175,29 @@ def evaluate_scene(out: Path, seed: int, data: Path, ablate: int | None = None) 
     from fmgs.data.dataset import load_dataset
     from fmgs.features.text import MiniLMTextEncoder
     from fmgs.query.engine import SceneEngine
-    from fmgs.train.evaluate_field import evaluate_field
 
     package = out / "models" / f"s{seed}"
     engine = SceneEngine.open(package)
     ds = load_dataset(data)
     enc = MiniLMTextEncoder()
     _, test = ds.split(HOLDOUT_EVERY)
-    q = evaluate_field(engine, ds, enc, test, data / "scene.json")
     names = json.loads((data / "scene.json").read_text())["label_names"]
     gs_eval = json.loads((out / "models" / ".work" / f"s{seed}" / "geometry.json").read_text())
     variant = None
     if ablate is not None:
         vpath = repackage(package, out / "models" / f"s{seed}-k{ablate}", ablate, enc)
-        veng = SceneEngine.open(vpath)
-        vq = evaluate_field(veng, ds, enc, test, data / "scene.json")
         variant = {
             "embedding_neighbours": ablate,
-            "localisation_2d": vq.localisation_2d,
-            "localisation_3d": vq.localisation_3d,
-            "miou": vq.miou,
-            "class_iou": vq.per_class_iou,
-            "failures": vq.failures,
-            "presence": score_presence(veng, enc, names),
+            **_quality(SceneEngine.open(vpath), ds, enc, test, data, names),
         }
     return {
         "seed": seed,
         "objects": names[2:],
         "views_test": len(test),
         "psnr": gs_eval.get("psnr"),
-        "localisation_2d": q.localisation_2d,
-        "localisation_3d": q.localisation_3d,
-        "miou": q.miou,
-        "class_iou": q.per_class_iou,
-        "failures": q.failures,
+        **_quality(engine, ds, enc, test, data, names),
         "embedding_neighbours": neighbours_of(package),
         "variant": variant,
-        "presence": score_presence(engine, enc, names),
         "build_seconds": json.loads((out / f"build-{seed}.json").read_text())["seconds"],
         "embedded": engine.num_embedded,
         "gaussians": engine.num_gaussians,

@@ -59,13 +59,13 @@ def test_each_object_name_ranks_a_gaussian_in_its_box_first(demo):
 
 def test_float16_field_reproduces_the_stored_embeddings(demo):
     scene, _ = demo
-    from fmgs.field.neighbours import neighbour_mean, reach_of
+    from fmgs.field.neighbours import neighbour_mean, reach_of, stored_neighbours
 
     g = scene.gaussians.subset(scene.selected)
     means = g.means
     with torch.no_grad():
         f = scene.field(means, dino=False).clip
-    # Packages written before the neighbour mean have no key: the field at each mean alone.
-    f = neighbour_mean(means, reach_of(g.scales), f, scene.manifest.extra.get("embedding_neighbours", 1))
+    # The demo predates the neighbour mean: its manifest has no key, so K=1 (the field at each mean).
+    f = neighbour_mean(means, reach_of(g.scales), f, stored_neighbours(scene.manifest.extra))
     cos = (f * scene.embeddings).sum(1) / scene.embeddings.norm(dim=1)
     assert float(cos.min()) > 0.99

@@ -38,6 +38,11 @@ QUERY_BLOCK = 1 << 15
 """Gaussians whose neighbours are looked up and averaged at once ([block, D] float32 accumulator)."""
 
 
+def stored_neighbours(extra: dict) -> int:
+    """The k a package's manifest ``extra`` records (1 in packages written before the neighbour mean)."""
+    return int(extra.get("embedding_neighbours", 1))
+
+
 def reach_of(scales: torch.Tensor) -> torch.Tensor:
     """[M] float64 reach of Gaussians with activated scales [M,3]."""
     return REACH_SIGMAS * scales.detach().cpu().double().amax(dim=1)
@@ -68,7 +73,7 @@ def neighbour_mean(
         near = torch.from_numpy(dist <= r[s : s + QUERY_BLOCK, None])
         nb = torch.from_numpy(nb.astype(np.int64))
         me = torch.arange(s, s + len(nb))
-        acc = emb[me].clone()  # itself, wherever the tree puts it among points at distance 0
+        acc = emb[s : s + len(nb)].clone()  # itself, wherever the tree puts it among points at distance 0
         for j in range(k):  # one [block, D] gather at a time, not a [block, k, D] copy
             take = near[:, j] & (nb[:, j] != me)
             acc[take] += emb[nb[take, j]]

@@ -2,6 +2,7 @@
 
     python benchmarks/gpu.py --out DIR                  # every part, most valuable first
     python benchmarks/gpu.py --out DIR --parts tests,pose --budget 540
+    python benchmarks/gpu.py --out DIR --parts gs_train,field_train --limit gs_train=200
     python benchmarks/gpu.py --report-only DIR/GPU.json  # rewrite benchmarks/GPU.md from stored figures
 
 Runs offline: gsplat (``pip install 'fmgs[cuda]'`` or a carried wheel) compiles its CUDA extension on
@@ -94,6 +95,13 @@ def main() -> int:
     ap.add_argument("--work", type=Path, default=Path("/tmp/fmgs-gpu"), help="scratch (packages, fits)")
     ap.add_argument("--parts", default=",".join(PARTS), help=f"comma list from {list(PARTS)}")
     ap.add_argument("--budget", type=float, default=1800.0, help="seconds for the whole run")
+    ap.add_argument(
+        "--limit",
+        action="append",
+        default=[],
+        metavar="PART=S",
+        help="cap a part's seconds below its default (repeatable): gs_train=200 leaves time for later parts",
+    )
     ap.add_argument("--resume", type=Path, help="an earlier GPU.json whose parts are kept unless rerun")
     ap.add_argument("--quick", action="store_true", help="tiny sizes (checks the script, not the GPU)")
     ap.add_argument("--report-only", type=Path, help="rewrite benchmarks/GPU.md from this GPU.json")
@@ -105,6 +113,12 @@ def main() -> int:
     unknown = [p for p in parts if p not in PARTS]
     if unknown:
         ap.error(f"unknown parts {unknown}; choose from {list(PARTS)}")
+    limits = dict(PARTS)
+    for item in args.limit:
+        name, _, secs = item.partition("=")
+        if name not in PARTS or not secs.replace(".", "", 1).isdigit():
+            ap.error(f"--limit {item!r}: expected PART=SECONDS with PART in {list(PARTS)}")
+        limits[name] = min(PARTS[name], float(secs))
     args.out.mkdir(parents=True, exist_ok=True)
     args.work.mkdir(parents=True, exist_ok=True)
     results: dict = json.loads(args.resume.read_text()) if args.resume else {}
@@ -118,8 +132,8 @@ def main() -> int:
             if left < 30:
                 results["parts"][name] = {"skipped": f"no time left in the {args.budget:.0f} s budget"}
                 continue
-            print(f"[gpu] {name} (up to {min(PARTS[name], left):.0f} s)", flush=True)
-            res = run_part(name, args.work, min(PARTS[name], left), args.quick, log)
+            print(f"[gpu] {name} (up to {min(limits[name], left):.0f} s)", flush=True)
+            res = run_part(name, args.work, min(limits[name], left), args.quick, log)
             results["parts"][name] = res
             failed |= res["_part"]["rc"] != 0
             print(f"[gpu] {name}: {json.dumps(_brief(res))}", flush=True)

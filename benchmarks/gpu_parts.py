@@ -612,6 +612,7 @@ def part_field_train(work: Path, quick: bool) -> dict:
     from fmgs.io.ply import read_ply
     from fmgs.train.field import FieldTrainConfig, train_field
 
+    start = time.perf_counter()
     ds = load_dataset(DATA / "snowmiku_small")
     ply = work / "gs" / "point_cloud.ply"
     fit = "gs_train's fit"
@@ -651,18 +652,36 @@ def part_field_train(work: Path, quick: bool) -> dict:
         dtype=torch.float16 if DEVICE == "cuda" else torch.float32,
     )
     cache_dir = work / "features"
-    scale = 0.25
+    # The build's default map size (feature_side); --quick (a check of the script) small maps.
+    xcfg = ExtractConfig(device=DEVICE, progress=False, **({"feature_side": 48} if quick else {}))
     train_idx = ds.split(8)[0]
     t0 = time.perf_counter()
-    cache = extract_targets(
-        ds, cache_dir, clip, dino, cfg=ExtractConfig(feature_scale=scale, device=DEVICE, progress=False)
-    )
+    cache = extract_targets(ds, cache_dir, clip, dino, cfg=xcfg)
     sync()
     extract_s = time.perf_counter() - t0
     cache = FeatureCache.open(cache_dir)
-    steps = 200 if quick else 4200
+    # A short probe sizes the run to the part's time limit: all 4.2K steps when they fit, else a
+    # compressed schedule of what fits, with the full run's time projected from its ms per step.
+    probe_steps = 20 if quick else 100
+    t_probe = time.perf_counter()
+    probe = train_field(
+        gaussians,
+        ds,
+        cache,
+        work / "field-probe",
+        FieldTrainConfig().reduced(probe_steps, device=DEVICE, checkpoint_every=0),
+        progress=False,
+        resume=False,
+    )
+    per_step = probe.seconds / probe_steps
+    prepare = time.perf_counter() - t_probe - probe.seconds  # selection and blending weights, once a run
+    left = float(os.environ.get("FMGS_PART_LIMIT_S", "420")) - (time.perf_counter() - start) - 20
+    full = 200 if quick else 4200
+    steps = full
+    if per_step * full * 1.2 + prepare > left:
+        steps = max(probe_steps, int((left - prepare) / (per_step * 1.2)) // 100 * 100)
     cfg = FieldTrainConfig(steps=steps, device=DEVICE, checkpoint_every=0)
-    if quick:
+    if quick or steps != full:
         cfg = FieldTrainConfig().reduced(steps, device=DEVICE, checkpoint_every=0)
     reset_peak()
     t0 = time.perf_counter()
@@ -674,9 +693,13 @@ def part_field_train(work: Path, quick: bool) -> dict:
         "geometry": fit,
         "extract_s": extract_s,
         "extract_images_per_s": len(ds) / extract_s,
-        "feature_scale": scale,
+        "feature_scale": xcfg.feature_scale,
+        "feature_side": xcfg.feature_side,
         "map_size": f"{w}x{h}",
         "steps": steps,
+        "full_schedule": steps == full,
+        "probe_ms_per_step": per_step * 1e3,
+        "projected_full_s": r.seconds / steps * full,
         "selected_gaussians": len(r.selection.index),
         "gaussians": gaussians.num,
         "train_loop_s": r.seconds,

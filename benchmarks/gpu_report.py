@@ -201,13 +201,25 @@ def write_report(results: dict, path: Path) -> None:
             "Targets from random-weight CLIP ViT-B/16 and DINO ViT-S/8 (float16, same cost as "
             "trained weights) for "
             f"{f['images']} images: {_f(f['extract_s'])} s ({_f(f['extract_images_per_s'])} images/s); maps "
-            f"{f['map_size']} (feature scale {f['feature_scale']}).",
+            f"{f['map_size']} ("
+            + (
+                f"feature scale {f['feature_scale']}"
+                if f.get("feature_scale")
+                else f"longer side {f.get('feature_side')} px, the build default"
+            )
+            + ").",
             f"Training {f['steps']:,} steps on {f['selected_gaussians']:,} of {f['gaussians']:,} Gaussians "
             f"({f.get('geometry', 'gs_train fit')}): loop "
             f"{_f(f['train_loop_s'])} s ({_f(f['ms_per_step'], '.1f')} ms/step) + "
             f"{_f(f['prepare_s'])} s selection "
             f"and blending weights = **{_f(f['train_total_s'] / 60, '.1f')} min**; peak GPU memory "
-            f"{_f(f['peak_gpu_gib'], '.2f')} GiB.",
+            f"{_f(f['peak_gpu_gib'], '.2f')} GiB."
+            + (
+                ""
+                if f.get("full_schedule", True)
+                else f" Only {f['steps']:,} of 4,200 steps fitted in the part's time: 4,200 steps at this "
+                f"rate would take {_f(f['projected_full_s'] / 60, '.1f')} min (projected, not measured)."
+            ),
             "",
         ]
     x = P.get("text10m")

@@ -126,6 +126,7 @@ def main() -> int:
     results["commit"] = os.environ.get("FMGS_COMMIT", results.get("commit", "unknown"))
     deadline = time.perf_counter() + args.budget
     failed = False
+    this_env: dict = {}  # this run's machine (run the env part to have it named in the Parts table)
     with open(args.out / "gpu-log.txt", "a") as log:
         for name in parts:
             left = deadline - time.perf_counter()
@@ -134,12 +135,20 @@ def main() -> int:
                 continue
             print(f"[gpu] {name} (up to {min(limits[name], left):.0f} s)", flush=True)
             res = run_part(name, args.work, min(limits[name], left), args.quick, log)
+            if name == "env":
+                this_env = res
+            res["_run"] = run_label(this_env, results["commit"])
             results["parts"][name] = res
             failed |= res["_part"]["rc"] != 0
             print(f"[gpu] {name}: {json.dumps(_brief(res))}", flush=True)
             (args.out / "GPU.json").write_text(json.dumps(results, indent=1, default=str))
             write_report(results, args.out / "GPU.md")
     return 1 if failed else 0
+
+
+def run_label(env: dict, commit: str) -> str:
+    """Which machine, commit and date a part's figures come from (parts of several runs share GPU.json)."""
+    return f"{env.get('gpu', '?')}, {commit}, {env.get('date', '?')}"
 
 
 def _brief(res: dict) -> dict:

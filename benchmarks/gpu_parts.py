@@ -675,6 +675,12 @@ def part_field_train(work: Path, quick: bool) -> dict:
     )
     per_step = probe.seconds / probe_steps
     prepare = time.perf_counter() - t_probe - probe.seconds  # selection and blending weights, once a run
+    # Phase times on the console, so that a part cut off at its limit still says where its time went.
+    print(
+        f"[field_train] extract {extract_s:.1f} s; probe {probe_steps} steps {probe.seconds:.1f} s "
+        f"+ prepare {prepare:.1f} s",
+        flush=True,
+    )
     left = float(os.environ.get("FMGS_PART_LIMIT_S", "420")) - (time.perf_counter() - start) - 20
     full = 200 if quick else 4200
     steps = full
@@ -685,7 +691,8 @@ def part_field_train(work: Path, quick: bool) -> dict:
         cfg = FieldTrainConfig().reduced(steps, device=DEVICE, checkpoint_every=0)
     reset_peak()
     t0 = time.perf_counter()
-    r = train_field(gaussians, ds, cache, work / "field", cfg, progress=False, resume=False)
+    print(f"[field_train] {steps} steps", flush=True)
+    r = train_field(gaussians, ds, cache, work / "field", cfg, progress=True, resume=False)
     total = time.perf_counter() - t0
     h, w = cache.size(ds.frames[train_idx[0]].name)
     return {

@@ -13,9 +13,10 @@ from fmgs.sfm_config import SfMConfig
 from fmgs.train.config import FieldTrainConfig, GSTrainConfig
 
 TARGET_KINDS = ("clip", "labels")
-EMBEDDING_NEIGHBOURS = 1
-"""Default k of the stored embeddings' neighbour mean (fmgs.field.neighbours): 1, the field at each
-mean (the paper), because the mean cost 2D localisation on sparse scenes of small Gaussians."""
+EMBEDDING_NEIGHBOURS = 8
+"""Default k of the stored embeddings' neighbour mean (fmgs.field.neighbours): 8, so that a text
+query's first Gaussian lies in the object's midst; Gaussians without a dense neighbourhood keep the
+field at their mean (1 everywhere: the paper)."""
 MAX_EMBEDDING_NEIGHBOURS = 256
 """Upper bound on k: the package stage gathers k [block, D] slices per block of Gaussians."""
 
@@ -79,10 +80,10 @@ class BuildConfig:
     field_dtype: str = "float32"
     """Storage of the field's table and heads in the package: "float32" or "float16" (half the size)."""
     embedding_neighbours: int = EMBEDDING_NEIGHBOURS
-    """Each stored embedding is the unit mean of the field at the Gaussian's mean and at those of the
-    embedded Gaussians among its k nearest within twice its largest scale (fmgs.field.neighbours), so
-    that a text query's best Gaussians lie in the object's midst, not at its rim (8 did on trained
-    scenes); 1: the field at each mean alone (the paper)."""
+    """Each stored embedding of a Gaussian whose k-1 nearest embedded Gaussians all lie within twice
+    its largest scale is the unit mean of the field at its mean and theirs; the others keep the field
+    at their mean (fmgs.field.neighbours). A text query's first Gaussian then lies in the object's
+    midst, not at its rim; 1: the field at each mean alone (the paper)."""
     extra: dict = dataclasses.field(default_factory=dict)
     """Merged into the manifest's ``extra`` (e.g. a description); label targets add ``label_names``."""
     device: str = "cpu"

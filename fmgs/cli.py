@@ -382,10 +382,10 @@ def _add_package_args(p: argparse.ArgumentParser) -> None:
         type=int,
         default=EMBEDDING_NEIGHBOURS,
         metavar="K",
-        help="each stored embedding is the mean over the Gaussian and the embedded Gaussians among its K "
-        "nearest within twice its largest scale, so a query's best Gaussians lie in an object's midst "
-        f"(1: the field at each mean alone, as in the paper; 1..{MAX_EMBEDDING_NEIGHBOURS}; default "
-        f"{EMBEDDING_NEIGHBOURS})",
+        help="each stored embedding of a Gaussian whose K-1 nearest embedded Gaussians all lie within "
+        "twice its largest scale is the mean over them and itself, so a query's best Gaussians lie in an "
+        "object's midst; others keep their own (1: the field at each mean alone, as in the paper; "
+        f"1..{MAX_EMBEDDING_NEIGHBOURS}; default {EMBEDDING_NEIGHBOURS})",
     )
 
 

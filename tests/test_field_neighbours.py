@@ -31,7 +31,7 @@ def test_matches_brute_force(k, monkeypatch):
     ref = neighbour_mean_reference(pts, reach, emb, k)
     if k > 1:  # the reaches matter: some Gaussians kept all k, some none beside themselves
         far = neighbour_mean_reference(pts, torch.full_like(reach, 1e9), emb, k)
-        alone = (out - emb).abs().amax(1) < 1e-6
+        alone = (out - emb).abs().amax(1) < 1e-6  # a neighbour out of reach: kept as it was
         assert 0 < int(alone.sum()) < len(out) and not torch.allclose(out, far)
     assert out.dtype == torch.float32 and out.shape == emb.shape
     torch.testing.assert_close(out, ref, rtol=0, atol=2e-6)
@@ -80,12 +80,34 @@ def test_reach_is_twice_the_largest_scale():
     torch.testing.assert_close(reach_of(scales), torch.tensor([0.6, 2e-6], dtype=torch.float64))
 
 
-def test_a_neighbour_out_of_reach_is_left_out():
-    # Two "object" Gaussians beside each other and a floor one 1 unit away: a reach of 0.5 keeps the
-    # floor out of the object's mean, a reach of 2 lets it in.
+def test_a_gaussian_with_a_neighbour_out_of_reach_keeps_its_own():
+    # Two "object" Gaussians beside each other and a floor one 1 unit away, k=3: with a reach of 0.5
+    # no Gaussian has both its nearest within reach, so none is averaged (the floor stays out of the
+    # object, and the object's pair is not averaged either); a reach of 2 averages all three.
     pts = torch.tensor([[0.0, 0, 0], [0.1, 0, 0], [1.1, 0, 0]], dtype=torch.float64)
     emb = torch.tensor([[1.0, 0], [1.0, 0], [0.0, 1]])
     near = neighbour_mean(pts, torch.full((3,), 0.5, dtype=torch.float64), emb, 3)
     far = neighbour_mean(pts, torch.full((3,), 2.0, dtype=torch.float64), emb, 3)
-    assert torch.equal(near[:2], emb[:2]) and torch.equal(near[2], emb[2])
-    assert float(far[1, 1]) > 0.3
+    assert torch.equal(near, emb)
+    assert float(far[1, 1]) > 0.3 and float(far[2, 0]) > 0.3
+
+
+def test_only_dense_neighbourhoods_are_averaged():
+    # A dense cluster of 10 "object" Gaussians (spacing about 0.01, reach 0.1) touching one "floor"
+    # Gaussian, and a sparse pair (spacing 1, reach 2) beside a third Gaussian 10 units away. k=4:
+    # every cluster Gaussian has its 3 nearest within reach and is averaged; in the sparse group
+    # each Gaussian has at most one neighbour within reach and keeps its own embedding.
+    a, b = torch.tensor([1.0, 0, 0]), torch.tensor([0.0, 1, 0])
+    line = (torch.arange(11, dtype=torch.float64) * 0.01) ** 1.1  # uneven spacing: no ties in distance
+    cluster = torch.stack(
+        [line, torch.zeros(11, dtype=torch.float64), torch.zeros(11, dtype=torch.float64)], 1
+    )
+    sparse = torch.tensor([[100.0, 0, 0], [101.0, 0, 0], [111.0, 0, 0]], dtype=torch.float64)
+    pts = torch.cat([cluster, sparse])
+    emb = torch.stack([a] * 10 + [b] + [a, b, b])
+    reach = torch.tensor([0.1] * 11 + [2.0] * 3, dtype=torch.float64)
+    out = neighbour_mean(pts, reach, emb, 4)
+    assert not torch.equal(out[10], emb[10]) and float(out[10] @ a) > 0.5  # the floor one, averaged
+    assert float(out[0] @ a) == pytest.approx(1.0)  # the cluster's far end: all its neighbours are a
+    assert torch.equal(out[11:], emb[11:])  # the sparse ones: not mixed with their one neighbour
+    torch.testing.assert_close(out, neighbour_mean_reference(pts, reach, emb, 4), rtol=0, atol=2e-6)

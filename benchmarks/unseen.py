@@ -1,6 +1,6 @@
 """Open-vocabulary quality on generated scenes no setting was tuned on, built as a user builds them.
 
-    python benchmarks/unseen.py --out OUT [--seeds 101,102,103] [--views 48] [--size 128x96] [--gs-steps 3000]
+    python benchmarks/unseen.py --out OUT [--seeds 104,105,106] [--views 48] [--size 128x96] [--gs-steps 3000]
                                 [--grad-threshold 0.001]
     python benchmarks/unseen.py --quick --out OUT      # CI size: one small scene, short stages
 
@@ -385,7 +385,7 @@ def report(scenes: list[dict], info: dict, cmd: str) -> str:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--out", required=True)
-    ap.add_argument("--seeds", default="101,102,103")
+    ap.add_argument("--seeds", default="104,105,106")
     ap.add_argument("--views", type=int, default=48)
     ap.add_argument("--size", default="128x96")
     ap.add_argument("--gs-steps", type=int, default=3000)

@@ -177,15 +177,14 @@ def _split_floats(result):
 
     def walk(m):
         for fd, value in m.ListFields():
-            subs = value if fd.is_repeated else [value]
             if fd.type != fd.TYPE_MESSAGE:
                 continue
-            for sub in subs:
-                if isinstance(sub, pb.Tensor) and from_tensor(sub).dtype.kind == "f":
-                    floats.append(from_tensor(sub).astype(np.float64))
-                    sub.ClearField("data")
-                else:
+            for sub in value if fd.is_repeated else [value]:
+                if not isinstance(sub, pb.Tensor):
                     walk(sub)
+                elif (arr := from_tensor(sub)).dtype.kind == "f":
+                    floats.append(arr.astype(np.float64))
+                    sub.ClearField("data")
 
     for m in msgs:
         c = type(m)()

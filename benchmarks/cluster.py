@@ -271,9 +271,10 @@ def report(res: dict) -> str:
     a, b = c["a"], c["b"]
     lines += [
         "",
-        "Answers are the same for every shard count (tests/test_shards.py, tests/test_cluster.py: bit for "
-        "bit). On 2 cores the shards' work is not parallel, so latency grows with the fan-out and the "
-        "merge; 10M Gaussians were not measured here (memory and time); the model below scales from 1M.",
+        "Answers are the same for every shard count (tests/query/test_sharded.py, "
+        "tests/server/test_cluster.py: bit for bit). On 2 cores the shards' work is not parallel, so "
+        "latency grows with the fan-out and the merge; 10M Gaussians were not measured here (memory "
+        "and time); the model below scales from 1M.",
         "",
         "## Capacity model (from the measured figures above)",
         "",

@@ -5,7 +5,7 @@
 
 Every configuration runs in its own subprocess so its peak memory (ru_maxrss) is its own. The float64
 truth for the error column is the CPU backend with float64 features: its geometry and weights are
-float64 and tests/test_render_agreement.py checks it against the brute-force renderer to 1e-10.
+float64 and tests/render/test_agreement.py checks it against the brute-force renderer to 1e-10.
 """
 
 from __future__ import annotations

@@ -23,6 +23,8 @@ import numpy as np
 import psutil
 
 ROOT = Path(__file__).resolve().parents[1]
+SUITES = ("tests/server/test_fuzz.py", "tests/server/test_faults.py", "tests/client/test_load.py",
+          "tests/server/test_server.py")  # fmt: skip
 sys.path.insert(0, str(ROOT))
 
 from benchmarks.raster import machine  # noqa: E402
@@ -57,8 +59,7 @@ def label_names(models: Path) -> tuple[str, ...]:
 def suites() -> dict:
     """Run the fuzz, fault and load suites; return pass/fail counts and time."""
     t0 = time.perf_counter()
-    cmd = [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "tests/test_fuzz.py",
-           "tests/test_faults.py", "tests/test_load.py", "tests/test_server.py"]  # fmt: skip
+    cmd = [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", *SUITES]
     r = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True)
     tail = r.stdout.strip().splitlines()[-1] if r.stdout.strip() else r.stderr[-500:]
     counts = {k: int(v) for v, k in re.findall(r"(\d+) (passed|failed|error|errors|skipped)", tail)}
@@ -175,26 +176,25 @@ def report(res: dict, quick: bool) -> str:
         L += [
             "## Suites (run by CI on every change)",
             "",
-            f"`pytest tests/test_fuzz.py tests/test_faults.py tests/test_load.py tests/test_server.py`: "
-            f"{s['summary']} (exit {s['returncode']}).",
+            f"`pytest {' '.join(SUITES)}`: {s['summary']} (exit {s['returncode']}).",
             "",
-            "- fuzz (`tests/test_fuzz.py`): 2,100 hypothesis cases per run (400 each for TextQuery, Render,",
-            "  PointQuery, Segment; 200 scene calls; 300 garbage-byte messages), plus 50 zero deadlines and",
-            "  cancelled streams. Every answer is OK or a documented status; unparsable bytes get grpc's",
-            "  INTERNAL 'Exception deserializing request' (INVALID_ARGUMENT naming the decode error on a",
-            "  pose stream); the server answers a health query afterwards.",
-            "- faults (`tests/test_faults.py`): truncated, garbage, NaN-bearing and wrong-shaped tensors and",
-            "  a corrupt manifest (each fails only its scene, state FAILED with the reason, recovering when",
-            "  fixed); a missing manifest; an unknown encoder; a scene replaced 12 times under 3 concurrent",
-            "  readers (every answer old or new, no error); an in-flight render finishing on its version; a",
-            "  scene deleted while loaded; disk full during export (old package intact, no temporary left);",
-            "  SIGTERM with a render in flight (it completes, exit 0); kill -9 and restart (identical",
-            "  answers); cancelled streams freeing their slot.",
-            "- load (`tests/test_load.py`): 32 clients x 640 requests, zero errors; shedding with",
+            "- fuzz (`tests/server/test_fuzz.py`): 2,100 hypothesis cases per run (400 each for",
+            "  TextQuery, Render, PointQuery, Segment; 200 scene calls; 300 garbage-byte messages), plus",
+            "  50 zero deadlines and cancelled streams. Every answer is OK or a documented status;",
+            "  unparsable bytes get grpc's INTERNAL 'Exception deserializing request' (INVALID_ARGUMENT",
+            "  naming the decode error on a pose stream); the server answers a health query after each test.",
+            "- faults (`tests/server/test_faults.py`): truncated, garbage, NaN-bearing and wrong-shaped",
+            "  tensors and a corrupt manifest (each fails only its scene, state FAILED with the reason,",
+            "  recovering when fixed); a missing manifest; an unknown encoder; a scene replaced 12 times",
+            "  under 3 concurrent readers (every answer old or new, no error); an in-flight render",
+            "  finishing on its version; a scene deleted while loaded; disk full during export (old package",
+            "  intact, no temporary left); SIGTERM with a render in flight (it completes, exit 0); kill -9",
+            "  and restart (identical answers); cancelled streams freeing their slot.",
+            "- load (`tests/client/test_load.py`): 32 clients x 640 requests, zero errors; shedding with",
             "  RESOURCE_EXHAUSTED only; a 10,000-request soak with RSS growth under 32 MiB.",
-            "- errors and access control (`tests/test_server.py`, `tests/test_client_server.py`): the",
-            "  status table, bearer tokens (UNAUTHENTICATED, PERMISSION_DENIED for admin calls), mutual TLS",
-            "  with certificates made at test time.",
+            "- errors and access control (`tests/server/test_server.py`,",
+            "  `tests/client/test_against_server.py`): the status table, bearer tokens (UNAUTHENTICATED,",
+            "  PERMISSION_DENIED for admin calls), mutual TLS with certificates made at test time.",
             "",
         ]
     if "hostile" in res:

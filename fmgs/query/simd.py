@@ -16,7 +16,7 @@ the same change measured no gain (its rows' reads, not its arithmetic, bound it)
 
 Ranks must be multiples of ``LANES`` (the callers keep their loop for other ranks). The sums differ from
 the loops' only in their order (float32, fused multiply-adds), which the kernels' slack already covers:
-the twins in tests/test_query_kernels.py check both paths.
+the twins in tests/query/test_kernels.py check both paths.
 
 Selections (``compress_at_least``): the rows of a float32 vector at or above a cut, sixteen values per
 compare, the positions of those that pass written by one masked compress store (AVX-512's vpcompressq;

@@ -2,7 +2,7 @@
 forward and backward in numba kernels (``cpu_grad_kernels.py``).
 
 The exact twin is ``rasterize_reference``: the same rule in float64, so outputs and gradients agree to
-rounding (tests/test_render_cpu_grad.py). Memory: the backward pass holds one gradient row of 7 + D
+rounding (tests/render/test_cpu_grad.py). Memory: the backward pass holds one gradient row of 7 + D
 float64 values per (tile, Gaussian) pair of the binning, so wide features (hundreds of channels) are
 better served by the reference path, which ``backend="auto"`` picks for them.
 """

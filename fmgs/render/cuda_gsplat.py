@@ -3,7 +3,7 @@
 gsplat implements the same EWA splatting with three documented differences from RasterConfig's rule:
 alpha is clamped to 0.999 (not ``alpha_max``), a pixel stops when T <= 1e-4 (not < 1e-4), and all
 geometry is float32 with fast math. Its images therefore agree with the reference to float32
-accuracy except where those rules bite (saturated pixels); tests/test_render_cuda.py measures this.
+accuracy except where those rules bite (saturated pixels); tests/render/test_cuda_gsplat.py measures this.
 Per-pixel contribution statistics are not available from gsplat (n_contrib, weight_sum are None),
 and radii are its opacity-aware per-axis extents (max of x and y), not 3-sigma radii.
 """

@@ -94,7 +94,7 @@ class GSTrainConfig:
     """Subsample the sparse points to at most this many."""
     backend: str = "auto"
     """Rasteriser backend: auto picks cuda on a GPU, else cpu (numba blending with gradients, about 10x
-    the reference's speed at 128x96, tests/test_render_cpu_grad.py holds it to the reference)."""
+    the reference's speed at 128x96, tests/render/test_cpu_grad.py holds it to the reference)."""
     reference_tile: int = 4
     """Tile edge for the reference backend: small tiles waste less dense work per Gaussian (measured on
     snowmiku at 124x93: 0.80 s per step with 16, 0.44 with 8, 0.31 with 4)."""

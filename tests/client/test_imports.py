@@ -11,7 +11,7 @@ from pathlib import Path
 import fmgs_client
 from fmgs_client import client, types
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def test_client_imports_without_torch():

@@ -4,12 +4,8 @@ passes directly), on a compact-path scene large enough for the sample estimate."
 from __future__ import annotations
 
 import math
-import sys
-from pathlib import Path
 
 import torch
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks import text
 from benchmarks.query_sets import query_sets

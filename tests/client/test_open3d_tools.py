@@ -3,6 +3,7 @@ numpy fallback where Open3D cannot render."""
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -15,7 +16,7 @@ from fmgs_client.types import TextAnswer
 from fmgs_wire.images import colorize, decode_png
 from tests.helpers.client_fakes import answer_with_instances
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def test_open3d_export(tmp_path):
@@ -55,8 +56,6 @@ def test_numpy_screenshot_fallback(tmp_path):
 
 
 _SHOT = """
-import sys
-sys.path.insert(0, {root!r})
 from tests.helpers.client_fakes import answer_with_instances
 from fmgs_client import open3d_tools as ot
 ot.screenshot(answer_with_instances(), {out!r}, 160, 120, method="open3d")
@@ -71,8 +70,9 @@ def test_open3d_headless_screenshot(tmp_path):
         pytest.skip("no libvulkan (Debian libvulkan1 mesa-vulkan-drivers): Open3D cannot render headless")
     out = tmp_path / "shot.png"
     # A subprocess: Filament aborts the whole process when it finds no usable device.
-    code = _SHOT.format(root=str(ROOT), out=str(out))
-    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    code = _SHOT.format(out=str(out))
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}  # the child imports tests.helpers from the checkout
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, env=env)
     assert done.returncode == 0, done.stderr[-2000:]
     img = decode_png(out.read_bytes())
     assert img.shape == (120, 160, 3)

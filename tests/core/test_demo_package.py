@@ -10,7 +10,7 @@ import torch
 
 from fmgs.features.models import MINILM_ID
 
-DEMO = Path(__file__).resolve().parents[1] / "models" / "demo"
+DEMO = Path(__file__).resolve().parents[2] / "models" / "demo"
 MAX_BYTES = 10 * 2**20
 
 

@@ -15,7 +15,7 @@ from fmgs.flags import add_flags, config_from, field_docs
 from fmgs_server.cli import build_parser, config_from_args
 from fmgs_server.config import MiB, ServerConfig
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 @dataclass(frozen=True)

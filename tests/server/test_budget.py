@@ -125,7 +125,7 @@ def test_a_large_point_query_stays_within_its_reserved_estimate():
     from fmgs_server.launch import memory, reset_peak, subprocess_server
     from fmgs_wire.tensors import to_tensor
 
-    models = Path(__file__).resolve().parents[1] / "models"
+    models = Path(__file__).resolve().parents[2] / "models"
     n = 300_000
     pts = np.random.default_rng(0).normal(size=(n, 3)).astype(np.float32)
     with (

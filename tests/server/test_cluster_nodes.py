@@ -18,7 +18,7 @@ from fmgs_wire.proto.fmgs.v1 import fmgs_pb2_grpc as pb_grpc
 from tests.helpers.query_scenes import CLASS_NAMES, FakeEncoder, blob_scene
 
 ray = pytest.importorskip("ray", reason="the fmgs[ray] extra is part of the CI install")
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def encoder_factory(encoder_id: str):

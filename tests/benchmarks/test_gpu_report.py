@@ -7,7 +7,7 @@ from pathlib import Path
 
 from benchmarks.gpu_report import NOT_RUN, write_report
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def test_report_from_nothing_says_not_run(tmp_path):

@@ -4,13 +4,9 @@ check, floors and growth fits."""
 from __future__ import annotations
 
 import math
-import sys
-from pathlib import Path
 
 import pytest
 import torch
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.workprec.measure import (
     Cost,

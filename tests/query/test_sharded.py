@@ -191,7 +191,7 @@ def test_sharded_text_answers_equal_the_unsharded_bit_for_bit(source, tmp_path, 
 
 # ---------------------------------------------------------------------- pose queries on shards
 
-ROOT = __import__("pathlib").Path(__file__).resolve().parents[1]
+ROOT = __import__("pathlib").Path(__file__).resolve().parents[2]
 
 
 def _demo_camera(eye, w=96, h=72):

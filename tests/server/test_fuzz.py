@@ -53,6 +53,13 @@ def fuzz_server(tmp_path_factory):
     srv.stop(0)
 
 
+@pytest.fixture
+def fuzzed(fuzz_server):
+    """The server, checked healthy after the test's own fuzzing (each test, whatever ran before it)."""
+    yield fuzz_server
+    _still_healthy(fuzz_server[2])
+
+
 weird_floats = st.one_of(
     st.floats(allow_nan=True, allow_infinity=True),
     st.sampled_from([0.0, -0.0, 1e-320, 1e300, -1e300, 5e-324, 40.0]),
@@ -131,9 +138,9 @@ def _still_healthy(stub):
     enc=st.sampled_from(["", ENCODER_ID, "other"]),
 )
 def test_fuzz_text_query(
-    fuzz_server, scene, texts, top_k, threshold, fields, eps, min_points, max_inst, canon, emb, enc
+    fuzzed, scene, texts, top_k, threshold, fields, eps, min_points, max_inst, canon, emb, enc
 ):
-    _, _, stub = fuzz_server
+    _, _, stub = fuzzed
     inst = pb.InstanceOptions(
         enabled=bool(min_points % 2), eps=eps, min_points=min_points, max_instances=max_inst
     )
@@ -154,8 +161,8 @@ def test_fuzz_text_query(
     outputs=st.lists(st.integers(0, 6), max_size=6),
     encoding=st.integers(0, 4),
 )
-def test_fuzz_render(fuzz_server, scene, camera, text, outputs, encoding):
-    _, _, stub = fuzz_server
+def test_fuzz_render(fuzzed, scene, camera, text, outputs, encoding):
+    _, _, stub = fuzzed
     req = pb.RenderRequest(scene=scene, text=text, outputs=outputs, encoding=encoding)
     if camera is not None:
         req.camera.CopyFrom(camera)
@@ -166,8 +173,8 @@ def test_fuzz_render(fuzz_server, scene, camera, text, outputs, encoding):
 @given(
     scene=scenes, texts=texts, points=st.none() | tensors(), canon=st.lists(st.text(max_size=5), max_size=3)
 )
-def test_fuzz_points(fuzz_server, scene, texts, points, canon):
-    _, _, stub = fuzz_server
+def test_fuzz_points(fuzzed, scene, texts, points, canon):
+    _, _, stub = fuzzed
     req = pb.PointQueryRequest(scene=scene, texts=texts, canonical_phrases=canon)
     if points is not None:
         req.points.CopyFrom(points)
@@ -176,8 +183,8 @@ def test_fuzz_points(fuzz_server, scene, texts, points, canon):
 
 @FUZZ
 @given(scene=scenes, names=texts, camera=st.none() | cameras(), per_gaussian=st.booleans())
-def test_fuzz_segment(fuzz_server, scene, names, camera, per_gaussian):
-    _, _, stub = fuzz_server
+def test_fuzz_segment(fuzzed, scene, names, camera, per_gaussian):
+    _, _, stub = fuzzed
     req = pb.SegmentRequest(scene=scene, class_names=names, per_gaussian=per_gaussian)
     if camera is not None:
         req.camera.CopyFrom(camera)
@@ -186,8 +193,8 @@ def test_fuzz_segment(fuzz_server, scene, names, camera, per_gaussian):
 
 @settings(max_examples=200, deadline=None, suppress_health_check=list(HealthCheck), derandomize=True)
 @given(scene=scenes, which=st.sampled_from(["GetScene", "LoadScene", "UnloadScene", "ReloadScene"]))
-def test_fuzz_scene_calls(fuzz_server, scene, which):
-    _, _, stub = fuzz_server
+def test_fuzz_scene_calls(fuzzed, scene, which):
+    _, _, stub = fuzzed
     _call(getattr(stub, which), pb.SceneRequest(scene=scene))
 
 
@@ -198,9 +205,9 @@ def test_fuzz_scene_calls(fuzz_server, scene, which):
     ),
     data=st.binary(max_size=512),
 )
-def test_garbage_bytes_on_the_wire(fuzz_server, method, data):
+def test_garbage_bytes_on_the_wire(fuzzed, method, data):
     """Bytes that are not a valid message: the runtime answers (INTERNAL when it cannot parse them)."""
-    _, ch, _ = fuzz_server
+    _, ch, _ = fuzzed
     streaming = method in ("TextQuery", "Render", "Segment")
     call = (ch.unary_stream if streaming else ch.unary_unary)(
         f"/fmgs.v1.Fmgs/{method}", request_serializer=lambda b: b, response_deserializer=lambda b: b
@@ -216,8 +223,8 @@ def test_garbage_bytes_on_the_wire(fuzz_server, method, data):
             assert "deserializ" in e.details().lower()
 
 
-def test_zero_deadlines_and_truncated_streams(fuzz_server):
-    _, _, stub = fuzz_server
+def test_zero_deadlines_and_truncated_streams(fuzzed):
+    _, _, stub = fuzzed
     cam = pb.Camera(viewmat=np.eye(4).ravel().tolist(), fx=40, fy=40, cx=24, cy=20, width=48, height=40)
     req = pb.RenderRequest(scene="blobs", camera=cam, text="red cube")
     for _ in range(20):  # a deadline already past never reaches the handler
@@ -245,9 +252,3 @@ def test_zero_deadlines_and_truncated_streams(fuzz_server):
         )
         next(it, None)
         it.cancel()
-    _still_healthy(stub)
-
-
-def test_server_healthy_after_fuzzing(fuzz_server):
-    _, _, stub = fuzz_server
-    _still_healthy(stub)

@@ -21,8 +21,8 @@ from fmgs.train.field import train_field
 from fmgs.train.gaussians import GSTrainConfig, train_gaussians
 from tests.helpers.query_scenes import blob_scene, camera
 from tests.helpers.scenes import random_scene
-from tests.test_train_field import _cache, _cfg, _dataset, _scene
-from tests.test_train_gs import _init_only
+from tests.train.test_field import _cache, _cfg, _dataset, _scene
+from tests.train.test_gaussians import _init_only
 
 cuda = pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device on this machine")
 gsplat = pytest.mark.skipif(importlib.util.find_spec("gsplat") is None, reason="gsplat is not installed")

@@ -19,7 +19,7 @@ from fmgs_server.cluster.config import ClusterConfig
 from fmgs_server.config import ServerConfig
 from fmgs_wire import DEFAULT_PORT
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 MANIFEST = ROOT / "deploy/kuberay/rayservice.yaml"
 README = ROOT / "deploy/README.md"
 MAX_MESSAGE_ENV = "RAY_SERVE_GRPC_MAX_MESSAGE_SIZE"

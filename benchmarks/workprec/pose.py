@@ -162,11 +162,11 @@ def section(sz: PoseSizes, work: Path) -> dict:
     fns[ENGINE] = lambda i: engine_image(engine, cam, queries[i])
     # The same package split into k spatial shards, every shard's layer rendered here one after another
     # (the work of a sharded render; on a cluster the layers render in parallel).
-    from fmgs.query.sharded import ShardedScene
+    from fmgs.query.sharded import ShardedSceneEngine
     from fmgs.scene.shards import write_shards
 
     for k in SHARDS:
-        sharded = ShardedScene(write_shards(work / "pose-package", work / f"pose-shards-{k}", k))
+        sharded = ShardedSceneEngine(write_shards(work / "pose-package", work / f"pose-shards-{k}", k))
         for shard in sharded.engines:
             shard.CHANNEL_CACHE = 0
         fns[f"shards {k}"] = lambda i, sh=sharded: sh.render_pose(cam, queries[i]).relevancy

@@ -191,9 +191,9 @@ def _merged_presence(parts, order, j: int, sq: ShardQuery, cfg: PresenceConfig) 
     return presence(d[:, 0], d[:, 1 : 1 + V], qn, cfg, d[:, 1 + V :])
 
 
-class ShardedScene:
-    """A sharded scene held in one process (every shard an engine): the exact twin of serving the
-    shards on many replicas, and what tests compare against the unsharded engine."""
+class ShardedSceneEngine:
+    """SceneEngine's twin for a sharded scene held in one process (every shard an engine): the exact twin
+    of serving the shards on many replicas, and what tests compare against the unsharded engine."""
 
     def __init__(self, folder: str | Path, cfg: EngineConfig | None = None) -> None:
         cfg = cfg or EngineConfig()

@@ -14,7 +14,7 @@ from fmgs.gaussians import GaussianSet
 from fmgs.query.engine import EngineConfig, SceneEngine
 from fmgs.query.index import IndexConfig
 from fmgs.query.instances import InstanceConfig
-from fmgs.query.sharded import ShardedScene
+from fmgs.query.sharded import ShardedSceneEngine
 from fmgs.scene.package import export_scene, load_scene
 from fmgs.scene.shards import (
     SHARDS_FILE,
@@ -144,7 +144,7 @@ def test_sharded_text_answers_equal_the_unsharded_bit_for_bit(source, tmp_path, 
     icfg = IndexConfig(rank=16, exact_below=M + 1 if path_kind == "exact" else 100, rerank=2)
     cfg = EngineConfig(icfg)
     whole = SceneEngine.open(path, cfg)
-    sharded = ShardedScene(write_shards(path, tmp_path / f"s{k_shards}", k_shards), cfg)
+    sharded = ShardedSceneEngine(write_shards(path, tmp_path / f"s{k_shards}", k_shards), cfg)
     assert whole.index.exact == (path_kind == "exact")
     assert all(e.index.exact == (path_kind == "exact") or e.num_embedded < 100 for e in sharded.engines)
     inst = InstanceConfig(min_points=3)
@@ -208,7 +208,7 @@ def test_sharded_relevancy_renders_composite_close_to_the_unsharded_render(tmp_p
     from fmgs.query.sharded import composite, render_order, shard_layer
 
     whole = SceneEngine.open(ROOT / "models" / "demo")
-    sharded = ShardedScene(write_shards(ROOT / "models" / "demo", tmp_path / "demo-s", k_shards))
+    sharded = ShardedSceneEngine(write_shards(ROOT / "models" / "demo", tmp_path / "demo-s", k_shards))
     q = whole.index.exact_dots(torch.arange(1), torch.eye(whole.dim)).float()[0]  # a stored embedding
     worst = 0.0
     for eye in [(0.5, -6.0, 4.0), (6.0, 1.0, 3.0), (-5.0, 4.0, 2.5)]:

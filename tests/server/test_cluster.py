@@ -239,7 +239,7 @@ def test_sharded_text_queries_equal_the_unsharded_scene(cluster):
 def test_sharded_scenes_answer_text_and_relevancy_renders_only(cluster, models):
     import numpy as np
 
-    from fmgs.query.sharded import ShardedScene
+    from fmgs.query.sharded import ShardedSceneEngine
     from fmgs_client.client import assemble_render
     from fmgs_server.convert import camera as to_camera
 
@@ -258,7 +258,7 @@ def test_sharded_scenes_answer_text_and_relevancy_renders_only(cluster, models):
     code, _, chunks = _call(s, "Render", req)
     assert code == "OK"
     got = assemble_render(chunks)
-    local = ShardedScene(models / "blobs-4shards").render_pose(
+    local = ShardedSceneEngine(models / "blobs-4shards").render_pose(
         to_camera(_cam(), _cfg(models)), FakeEncoder().encode_text(["red cube"])[0], ("relevancy", "alpha")
     )
     assert np.array_equal(got.relevancy, local.relevancy.numpy())  # the same layers, composited alike

@@ -141,7 +141,7 @@ def cmd_sfm(args: argparse.Namespace) -> int:
     import logging
 
     from fmgs.sfm import run_sfm
-    from fmgs.sfm_config import SfMConfig
+    from fmgs.sfm.config import SfMConfig
 
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     cfg = _settings(args, SfMConfig)
@@ -249,7 +249,7 @@ def _gs_config(args: argparse.Namespace):
 
 
 def _target_spec(args: argparse.Namespace):
-    from fmgs.build_config import TargetSpec
+    from fmgs.build.config import TargetSpec
 
     return _settings(args, TargetSpec)
 
@@ -314,7 +314,7 @@ def cmd_train_field(args: argparse.Namespace) -> int:
 
 def _build_config(args: argparse.Namespace):
     """BuildConfig from the flags, the --config file and --extra (fewer steps compress a stage)."""
-    from fmgs.build_config import BuildConfig
+    from fmgs.build.config import BuildConfig
     from fmgs.errors import ValidationError
 
     def base(c):  # fewer steps compress each stage's schedule
@@ -368,7 +368,7 @@ def _config_flag(p: argparse.ArgumentParser, what: str) -> None:
 
 
 def _add_package_args(p: argparse.ArgumentParser) -> None:
-    from fmgs.build_config import EMBEDDING_NEIGHBOURS, MAX_EMBEDDING_NEIGHBOURS
+    from fmgs.build.config import EMBEDDING_NEIGHBOURS, MAX_EMBEDDING_NEIGHBOURS
 
     p.add_argument("--include-dino", action="store_true", help="keep the DINO head in the package")
     p.add_argument(
@@ -407,8 +407,8 @@ def build_parser() -> argparse.ArgumentParser:
     )
     sub = p.add_subparsers(dest="command", required=True)
     from fmgs import flags
-    from fmgs.build_config import BuildConfig, TargetSpec
-    from fmgs.sfm_config import SfMConfig
+    from fmgs.build.config import BuildConfig, TargetSpec
+    from fmgs.sfm.config import SfMConfig
     from fmgs.train.config import FieldTrainConfig, GSTrainConfig
 
     i = sub.add_parser("info", help="validate a scene (.ply, .splat or .safetensors) and print a summary")

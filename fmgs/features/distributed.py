@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from fmgs.build_config import TargetSpec
+from fmgs.build.config import TargetSpec
 from fmgs.features.cache import FeatureCache, FeatureCacheWriter, TargetInfo
 
 

@@ -10,7 +10,7 @@ from dataclasses import replace
 import pytest
 
 from fmgs import cli
-from fmgs.build_config import BuildConfig, TargetSpec
+from fmgs.build.config import BuildConfig, TargetSpec
 from fmgs.train.config import FieldTrainConfig, GSTrainConfig
 
 
@@ -127,7 +127,7 @@ def test_help_shows_each_default_from_its_dataclass():
 
 
 def test_sfm_settings_from_fmgs_sfm_and_fmgs_build():
-    from fmgs.sfm_config import SfMConfig
+    from fmgs.sfm.config import SfMConfig
 
     cfg = cli._settings(
         _args("sfm", "IMGS", "--out", "O", "--camera-model", "OPENCV", "--max-image-size", "800"), SfMConfig
@@ -170,7 +170,7 @@ def test_sfm_settings_from_fmgs_sfm_and_fmgs_build():
 def test_every_listed_camera_model_is_colmaps_with_its_parameters():
     import pycolmap
 
-    from fmgs.sfm_config import CAMERA_PARAMS
+    from fmgs.sfm.config import CAMERA_PARAMS
 
     for model, params in CAMERA_PARAMS.items():
         cam = pycolmap.Camera.create_from_model_name(1, model, 1.0, 10, 10)

@@ -13,7 +13,7 @@ import pytest
 from fmgs.lazy import lazy_exports
 
 
-@pytest.mark.parametrize("package", ["fmgs", "fmgs.query", "fmgs.features"])
+@pytest.mark.parametrize("package", ["fmgs", "fmgs.query", "fmgs.features", "fmgs.build", "fmgs.sfm"])
 def test_every_export_is_its_module_attribute(package):
     mod = importlib.import_module(package)
     assert mod.__all__ and sorted(mod.__all__) == sorted(mod._EXPORTS)
@@ -37,8 +37,9 @@ def test_lazy_exports_import_on_first_use_only():
 
 def test_light_modules_import_no_torch():
     mods = (
-        "fmgs fmgs.query fmgs.features fmgs.flags fmgs.cli fmgs.build_config fmgs.train.config "
-        "fmgs.field.config fmgs.query.config fmgs.scene.manifest fmgs.features.models"
+        "fmgs fmgs.query fmgs.features fmgs.flags fmgs.cli fmgs.build fmgs.build.config fmgs.sfm "
+        "fmgs.sfm.config fmgs.train.config fmgs.field.config fmgs.query.config fmgs.scene.manifest "
+        "fmgs.features.models"
     ).split()
     code = (
         f"import sys\nfor m in {mods!r}: __import__(m)\nprint(sorted(m for m in sys.modules if m == 'torch'))"

@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 from fmgs.build import extract_features
-from fmgs.build_config import TargetSpec
+from fmgs.build.config import TargetSpec
 from fmgs.features.cache import MANIFEST
 from fmgs.features.distributed import TargetJob, extract_features_ray, maps_task
 

@@ -209,7 +209,7 @@ def test_package_round_trip_and_queries(setup, tmp_path):
     assert not any(k.startswith("dino_head") for k in keys)
     # The default stored embeddings (K=8, the manifest says so): the neighbour mean of the field decoded
     # at the means over dense neighbourhoods (to float16 rounding); K=1, the paper's rule, the field.
-    from fmgs.build_config import EMBEDDING_NEIGHBOURS
+    from fmgs.build.config import EMBEDDING_NEIGHBOURS
     from fmgs.field.neighbours import neighbour_mean_reference, reach_of
 
     assert scene.manifest.extra["embedding_neighbours"] == EMBEDDING_NEIGHBOURS == 8

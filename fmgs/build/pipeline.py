@@ -18,7 +18,7 @@ from pathlib import Path
 
 import torch
 
-from fmgs.build_config import EMBEDDING_NEIGHBOURS, MAX_EMBEDDING_NEIGHBOURS, BuildConfig, TargetSpec
+from fmgs.build.config import EMBEDDING_NEIGHBOURS, MAX_EMBEDDING_NEIGHBOURS, BuildConfig, TargetSpec
 from fmgs.errors import ValidationError
 from fmgs.gaussians import GaussianSet
 from fmgs.io.atomic import atomic_path

@@ -9,7 +9,7 @@ from dataclasses import dataclass
 from fmgs.features.models import DEFAULT_CLIP_ID, DEFAULT_DINO_ID, MINILM_ID
 from fmgs.features.sizes import FEATURE_SIDE, check_feature_scale
 from fmgs.scene.manifest import FIELD_DTYPES, MODELS
-from fmgs.sfm_config import SfMConfig
+from fmgs.sfm.config import SfMConfig
 from fmgs.train.config import FieldTrainConfig, GSTrainConfig
 
 TARGET_KINDS = ("clip", "labels")

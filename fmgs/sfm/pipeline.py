@@ -22,7 +22,7 @@ from fmgs.data.dataset import IMAGE_SUFFIXES
 from fmgs.errors import FmgsError, ValidationError
 from fmgs.io.atomic import atomic_path
 from fmgs.io.capture import output_to
-from fmgs.sfm_config import CAMERA_PARAMS, SfMConfig
+from fmgs.sfm.config import CAMERA_PARAMS, SfMConfig
 
 log = logging.getLogger(__name__)
 
@@ -46,7 +46,7 @@ class SfMResult:
     camera_model: str
     """COLMAP model of the first registered photo's camera (before undistortion)."""
     camera_params: list[float]
-    """Its parameters after bundle adjustment, in COLMAP's order (sfm_config.CAMERA_PARAMS)."""
+    """Its parameters after bundle adjustment, in COLMAP's order (fmgs.sfm.config.CAMERA_PARAMS)."""
     focal_source: str
     """Where the cameras' starting focal lengths came from: given (camera_params or intrinsics_file),
     exif, or default (1.2 x the longest image side); mixed sources are counted ("3 given, 9 exif")."""

@@ -23,7 +23,9 @@ import typing
 from pathlib import Path
 from typing import Any
 
-_UNSET = object()
+UNSET = object()
+"""The default of every flag ``add_flags`` generates: an argparse value that is still ``UNSET`` was not
+given on the command line, so the config file or the default applies."""
 
 
 def field_docs(cls: type) -> dict[str, str]:
@@ -133,12 +135,12 @@ def add_flags(
         names = [flag, *([aliases[name]] if name in aliases else [])]
         if base is bool:
             parser.add_argument(
-                *names, dest=name, action=argparse.BooleanOptionalAction, default=_UNSET, help=help_
+                *names, dest=name, action=argparse.BooleanOptionalAction, default=UNSET, help=help_
             )
         else:
             conv = _parser_for(base, optional)
             meta = getattr(base, "__name__", "VALUES").upper()
-            parser.add_argument(*names, dest=name, type=conv, default=_UNSET, metavar=meta, help=help_)
+            parser.add_argument(*names, dest=name, type=conv, default=UNSET, metavar=meta, help=help_)
 
 
 def _build(cls: type, values: dict[str, Any], where: str, base: Any = None) -> Any:
@@ -230,7 +232,7 @@ def values_from(
             file_values = tomllib.loads(Path(config_file).read_text())
         except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as e:
             raise ValueError(f"cannot read config file {config_file}: {e}") from e
-    given = {k: v for k, v in vars(args).items() if v is not _UNSET and _is_field(cls, k)}
+    given = {k: v for k, v in vars(args).items() if v is not UNSET and _is_field(cls, k)}
     return _merge(_merge(_nest(defaults or {}), file_values), _nest(given))
 
 

@@ -9,8 +9,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from fmgs.flags import _UNSET as UNSET
-from fmgs.flags import add_flags, build, config_from
+from fmgs.flags import UNSET, add_flags, build, config_from
 from fmgs_server.cluster.config import ClusterConfig
 from fmgs_server.config import MiB, ServerConfig
 

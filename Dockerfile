@@ -32,6 +32,7 @@ COPY pyproject.toml README.md ./
 COPY fmgs/ fmgs/
 COPY fmgs_server/ fmgs_server/
 COPY fmgs_client/ fmgs_client/
+COPY fmgs_wire/ fmgs_wire/
 COPY proto/ proto/
 COPY scripts/ scripts/
 RUN python scripts/gen_proto.py --check && pip install --no-deps .

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import fnmatch
 import json
 import re
 import shlex
@@ -29,6 +30,21 @@ def test_copied_paths_exist():
         *sources, _ = shlex.split(rest)
         for s in sources:
             assert (ROOT / s).exists(), f"Dockerfile copies {s}, which is not in the project"
+
+
+def test_every_installed_package_is_copied_before_the_install():
+    """``pip install .`` in the image installs what pyproject's package discovery finds in the copied
+    tree: each top-level package must be copied, or the image lacks it (and gen_proto --check, which
+    reads fmgs_wire/proto, fails)."""
+    find = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]["packages"]["find"]
+    packages = {p.parent.name for p in ROOT.glob("*/__init__.py")}
+    tops = {p for p in packages if any(fnmatch.fnmatchcase(p, pat) for pat in find["include"])}
+    assert tops
+    copied = set()
+    for op, rest in _instructions():
+        if op == "COPY" and not rest.startswith("--from"):
+            copied |= {s.rstrip("/") for s in shlex.split(rest)[:-1]}
+    assert tops <= copied, f"the Dockerfile does not copy {sorted(tops - copied)}"
 
 
 def test_files_named_in_run_lines_exist():

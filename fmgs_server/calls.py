@@ -23,7 +23,7 @@ could be logged OK (the client saw CANCELLED). Paid once, at the end of a stream
 
 
 def status_of(e: BaseException) -> tuple[grpc.StatusCode, str]:
-    """The status code and message for an exception raised while answering (README "Errors")."""
+    """The status code and message for an exception raised while answering (docs/serving.md, "Errors")."""
     if isinstance(e, ServiceError):
         return e.code, e.message
     if isinstance(e, NoFieldError):

@@ -1,4 +1,4 @@
-"""Server configuration: every limit with a safe default (README "Limits" lists them with status codes)."""
+"""Server configuration: every limit with a safe default (docs/serving.md lists them with status codes)."""
 
 from __future__ import annotations
 

@@ -5,7 +5,7 @@ where it arrived, ``shard_*`` computes one shard's part (fmgs.query.sharded) whe
 ``finish_*`` merges the parts into the same answer messages an unsharded scene gives. ``fmgs serve``
 runs all three in its own process (``text_query``, ``render``); a Ray cluster scatters the middle step to
 the replicas holding the shards (fmgs_server.cluster). Errors are raised as the service raises them
-(fmgs_server.errors), so they reach the client with the README's codes either way.
+(fmgs_server.errors), so they reach the client with the codes of docs/serving.md either way.
 """
 
 from __future__ import annotations

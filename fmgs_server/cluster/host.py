@@ -3,7 +3,7 @@
 The ingress forwards a call as (method, serialized request); the replica runs the same ``FmgsService``
 handler that ``fmgs serve`` runs, with a ``ForwardedContext`` in place of grpc's, and returns the
 serialized answer messages, ending with a ``Status`` when the handler failed. Errors therefore get the
-codes and messages of the README's table, whichever process answers.
+codes and messages of docs/serving.md's table, whichever process answers.
 
 Sharded scenes (fmgs.scene.shards) are answered here too: ``plan_sharded_text`` validates and embeds a
 TextQuery, the caller scatters the ShardQuery to the replicas holding the shards (``shard_text``), and
@@ -59,7 +59,7 @@ class ForwardedContext:
 
 
 def _guarded(fn: Callable[[], object]):
-    """fn()'s result, or the Status its exception maps to (the README's error table)."""
+    """fn()'s result, or the Status its exception maps to (docs/serving.md's error table)."""
     try:
         return fn()
     except Exception as e:

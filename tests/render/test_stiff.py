@@ -1,4 +1,5 @@
-"""Stiff and extreme inputs (DESIGN §7): finite outputs everywhere, float64 agreement where defined."""
+"""Stiff and extreme inputs (docs/rendering.md#the-rendering-rule-every-backend): finite outputs everywhere,
+float64 agreement where defined."""
 
 from __future__ import annotations
 

@@ -21,7 +21,7 @@ from fmgs_wire.proto.fmgs.v1 import fmgs_pb2_grpc as pb_grpc
 from tests.helpers.query_scenes import CLASS_NAMES, ENCODER_ID, FakeEncoder, blob_scene
 
 C = grpc.StatusCode
-# The documented outcomes of a request (README "Errors"); INTERNAL and UNKNOWN are bugs.
+# The documented outcomes of a request (docs/serving.md, "Errors"); INTERNAL and UNKNOWN are bugs.
 ALLOWED = {
     C.OK,
     C.INVALID_ARGUMENT,

@@ -1,15 +1,16 @@
 """All GPU work in one command: build gsplat's kernels, run the CUDA tests, measure, write GPU.md.
 
-    python benchmarks/gpu.py --out DIR                  # every part, most valuable first
-    python benchmarks/gpu.py --out DIR --parts tests,pose --budget 540
-    python benchmarks/gpu.py --out DIR --parts gs_train,field_train --limit gs_train=200
-    python benchmarks/gpu.py --report-only DIR/GPU.json  # rewrite benchmarks/GPU.md from stored figures
+    python -m benchmarks.gpu --out DIR                  # every part, most valuable first
+    python -m benchmarks.gpu --out DIR --parts tests,pose --budget 540
+    python -m benchmarks.gpu --out DIR --parts gs_train,field_train --limit gs_train=200
+    python -m benchmarks.gpu --report-only DIR/GPU.json  # rewrite benchmarks/GPU.md from stored figures
 
 Runs offline: gsplat (``pip install 'fmgs[cuda]'`` or a carried wheel) compiles its CUDA extension on
 first use with the machine's nvcc (TORCH_EXTENSIONS_DIR keeps it; default .gpubuild/ in the repo).
-Each part runs in its own subprocess with its own time limit and writes its figures as soon as it ends:
-DIR/GPU.json (raw, merged with an earlier file given by --resume) and DIR/GPU.md are rewritten after
-every part, so a run cut short keeps what it measured. Parts that would not fit in --budget seconds
+Each part runs in its own subprocess (``python -m benchmarks.gpu_parts`` in the repository root) with its
+own time limit and writes its figures as soon as it ends: DIR/GPU.json (raw, merged with an earlier file
+given by --resume) and DIR/GPU.md are rewritten after every part, so a run cut short keeps what it
+measured. Parts that would not fit in --budget seconds
 are skipped and reported as not run. The parts themselves live in benchmarks/gpu_parts.py.
 """
 
@@ -23,10 +24,8 @@ import sys
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-
-from benchmarks.gpu_report import write_report  # noqa: E402
+from benchmarks.common import ROOT
+from benchmarks.gpu_report import write_report
 
 # Most valuable first (the issue's order of figures); seconds each may take at most.
 PARTS: dict[str, int] = {
@@ -49,6 +48,7 @@ def part_env() -> dict[str, str]:
     env.setdefault("TORCH_EXTENSIONS_DIR", str(ROOT / ".gpubuild" / "torch_extensions"))
     env.setdefault("MAX_JOBS", str(os.cpu_count() or 4))
     env.setdefault("PYTHONUNBUFFERED", "1")
+    # Processes the parts start (pytest, servers) import this checkout even where it is not installed.
     env["PYTHONPATH"] = os.pathsep.join(p for p in (str(ROOT), env.get("PYTHONPATH", "")) if p)
     if "TORCH_CUDA_ARCH_LIST" not in env:
         try:
@@ -66,7 +66,7 @@ def run_part(name: str, work: Path, limit: float, quick: bool, log) -> dict:
     """Run one part in a subprocess; its JSON figures, or a record of how it failed."""
     res_file = work / f"part-{name}.json"
     res_file.unlink(missing_ok=True)
-    cmd = [sys.executable, "-X", "faulthandler", str(Path(__file__).with_name("gpu_parts.py")), name]
+    cmd = [sys.executable, "-X", "faulthandler", "-m", "benchmarks.gpu_parts", name]
     cmd += ["--work", str(work)]
     if quick:
         cmd.append("--quick")

@@ -1,8 +1,8 @@
 """Work-precision report: the error every speed knob costs against the time it saves, scaling, floors.
 
-    python benchmarks/run.py                  # full size -> benchmarks/REPORT.md, benchmarks/report/
-    python benchmarks/run.py --quick          # CI size -> a temporary folder (or --out DIR)
-    python benchmarks/run.py --only text,pose # some sections, merged into the results already in --out
+    python -m benchmarks.run                  # full size -> benchmarks/REPORT.md, benchmarks/report/
+    python -m benchmarks.run --quick          # CI size -> a temporary folder (or --out DIR)
+    python -m benchmarks.run --only text,pose # some sections, merged into the results already in --out
 
 Sections: ``text`` (per-Gaussian text query), ``pose`` (relevancy image), ``field`` (feature-field
 training), ``gs`` (3DGS training), ``scaling`` (latency and memory against size, gRPC against
@@ -34,13 +34,11 @@ import time
 from collections.abc import Sequence
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-
-from benchmarks.workprec import field, floor, gs, pose, scaling, text  # noqa: E402
-from benchmarks.workprec.measure import exact_failures, set_threads  # noqa: E402
-from benchmarks.workprec.report import SECTIONS, machine_info, write_report  # noqa: E402
-from benchmarks.workprec.sizes import FULL, QUICK, Sizes  # noqa: E402
+from benchmarks.common import ROOT
+from benchmarks.workprec import field, floor, gs, pose, scaling, text
+from benchmarks.workprec.measure import exact_failures, set_threads
+from benchmarks.workprec.report import SECTIONS, machine_info, write_report
+from benchmarks.workprec.sizes import FULL, QUICK, Sizes
 
 
 def run_section(name: str, sizes: Sizes, work: Path, threads: int) -> dict:

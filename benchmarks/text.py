@@ -1,8 +1,8 @@
 """Text queries on a large scene, every query set, against faiss on the same embeddings and thread count.
 
     pip install faiss-cpu               # benchmark-only dependency
-    python benchmarks/text.py           # 1M Gaussians, D=512, 12 queries per set, one thread
-    python benchmarks/text.py --quick   # 50K Gaussians, 3 queries per set (completion only)
+    python -m benchmarks.text           # 1M Gaussians, D=512, 12 queries per set, one thread
+    python -m benchmarks.text --quick   # 50K Gaussians, 3 queries per set (completion only)
 
 Writes benchmarks/TEXT.md and TEXT.json (or --out DIR). The scene is field-like with clone ties
 (benchmarks/query_sets.py), exported as a package; ours is the engine as the server runs it
@@ -30,17 +30,12 @@ from pathlib import Path
 import numpy as np
 import torch
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-
-from benchmarks.query_sets import QUERY_SETS, query_sets, scene_embeddings  # noqa: E402
-from benchmarks.raster import _rss_gb, machine  # noqa: E402
-from fmgs.gaussians import GaussianSet  # noqa: E402
-from fmgs.query.engine import EngineConfig, SceneEngine  # noqa: E402
-from fmgs.scene.package import export_scene  # noqa: E402
-from fmgs.vecmath import safe_normalize  # noqa: E402
-
-D = 512
+from benchmarks.common import ROOT, D, machine, page_in, rss_gb
+from benchmarks.query_sets import QUERY_SETS, query_sets, scene_embeddings
+from fmgs.gaussians import GaussianSet
+from fmgs.query.engine import EngineConfig, SceneEngine
+from fmgs.scene.package import export_scene
+from fmgs.vecmath import safe_normalize
 
 
 def one_thread() -> None:
@@ -73,17 +68,6 @@ def stored(pkg: Path) -> tuple[torch.Tensor, torch.Tensor]:
 
     f = pkg / "embeddings.safetensors"
     return mmap_torch(f, "embeddings"), mmap_torch(f, "canonical").amax(1)
-
-
-def page_in(folder: Path) -> None:
-    """Read every file under ``folder`` once, into the page cache: the steady state of a served package.
-    Building other indexes may have pushed its pages out, and the first queries would then time the
-    disk."""
-    for f in sorted(folder.rglob("*")):
-        if f.is_file():
-            with f.open("rb") as fh:
-                while fh.read(1 << 24):
-                    pass
 
 
 def margins(emb: torch.Tensor, cmax: torch.Tensor, q: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -189,11 +173,11 @@ def measure(n: int, queries: int, tmp: Path, peers: bool = True) -> dict:
     res: dict = {"gaussians": n, "dim": D, "queries_per_set": queries, "threads": 1, "sets": {}}
     pkg, copies, res["export_s"] = package(tmp, n)
     emb, cmax = stored(pkg)
-    rss0 = _rss_gb()
+    rss0 = rss_gb()
     t0 = time.perf_counter()
     eng = SceneEngine.open(pkg, EngineConfig())
     res["fmgs_open_s"] = time.perf_counter() - t0
-    res["fmgs_open_rss_gb"] = _rss_gb() - rss0
+    res["fmgs_open_rss_gb"] = rss_gb() - rss0
     ix = eng.index
     res["fmgs_bytes"] = (ix.nbytes() - (ix.basis.numel() * 8 if ix.basis is not None else 0)) / n + 8
     res["fmgs_path"] = "exact float32" if ix.exact else f"compact rank {ix.state.rank}"
@@ -395,7 +379,7 @@ def report(results: list[dict], info: dict, quick: bool) -> str:
         f"{info.get('date', '')}. {'QUICK size: completion only.' if quick else ''}",
         f"Scenes: {sizes} field-like Gaussians (D={results[0]['dim']}, clone ties), "
         f"{results[0]['queries_per_set']} queries per set (benchmarks/query_sets.py), all sizes in one run. "
-        "Reproduce: `pip install faiss-cpu; python benchmarks/text.py"
+        "Reproduce: `pip install faiss-cpu; python -m benchmarks.text"
         + (f" --gaussians {','.join(str(r['gaussians']) for r in results)}`." if len(results) > 1 else "`."),
         "",
         "Ours: `SceneEngine.open` + `text_query` on the exported package, every answer checked equal to the "

@@ -1,8 +1,8 @@
 """Open-vocabulary quality on generated scenes no setting was tuned on, built as a user builds them.
 
-    python benchmarks/unseen.py --out OUT [--seeds 104,105,106] [--views 48] [--size 128x96] [--gs-steps 3000]
+    python -m benchmarks.unseen --out OUT [--seeds 104,105,106] [--views 48] [--size 128x96] [--gs-steps 3000]
                                 [--grad-threshold 0.001]
-    python benchmarks/unseen.py --quick --out OUT      # CI size: one small scene, short stages
+    python -m benchmarks.unseen --quick --out OUT      # CI size: one small scene, short stages
 
 For each seed: ``fmgs synth --preset cluttered`` (10 of 13 objects: thin, small, flat, touching),
 then ``fmgs build DATA --targets labels`` at the build defaults (only the 3DGS step count and
@@ -21,8 +21,7 @@ import sys
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+from benchmarks.common import machine, machine_words, save_report
 
 # Fixed before any measurement; never edited to suit a result.
 PARAPHRASES = {
@@ -293,9 +292,7 @@ def report(scenes: list[dict], info: dict, cmd: str) -> str:
     lines = [
         "# Open-vocabulary quality on unseen scenes, at the build defaults",
         "",
-        f"Measured {info['date']} on {info['cpu']} ({info['cores']} cores, "
-        + (f"GPU {info['gpu']}" if info["gpu"] else "no GPU")
-        + f"), commit {info['commit']}. Reproduce: `{cmd}`.",
+        f"Measured {info['date']} on {machine_words(info)}. Reproduce: `{cmd}`.",
         "",
         "Scenes: `fmgs synth --preset cluttered --objects 10 --seed S` (a seeded choice of 10 of 13 objects, "
         "thin, small and flat ones among them, about half touching another, on a striped floor). None of "
@@ -408,15 +405,10 @@ def main() -> int:
         "and notes are kept from OUT/unseen.json, and each scene records the commit it was built at",
     )
     args = ap.parse_args()
-    from benchmarks.raster import machine
-
     if args.from_json:
         run = json.loads(Path(args.from_json).read_text())
         text = report(run["scenes"], run["machine"], run["command"])
-        Path(args.out).mkdir(parents=True, exist_ok=True)
-        (Path(args.out) / "FIELD.md").write_text(text)
-        if args.report:
-            (ROOT / "benchmarks" / "FIELD.md").write_text(text)
+        save_report(text, args.out, "FIELD.md", args.report)
         print(text)
         return 0
 
@@ -446,16 +438,14 @@ def main() -> int:
             f"seed {seed}: mIoU {s['miou']:.3f}, 2D {s['localisation_2d']:.1%}, 3D {s['localisation_3d']:.1%}"
         )
     info = machine()
-    cmd = " ".join(["python", "benchmarks/unseen.py", *sys.argv[1:]])
+    cmd = " ".join(["python", "-m", "benchmarks.unseen", *sys.argv[1:]])
     if args.evaluate_only:  # the build's command stays the one that reproduces the packages
         cmd = f"{built_by} then {cmd}"
     text = report(scenes, info, cmd)
     (out / "unseen.json").write_text(
         json.dumps({"machine": info, "command": cmd, "scenes": scenes}, indent=1)
     )
-    (out / "FIELD.md").write_text(text)
-    if args.report:
-        (ROOT / "benchmarks" / "FIELD.md").write_text(text)
+    save_report(text, out, "FIELD.md", args.report)
     print(text)
     return 0
 

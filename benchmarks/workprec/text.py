@@ -12,8 +12,8 @@ from typing import Any, NamedTuple
 import numpy as np
 import torch
 
-from benchmarks.server import D, med_ms
-from benchmarks.workprec.engine import canonical_vectors, product_engine
+from benchmarks.common import D, canonical_vectors, fieldlike, gaussians_from, make_queries, med_ms, page_in
+from benchmarks.workprec.engine import product_engine
 from benchmarks.workprec.measure import (
     GPU_NOTE,
     Point,
@@ -27,7 +27,7 @@ from benchmarks.workprec.sizes import TextSizes
 
 
 class FieldScene(NamedTuple):
-    """A scene with field-like per-Gaussian embeddings (benchmarks/server.py ``fieldlike``)."""
+    """A scene with field-like per-Gaussian embeddings (benchmarks/common.py ``fieldlike``)."""
 
     scene: Any
     """benchmarks.scenes.Scene."""
@@ -42,7 +42,6 @@ class FieldScene(NamedTuple):
 def field_scene(n: int, queries: int, seed: int = 3) -> FieldScene:
     """n synthetic Gaussians (benchmarks/scenes.py) with field-like embeddings and queries near them."""
     from benchmarks.scenes import synthetic
-    from benchmarks.server import fieldlike, make_queries
 
     s = synthetic(n, seed=seed)
     emb = fieldlike(s.means)
@@ -245,8 +244,7 @@ def settings_for(sz: TextSizes, fs: dict, engine, tier1, faiss_entries: dict | N
 def section(sz: TextSizes, work: Path) -> dict:
     from benchmarks.query_sets import QUERY_SETS, query_sets, scene_embeddings
     from benchmarks.scenes import synthetic
-    from benchmarks.server import gaussians_from
-    from benchmarks.text import exact_top, faiss_indexes, page_in, recall
+    from benchmarks.text import exact_top, faiss_indexes, recall
     from fmgs.query.engine import EngineConfig, SceneEngine
     from fmgs.query.index import served_relevancy
 

@@ -8,7 +8,8 @@ Writes benchmarks/TEXT.md and TEXT.json (or --out DIR). The scene is field-like 
 (benchmarks/query_sets.py), exported as a package; ours is the engine as the server runs it
 (SceneEngine.open, compact default, text_query). faiss indexes the same float16 embeddings with the
 margin trick (x' = [f, -max_n f.c_n], q' = [q, 1]) so its inner product is our ranking's margin:
-IndexFlatIP (exact float32) and IVF1024,SQ8 with float16 refinement of 1,000 candidates, nprobe 64.
+IndexFlatIP (exact float32) and IVF1024,SQ8 with float16 refinement of 1,000 candidates, nprobe 64
+(benchmarks/faiss_peer.py, the peers of every text report).
 Recall is the fraction of the K answers whose float64 margin reaches the exact K-th margin (tie-aware:
 another copy of a tied row counts); ours is also checked equal to the brute force, rows and order.
 """
@@ -19,7 +20,6 @@ import argparse
 import datetime as dt
 import gc
 import json
-import math
 import resource
 import statistics
 import sys
@@ -31,6 +31,7 @@ import numpy as np
 import torch
 
 from benchmarks.common import ROOT, D, machine, page_in, rss_gb
+from benchmarks.faiss_peer import IVF, build, margins, recall, timed_search, top_of
 from benchmarks.query_sets import QUERY_SETS, query_sets, scene_embeddings
 from fmgs.gaussians import GaussianSet
 from fmgs.query.engine import EngineConfig, SceneEngine
@@ -68,99 +69,6 @@ def stored(pkg: Path) -> tuple[torch.Tensor, torch.Tensor]:
 
     f = pkg / "embeddings.safetensors"
     return mmap_torch(f, "embeddings"), mmap_torch(f, "canonical").amax(1)
-
-
-def margins(emb: torch.Tensor, cmax: torch.Tensor, q: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """float64 margins f.q - cmax [n,M] for queries q [n,D] (one pass over the rows for all of them) and
-    each query's best cosine [n]."""
-    M = len(emb)
-    out = torch.empty(len(q), M, dtype=torch.float64)
-    best = torch.full((len(q),), -2.0, dtype=torch.float64)
-    q64 = q.double()
-    for s in range(0, M, 262144):
-        d = emb[s : s + 262144].double() @ q64.T  # [b,n]
-        best = torch.maximum(best, d.amax(0))
-        out[:, s : s + 262144] = (d - cmax[s : s + 262144].double()[:, None]).T
-    return out, best
-
-
-def top_of(m: torch.Tensor, k: int) -> np.ndarray:
-    """Rows of the k largest margins m [M], best first, ties by row: rows tied at the k-th margin are
-    taken lowest row first (topk alone picks any of them)."""
-    v = torch.topk(m, k, sorted=False).values.min()
-    above = torch.nonzero(m > v).reshape(-1)
-    tied = torch.nonzero(m == v).reshape(-1)[: k - len(above)]  # ascending rows
-    return np.array(sorted(torch.cat([above, tied]).tolist(), key=lambda i: (-float(m[i]), i)))
-
-
-def exact_top(
-    emb: torch.Tensor, cmax: torch.Tensor, q: torch.Tensor, k: int
-) -> tuple[np.ndarray, np.ndarray]:
-    """Rows of the exact top k by float64 margin (ties by row), and all margins [M]."""
-    m = margins(emb, cmax, q[None])[0][0]
-    return top_of(m, k), m.numpy()
-
-
-def recall(ids: np.ndarray, truth: np.ndarray, margin: np.ndarray) -> float:
-    """Tie-aware recall: the fraction of the k answers whose exact margin reaches the k-th exact margin
-    (another copy of a tied row counts as correct)."""
-    ids = ids[ids >= 0]
-    return float((margin[ids] >= margin[truth[-1]]).sum()) / len(truth)
-
-
-def nlist(n: int) -> int:
-    """IVF lists: the power of two nearest sqrt(n) (faiss's rule of thumb; 1,024 at 1M, 4,096 at 10M)."""
-    return max(64, 1 << round(math.log2(math.sqrt(n))))
-
-
-def faiss_indexes(emb: torch.Tensor, cmax: torch.Tensor, flat: bool = True, block: int = 262144) -> dict:
-    """IndexFlatIP (when ``flat``) and IVF-SQ8 + float16 refinement over [f, -cmax], added a block of
-    rows at a time from emb [M,D] (any dtype, e.g. the package's memory map)."""
-    import faiss
-
-    M = len(emb)
-
-    def rows(s: int, e: int) -> np.ndarray:
-        return np.concatenate([emb[s:e].float().numpy(), -cmax[s:e].float().numpy()[:, None]], 1)
-
-    out = {}
-    if flat:
-        t0 = time.perf_counter()
-        index = faiss.IndexFlatIP(D + 1)
-        for s in range(0, M, block):
-            index.add(rows(s, min(M, s + block)))
-        out["faiss_flat"] = {"index": index, "build_s": time.perf_counter() - t0, "bytes": 4 * (D + 1)}
-    t0 = time.perf_counter()
-    lists = nlist(M)
-    ivf = faiss.index_factory(D + 1, f"IVF{lists},SQ8,Refine(SQfp16)", faiss.METRIC_INNER_PRODUCT)
-    rng = np.random.default_rng(0)
-    sample = torch.from_numpy(np.sort(rng.choice(M, min(M, max(100_000, 40 * lists)), replace=False)))
-    ivf.train(np.concatenate([emb[sample].float().numpy(), -cmax[sample].float().numpy()[:, None]], 1))
-    for s in range(0, M, block):
-        ivf.add(rows(s, min(M, s + block)))
-    faiss.extract_index_ivf(ivf).nprobe = 64
-    out["faiss_ivf_sq8_refine"] = {
-        "index": ivf,
-        "build_s": time.perf_counter() - t0,
-        "bytes": (D + 1) + 8 + 2 * (D + 1),
-        "nlist": lists,
-    }
-    return out
-
-
-def faiss_search(name: str, d: dict, q: torch.Tensor, k: int) -> tuple[np.ndarray, float]:
-    """One query through one faiss index: ids [k] and milliseconds."""
-    import faiss
-
-    qx = np.concatenate([q.numpy(), [1.0]]).astype(np.float32)[None]
-    if name == "faiss_ivf_sq8_refine":
-        params = faiss.IndexRefineSearchParameters(k_factor=max(1.0, 1000 / k))
-        t0 = time.perf_counter()
-        _, ids = d["index"].search(qx, k, params=params)
-    else:
-        t0 = time.perf_counter()
-        _, ids = d["index"].search(qx, k)
-    return ids[0], (time.perf_counter() - t0) * 1e3
 
 
 def ks_for(n: int) -> list[int]:
@@ -214,11 +122,11 @@ def measure(n: int, queries: int, tmp: Path, peers: bool = True) -> dict:
     gc.collect()
     flat = 4 * (D + 1) * n < 0.4 * _mem_total()
     res["faiss_flat_skipped"] = not flat
-    fx = faiss_indexes(emb, cmax, flat=flat) if peers else {}
+    fx = build(emb, cmax, flat=flat) if peers else {}
     for f, d in fx.items():
         res[f"{f}_build_s"], res[f"{f}_bytes"] = d["build_s"], d["bytes"]
     if fx:
-        res["faiss_ivf_nlist"] = fx["faiss_ivf_sq8_refine"]["nlist"]
+        res["faiss_ivf_nlist"] = fx[IVF]["nlist"]
     for name in QUERY_SETS:
         for k in ks_for(n):
             row = rows[name, k]
@@ -227,7 +135,7 @@ def measure(n: int, queries: int, tmp: Path, peers: bool = True) -> dict:
             for j, q in enumerate(units[name]):
                 t = truth[name, k, j]
                 for f, d in fx.items():
-                    ids, ms = faiss_search(f, d, q, k)
+                    ids, ms = timed_search(d, q, k)
                     at = torch.from_numpy(np.append(ids[ids >= 0], t[-1]))
                     m = margins(emb[at], cmax[at], q[None])[0][0]  # the answer's and the k-th, together
                     row[f"{f}_ms"].append(ms)

@@ -24,7 +24,7 @@ from pathlib import Path
 import torch
 
 from benchmarks.common import (
-    ROOT,
+    RESULTS,
     D,
     TableEncoder,
     canonical_vectors,
@@ -309,7 +309,7 @@ def report(res: dict) -> str:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true")
-    ap.add_argument("--out", default=str(ROOT / "benchmarks"))
+    ap.add_argument("--out", default=str(RESULTS))
     ap.add_argument("--gaussians", type=int)
     ap.add_argument("--report-only", metavar="JSON", help="rewrite CLUSTER.md from a CLUSTER.json")
     a = ap.parse_args()

@@ -8,7 +8,7 @@ own 3DGS fit of the rendered images (``benchmarks/gs.py``). Targets are label ma
 offline MiniLM text encoder; queries are the object names. Held-out views (every 8th) are never trained on.
 Variants: the paper's field; per-Gaussian features instead of the hash grid; and, where the targets
 carry DINO maps, no dotsim. Writes OUT/field.json and OUT/FIELD_ABLATION.md (``--report`` also writes
-benchmarks/FIELD_ABLATION.md).
+benchmarks/results/FIELD_ABLATION.md).
 """
 
 from __future__ import annotations
@@ -149,7 +149,7 @@ def main() -> int:
     ap.add_argument("--feature-scale", type=float, default=0.5)
     ap.add_argument("--quick", action="store_true", help="small scene and run (CI)")
     ap.add_argument("--variants", default="field,per-gaussian")
-    ap.add_argument("--report", action="store_true", help="also write benchmarks/FIELD_ABLATION.md")
+    ap.add_argument("--report", action="store_true", help="also write benchmarks/results/FIELD_ABLATION.md")
     ap.add_argument("--check", action="store_true", help="exit 1 when a threshold is missed")
     ap.add_argument("--merge", nargs="+", help="only write the report from these field.json files")
     ap.add_argument("--rescore", action="store_true", help="with --merge: re-evaluate the saved packages")

@@ -3,7 +3,7 @@
     python -m benchmarks.gpu --out DIR                  # every part, most valuable first
     python -m benchmarks.gpu --out DIR --parts tests,pose --budget 540
     python -m benchmarks.gpu --out DIR --parts gs_train,field_train --limit gs_train=200
-    python -m benchmarks.gpu --report-only DIR/GPU.json  # rewrite benchmarks/GPU.md from stored figures
+    python -m benchmarks.gpu --report-only DIR/GPU.json  # rewrite benchmarks/results/GPU.md from it
 
 Runs offline: gsplat (``pip install 'fmgs[cuda]'`` or a carried wheel) compiles its CUDA extension on
 first use with the machine's nvcc (TORCH_EXTENSIONS_DIR keeps it; default .gpubuild/ in the repo).
@@ -24,7 +24,7 @@ import sys
 import time
 from pathlib import Path
 
-from benchmarks.common import ROOT
+from benchmarks.common import RESULTS, ROOT
 from benchmarks.gpu_report import write_report
 
 # Most valuable first (the order of figures); seconds each may take at most.
@@ -91,7 +91,7 @@ def run_part(name: str, work: Path, limit: float, quick: bool, log) -> dict:
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--out", type=Path, default=ROOT / "benchmarks", help="GPU.md, GPU.json, gpu-log.txt")
+    ap.add_argument("--out", type=Path, default=RESULTS, help="GPU.md, GPU.json, gpu-log.txt")
     ap.add_argument("--work", type=Path, default=Path("/tmp/fmgs-gpu"), help="scratch (packages, fits)")
     ap.add_argument("--parts", default=",".join(PARTS), help=f"comma list from {list(PARTS)}")
     ap.add_argument("--budget", type=float, default=1800.0, help="seconds for the whole run")
@@ -104,10 +104,10 @@ def main() -> int:
     )
     ap.add_argument("--resume", type=Path, help="an earlier GPU.json whose parts are kept unless rerun")
     ap.add_argument("--quick", action="store_true", help="tiny sizes (checks the script, not the GPU)")
-    ap.add_argument("--report-only", type=Path, help="rewrite benchmarks/GPU.md from this GPU.json")
+    ap.add_argument("--report-only", type=Path, help="rewrite benchmarks/results/GPU.md from this GPU.json")
     args = ap.parse_args()
     if args.report_only:
-        write_report(json.loads(args.report_only.read_text()), ROOT / "benchmarks" / "GPU.md")
+        write_report(json.loads(args.report_only.read_text()), RESULTS / "GPU.md")
         return 0
     parts = [p for p in args.parts.split(",") if p]
     unknown = [p for p in parts if p not in PARTS]

@@ -14,7 +14,7 @@ import json
 import sys
 from pathlib import Path
 
-from benchmarks.common import ROOT, machine, machine_words
+from benchmarks.common import RESULTS, machine, machine_words
 
 
 def run(args) -> None:
@@ -85,7 +85,7 @@ def report(args) -> None:
             f"| {t['gaussians']:,} | {t['seconds'] / 60:.1f} min | **{e['psnr']:.2f} dB** | {e['ssim']:.3f} "
             f"| {t.get('backend', cfg['backend'])} |"
         )
-    out = ROOT / "benchmarks" / "GS.md"
+    out = RESULTS / "GS.md"
     out.write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
 

@@ -1,6 +1,6 @@
 """Rasteriser benchmark: frames per second, peak memory and error against float64, per backend.
 
-    python -m benchmarks.raster            # full report -> benchmarks/RASTER.md (+ RASTER.json)
+    python -m benchmarks.raster            # full report -> benchmarks/results/RASTER.md (+ RASTER.json)
     python -m benchmarks.raster --quick    # small CI-sized run -> benchmarks/out/RASTER-quick.md
 
 Every configuration runs in its own subprocess so its peak memory (ru_maxrss) is its own. The float64
@@ -20,7 +20,7 @@ import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
-from benchmarks.common import ROOT, machine, rss_gb
+from benchmarks.common import RESULTS, ROOT, machine, rss_gb
 
 
 @dataclass(frozen=True)
@@ -190,7 +190,7 @@ def write_report(results: list[dict], info: dict, path: Path, quick: bool) -> No
         f"commit {info['commit']}.",
         "",
         "Regenerate: `python -m benchmarks.raster` (about 15 minutes on 2 cores); "
-        "`--from-json benchmarks/RASTER.json` rewrites this file from the stored figures.",
+        "`--from-json benchmarks/results/RASTER.json` rewrites this file from the stored figures.",
         "",
         "- **FPS**: 1 / median wall time of the timed runs after a warm-up run (compilation excluded; "
         "its time is in RASTER.json). Features float32, no gradients unless the backend says +grad "
@@ -250,7 +250,9 @@ def main() -> int:
         return 0
     import torch
 
-    out = args.out or (ROOT / "benchmarks" / ("out/RASTER-quick.md" if args.quick else "RASTER.md"))
+    out = args.out or (
+        ROOT / "benchmarks" / "out" / "RASTER-quick.md" if args.quick else RESULTS / "RASTER.md"
+    )
     out.parent.mkdir(parents=True, exist_ok=True)
     results = []
     for cfg in configs(args.quick, torch.cuda.is_available()):

@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 import psutil
 
-from benchmarks.common import ROOT, machine
+from benchmarks.common import RESULTS, ROOT, machine
 from fmgs_client.load import LoadConfig, run_load
 from fmgs_server.config import ServerConfig
 from fmgs_server.server import start_server
@@ -67,7 +67,7 @@ def suites() -> dict:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true")
-    ap.add_argument("--out", type=Path, default=ROOT / "benchmarks")
+    ap.add_argument("--out", type=Path, default=RESULTS)
     ap.add_argument("--models", type=Path, default=ROOT / "models")
     ap.add_argument("--only", choices=["load", "hostile"], help="one part, merged into the existing JSON")
     a = ap.parse_args()

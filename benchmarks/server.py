@@ -3,7 +3,7 @@
     python -m benchmarks.server            # full: 1M-Gaussian text scene, garden renders, 32 streams
     python -m benchmarks.server --quick    # CI size (completion only)
 
-Writes benchmarks/SERVER.md and SERVER.json (or --out DIR). Text embeddings come from a fixed table
+Writes benchmarks/results/SERVER.md and SERVER.json (or --out DIR). Text embeddings come from a fixed table
 (the target is measured "with the text embedding cached"); scene embeddings are field-like
 (benchmarks/common.py ``fieldlike``: a random two-layer MLP, 256 hidden as the FMGS language head, over
 Fourier features of the positions, unit-norm).
@@ -24,7 +24,7 @@ import numpy as np
 import torch
 
 from benchmarks.common import (
-    ROOT,
+    RESULTS,
     D,
     TableEncoder,
     canonical_vectors,
@@ -245,8 +245,8 @@ def report(res: dict, info: dict, quick: bool) -> str:
         f"The compact answers are certified exact: top-{t['top_k']} identical to the exact path "
         f"(same order) in {100 * t['compact_top_k_identical']:.1f}% of queries, max relevancy difference "
         f"{t['compact_max_relevancy_error']:.2e}; median {t['compact_rescored_median']:,.0f} rows "
-        "rescored per query. These queries sit near scene embeddings; benchmarks/TEXT.md measures every "
-        "query set.",
+        "rescored per query. These queries sit near scene embeddings; benchmarks/results/TEXT.md measures "
+        "every query set.",
         "",
         f"## Pose query: {p['scene']} ({p['gaussians']:,} Gaussians, all embedded, D={D}), {p['size']}",
         "",
@@ -275,7 +275,7 @@ def report(res: dict, info: dict, quick: bool) -> str:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true")
-    ap.add_argument("--out", type=Path, default=ROOT / "benchmarks")
+    ap.add_argument("--out", type=Path, default=RESULTS)
     ap.add_argument("--gaussians", type=int, default=1_000_000)
     ap.add_argument("--queries", type=int, default=100)
     ap.add_argument("--frames", type=int, default=20)

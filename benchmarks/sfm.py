@@ -1,6 +1,6 @@
 """Structure-from-motion accuracy on snowmiku_small: photos only, then scored against the provided poses.
 
-    python -m benchmarks.sfm            # all 97 photos -> benchmarks/SFM.md (+ SFM.json)
+    python -m benchmarks.sfm            # all 97 photos -> benchmarks/results/SFM.md (+ SFM.json)
     python -m benchmarks.sfm --quick    # first 24 photos -> benchmarks/out/SFM-quick.md
 
 The provided poses (sparse/0) are never given to the reconstruction; they are used only to score it
@@ -21,7 +21,7 @@ import sys
 import tempfile
 from pathlib import Path
 
-from benchmarks.common import ROOT, machine
+from benchmarks.common import RESULTS, ROOT, machine
 from benchmarks.scenes import DATA
 
 CROP = 45
@@ -162,7 +162,7 @@ def main() -> int:
     cen_med = statistics.median(err.centre_rel)
     frac = res.registered / res.total
     info = machine()
-    out = ROOT / "benchmarks" / ("out/SFM-quick.md" if args.quick else "SFM.md")
+    out = ROOT / "benchmarks" / "out" / "SFM-quick.md" if args.quick else RESULTS / "SFM.md"
     out.parent.mkdir(parents=True, exist_ok=True)
     data = {
         "machine": info,

@@ -4,7 +4,7 @@
     python -m benchmarks.text           # 1M Gaussians, D=512, 12 queries per set, one thread
     python -m benchmarks.text --quick   # 50K Gaussians, 3 queries per set (completion only)
 
-Writes benchmarks/TEXT.md and TEXT.json (or --out DIR). The scene is field-like with clone ties
+Writes benchmarks/results/TEXT.md and TEXT.json (or --out DIR). The scene is field-like with clone ties
 (benchmarks/query_sets.py), exported as a package; ours is the engine as the server runs it
 (SceneEngine.open, compact default, text_query). faiss indexes the same float16 embeddings with the
 margin trick (x' = [f, -max_n f.c_n], q' = [q, 1]) so its inner product is our ranking's margin:
@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from benchmarks.common import ROOT, D, machine, page_in, rss_gb
+from benchmarks.common import RESULTS, D, machine, page_in, rss_gb
 from benchmarks.faiss_peer import IVF, build, margins, recall, timed_search, top_of
 from benchmarks.query_sets import QUERY_SETS, query_sets, scene_embeddings
 from fmgs.gaussians import GaussianSet
@@ -249,7 +249,7 @@ def main() -> int:
     )
     ap.add_argument("--queries", type=int, default=12, help="queries per set")
     ap.add_argument("--quick", action="store_true")
-    ap.add_argument("--out", type=Path, default=ROOT / "benchmarks")
+    ap.add_argument("--out", type=Path, default=RESULTS)
     ap.add_argument("--stem", default="TEXT", help="report file names (STEM.md, STEM.json)")
     ap.add_argument(
         "--no-peers", action="store_true", help="ours only (no faiss: its 10M build takes 28 min)"

@@ -10,7 +10,7 @@ densification threshold are set, for CPU time), then every score through the eng
 (``SceneEngine.open``) on held-out views: per-class IoU and mIoU of the served segmentation, 2D (LERF
 protocol) and 3D localisation, and presence for queries of five kinds (names, paraphrases, absent
 catalogue objects, colour swaps, unrelated things).
-Writes OUT/unseen.json and OUT/FIELD.md (``--report``: benchmarks/FIELD.md too).
+Writes OUT/unseen.json and OUT/FIELD.md (``--report``: benchmarks/results/FIELD.md too).
 """
 
 from __future__ import annotations
@@ -396,7 +396,7 @@ def main() -> int:
         help="also score each scene's field packaged with this many embedding neighbours (1: the paper)",
     )
     ap.add_argument("--quick", action="store_true", help="CI size: one 64x48 scene, short stages")
-    ap.add_argument("--report", action="store_true", help="also write benchmarks/FIELD.md")
+    ap.add_argument("--report", action="store_true", help="also write benchmarks/results/FIELD.md")
     ap.add_argument("--from-json", help="only write the report from this unseen.json (its recorded command)")
     ap.add_argument(
         "--evaluate-only",

@@ -369,8 +369,8 @@ def markdown(sec: dict, img: str) -> list[str]:
         L.append(f"| {p['curve']} | {p['label']} | " + " | ".join(cells) + " |")
     L += [
         "",
-        "benchmarks/TEXT.md compares the engine with faiss on the same query sets at K = 1, 100 and 10,000, "
-        "with build and open times.",
+        "benchmarks/results/TEXT.md compares the engine with faiss on the same query sets at K = 1, 100 and "
+        "10,000, with build and open times.",
     ]
     return L
 

@@ -1,11 +1,11 @@
 """Serving on Ray: the proxy's per-request overhead, throughput against replicas, sharded text queries.
 
-    python benchmarks/cluster.py            # 1M-Gaussian scene, shards 1/2/4/8, 1 and 2 replicas
-    python benchmarks/cluster.py --quick    # 100K Gaussians, fewer calls (a smoke run)
+    python -m benchmarks.cluster            # 1M-Gaussian scene, shards 1/2/4/8, 1 and 2 replicas
+    python -m benchmarks.cluster --quick    # 100K Gaussians, fewer calls (a smoke run)
 
 Everything goes through gRPC from a client in this process: ``fmgs serve`` (in-process server) and the
 Ray deployment (``fmgs_server.cluster``, a local Ray cluster) on the same repository, in one run.
-Scenes are field-like (benchmarks/server.py); queries are the "typical" (best cosine ~0.85) and "clip"
+Scenes are field-like (benchmarks/common.py); queries are the "typical" (best cosine ~0.85) and "clip"
 (best cosine 0.2-0.35) sets of benchmarks/query_sets.py. Writes CLUSTER.md and CLUSTER.json (or --out)
 with a capacity model computed from the measured figures.
 """
@@ -23,14 +23,19 @@ from pathlib import Path
 
 import torch
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-
-from benchmarks.query_sets import query_sets  # noqa: E402
-from benchmarks.raster import machine  # noqa: E402
-from benchmarks.scenes import synthetic  # noqa: E402
-from benchmarks.server import D, TableEncoder, export, fieldlike, gaussians_from  # noqa: E402
-from fmgs.vecmath import safe_normalize  # noqa: E402
+from benchmarks.common import (
+    RESULTS,
+    D,
+    TableEncoder,
+    canonical_vectors,
+    export,
+    fieldlike,
+    gaussians_from,
+    machine,
+    proto_camera,
+)
+from benchmarks.query_sets import query_sets
+from benchmarks.scenes import synthetic
 
 
 def pct(xs, q: float) -> float:
@@ -46,7 +51,7 @@ def build_repo(root: Path, n: int, shards: list[int], n_queries: int):
     """A repository with a small scene, an n-Gaussian scene and its shardings; the text encoder."""
     from fmgs.scene.shards import write_shards
 
-    canon = safe_normalize(torch.randn(4, D, generator=torch.Generator().manual_seed(9)))
+    canon = canonical_vectors()
     texts = {}
     for name, size in (("small", 50_000), ("big", n)):
         s = synthetic(size, seed=3)
@@ -83,7 +88,6 @@ def overhead(direct: str, ray_addr: str, names, reps: int, n: int) -> dict:
     """The same calls, interleaved, on fmgs serve and through the Ray proxy."""
     import grpc
 
-    from benchmarks.server import proto_camera
     from fmgs.cameras import Camera
     from fmgs_wire.proto.fmgs.v1 import fmgs_pb2 as pb
     from fmgs_wire.proto.fmgs.v1 import fmgs_pb2_grpc as pb_grpc
@@ -219,7 +223,7 @@ def report(res: dict) -> str:
         "# Serving on Ray: overhead, replicas, shards",
         "",
         f"Measured {res['date']} on {m.get('cpu', '?')} ({m.get('cores', '?')} cores), one run of "
-        f"`python benchmarks/cluster.py{' --quick' if res['quick'] else ''}`. A local Ray cluster "
+        f"`python -m benchmarks.cluster{' --quick' if res['quick'] else ''}`. A local Ray cluster "
         f"(ray {res['ray']}) on this machine; every call through gRPC from a client in the same process.",
         f"Scene: {res['gaussians']:,} field-like Gaussians, D={D}; top-100; queries 'typical' (best cosine "
         "~0.85) and 'clip' (0.2-0.35).",
@@ -305,7 +309,7 @@ def report(res: dict) -> str:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true")
-    ap.add_argument("--out", default=str(ROOT / "benchmarks"))
+    ap.add_argument("--out", default=str(RESULTS))
     ap.add_argument("--gaussians", type=int)
     ap.add_argument("--report-only", metavar="JSON", help="rewrite CLUSTER.md from a CLUSTER.json")
     a = ap.parse_args()

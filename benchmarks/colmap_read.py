@@ -1,7 +1,7 @@
 """COLMAP model reading: fmgs's own parser beside pycolmap's (fmgs.data.colmap.read_model backends).
 
-    python benchmarks/colmap_read.py             # snowmiku (text and binary) and a 300K-point model
-    python benchmarks/colmap_read.py --runs 7 --points 100000
+    python -m benchmarks.colmap_read             # snowmiku (text and binary) and a 300K-point model
+    python -m benchmarks.colmap_read --runs 7 --points 100000
 
 The large model is synthetic (random points, 3 cameras, 50 images, written with write_binary, so no
 tracks). The two readers alternate run by run on the same files; prints a markdown table to stdout.
@@ -12,17 +12,14 @@ from __future__ import annotations
 import argparse
 import platform
 import statistics
-import sys
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-
-from fmgs.data.colmap import ColmapCamera, ColmapImage, ColmapModel, read_model, write_binary  # noqa: E402
+from benchmarks.common import ROOT
+from fmgs.data.colmap import ColmapCamera, ColmapImage, ColmapModel, read_model, write_binary
 
 SNOW = ROOT.parent / "shared" / "data" / "snowmiku_small" / "sparse" / "0"
 

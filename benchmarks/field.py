@@ -1,14 +1,14 @@
 """Feature-field quality on a label-supervised synthetic scene, with the paper's ablations.
 
-    python benchmarks/field.py --data SYNTH --ply GS/point_cloud.ply --out OUT [--steps 4200]
-    python benchmarks/field.py --quick --out OUT      # CI: makes a small scene, fits 3DGS, runs everything
+    python -m benchmarks.field --data SYNTH --ply GS/point_cloud.ply --out OUT [--steps 4200]
+    python -m benchmarks.field --quick --out OUT      # CI: makes a small scene, fits 3DGS, runs everything
 
 The scene comes from ``fmgs synth`` (labelled objects, 2D and 3D boxes) and its geometry is the project's
 own 3DGS fit of the rendered images (``benchmarks/gs.py``). Targets are label masks embedded with the
 offline MiniLM text encoder; queries are the object names. Held-out views (every 8th) are never trained on.
 Variants: the paper's field; per-Gaussian features instead of the hash grid; and, where the targets
 carry DINO maps, no dotsim. Writes OUT/field.json and OUT/FIELD_ABLATION.md (``--report`` also writes
-benchmarks/FIELD_ABLATION.md).
+benchmarks/results/FIELD_ABLATION.md).
 """
 
 from __future__ import annotations
@@ -20,8 +20,7 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+from benchmarks.common import machine, machine_words, save_report
 
 THRESHOLDS = {"localisation_2d": 0.95, "localisation_3d": 0.95, "miou": 0.8}
 
@@ -89,9 +88,7 @@ def report(rows: list[dict], info: dict, args, data: Path) -> str:
     lines = [
         "# Feature field: open-vocabulary quality on a labelled synthetic scene",
         "",
-        f"Measured {info['date']} on {info['cpu']} ({info['cores']} cores, "
-        + (f"GPU {info['gpu']}" if info["gpu"] else "no GPU")
-        + f"), commit {info['commit']}. Scene `{data}` "
+        f"Measured {info['date']} on {machine_words(info)}. Scene `{data}` "
         f"({'quick CI scene' if args.quick else 'benchmark scene'}); held-out views only.",
         "",
         "Targets: label masks, each label embedded by its name with MiniLM (384-D); label 0 (empty "
@@ -146,13 +143,13 @@ def report(rows: list[dict], info: dict, args, data: Path) -> str:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--data", help="synthetic scene folder (fmgs synth)")
-    ap.add_argument("--ply", help="3DGS fit of it (benchmarks/gs.py run)")
+    ap.add_argument("--ply", help="3DGS fit of it (python -m benchmarks.gs run)")
     ap.add_argument("--out", required=True)
     ap.add_argument("--steps", type=int, default=4200)
     ap.add_argument("--feature-scale", type=float, default=0.5)
     ap.add_argument("--quick", action="store_true", help="small scene and run (CI)")
     ap.add_argument("--variants", default="field,per-gaussian")
-    ap.add_argument("--report", action="store_true", help="also write benchmarks/FIELD_ABLATION.md")
+    ap.add_argument("--report", action="store_true", help="also write benchmarks/results/FIELD_ABLATION.md")
     ap.add_argument("--check", action="store_true", help="exit 1 when a threshold is missed")
     ap.add_argument("--merge", nargs="+", help="only write the report from these field.json files")
     ap.add_argument("--rescore", action="store_true", help="with --merge: re-evaluate the saved packages")
@@ -170,16 +167,12 @@ def main() -> int:
         recorded = [c.split("--data ")[1].split()[0] for c in cmds if "--data " in c]
         data = args.data or (recorded[0] if recorded else "?")  # the scene the runs were made on
         text = report(rows, runs[0]["machine"], args, Path(data))
-        Path(args.out).mkdir(parents=True, exist_ok=True)
-        (Path(args.out) / "FIELD_ABLATION.md").write_text(text)
-        if args.report:
-            (ROOT / "benchmarks" / "FIELD_ABLATION.md").write_text(text)
+        save_report(text, args.out, "FIELD_ABLATION.md", args.report)
         print(text)
         return 0
 
     import torch
 
-    from benchmarks.raster import machine
     from fmgs.data.dataset import load_dataset
     from fmgs.features.extract import ExtractConfig, extract_labels, read_label_names
     from fmgs.features.text import MiniLMTextEncoder
@@ -222,14 +215,12 @@ def main() -> int:
             f"mIoU {r['miou']:.3f}, train {r['train_seconds']:.0f} s",
             flush=True,
         )
-        r["command"] = " ".join(["python", "benchmarks/field.py", *sys.argv[1:]])
+        r["command"] = " ".join(["python", "-m", "benchmarks.field", *sys.argv[1:]])
         rows.append(r)
     info = machine()
     (out / "field.json").write_text(json.dumps({"machine": info, "rows": rows}, indent=1))
     text = report(rows, info, args, data)
-    (out / "FIELD_ABLATION.md").write_text(text)
-    if args.report:
-        (ROOT / "benchmarks" / "FIELD_ABLATION.md").write_text(text)
+    save_report(text, out, "FIELD_ABLATION.md", args.report)
     print(text)
     missed = [
         (r["variant"], k) for r in rows if r["variant"] == "field" for k in THRESHOLDS if r[k] < THRESHOLDS[k]

@@ -1,15 +1,16 @@
 """All GPU work in one command: build gsplat's kernels, run the CUDA tests, measure, write GPU.md.
 
-    python benchmarks/gpu.py --out DIR                  # every part, most valuable first
-    python benchmarks/gpu.py --out DIR --parts tests,pose --budget 540
-    python benchmarks/gpu.py --out DIR --parts gs_train,field_train --limit gs_train=200
-    python benchmarks/gpu.py --report-only DIR/GPU.json  # rewrite benchmarks/GPU.md from stored figures
+    python -m benchmarks.gpu --out DIR                  # every part, most valuable first
+    python -m benchmarks.gpu --out DIR --parts tests,pose --budget 540
+    python -m benchmarks.gpu --out DIR --parts gs_train,field_train --limit gs_train=200
+    python -m benchmarks.gpu --report-only DIR/GPU.json  # rewrite benchmarks/results/GPU.md from it
 
 Runs offline: gsplat (``pip install 'fmgs[cuda]'`` or a carried wheel) compiles its CUDA extension on
 first use with the machine's nvcc (TORCH_EXTENSIONS_DIR keeps it; default .gpubuild/ in the repo).
-Each part runs in its own subprocess with its own time limit and writes its figures as soon as it ends:
-DIR/GPU.json (raw, merged with an earlier file given by --resume) and DIR/GPU.md are rewritten after
-every part, so a run cut short keeps what it measured. Parts that would not fit in --budget seconds
+Each part runs in its own subprocess (``python -m benchmarks.gpu_parts`` in the repository root) with its
+own time limit and writes its figures as soon as it ends: DIR/GPU.json (raw, merged with an earlier file
+given by --resume) and DIR/GPU.md are rewritten after every part, so a run cut short keeps what it
+measured. Parts that would not fit in --budget seconds
 are skipped and reported as not run. The parts themselves live in benchmarks/gpu_parts.py.
 """
 
@@ -23,10 +24,8 @@ import sys
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-
-from benchmarks.gpu_report import write_report  # noqa: E402
+from benchmarks.common import RESULTS, ROOT
+from benchmarks.gpu_report import write_report
 
 # Most valuable first (the issue's order of figures); seconds each may take at most.
 PARTS: dict[str, int] = {
@@ -49,6 +48,7 @@ def part_env() -> dict[str, str]:
     env.setdefault("TORCH_EXTENSIONS_DIR", str(ROOT / ".gpubuild" / "torch_extensions"))
     env.setdefault("MAX_JOBS", str(os.cpu_count() or 4))
     env.setdefault("PYTHONUNBUFFERED", "1")
+    # Processes the parts start (pytest, servers) import this checkout even where it is not installed.
     env["PYTHONPATH"] = os.pathsep.join(p for p in (str(ROOT), env.get("PYTHONPATH", "")) if p)
     if "TORCH_CUDA_ARCH_LIST" not in env:
         try:
@@ -66,7 +66,7 @@ def run_part(name: str, work: Path, limit: float, quick: bool, log) -> dict:
     """Run one part in a subprocess; its JSON figures, or a record of how it failed."""
     res_file = work / f"part-{name}.json"
     res_file.unlink(missing_ok=True)
-    cmd = [sys.executable, "-X", "faulthandler", str(Path(__file__).with_name("gpu_parts.py")), name]
+    cmd = [sys.executable, "-X", "faulthandler", "-m", "benchmarks.gpu_parts", name]
     cmd += ["--work", str(work)]
     if quick:
         cmd.append("--quick")
@@ -91,7 +91,7 @@ def run_part(name: str, work: Path, limit: float, quick: bool, log) -> dict:
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--out", type=Path, default=ROOT / "benchmarks", help="GPU.md, GPU.json, gpu-log.txt")
+    ap.add_argument("--out", type=Path, default=RESULTS, help="GPU.md, GPU.json, gpu-log.txt")
     ap.add_argument("--work", type=Path, default=Path("/tmp/fmgs-gpu"), help="scratch (packages, fits)")
     ap.add_argument("--parts", default=",".join(PARTS), help=f"comma list from {list(PARTS)}")
     ap.add_argument("--budget", type=float, default=1800.0, help="seconds for the whole run")
@@ -104,10 +104,10 @@ def main() -> int:
     )
     ap.add_argument("--resume", type=Path, help="an earlier GPU.json whose parts are kept unless rerun")
     ap.add_argument("--quick", action="store_true", help="tiny sizes (checks the script, not the GPU)")
-    ap.add_argument("--report-only", type=Path, help="rewrite benchmarks/GPU.md from this GPU.json")
+    ap.add_argument("--report-only", type=Path, help="rewrite benchmarks/results/GPU.md from this GPU.json")
     args = ap.parse_args()
     if args.report_only:
-        write_report(json.loads(args.report_only.read_text()), ROOT / "benchmarks" / "GPU.md")
+        write_report(json.loads(args.report_only.read_text()), RESULTS / "GPU.md")
         return 0
     parts = [p for p in args.parts.split(",") if p]
     unknown = [p for p in parts if p not in PARTS]

@@ -1,4 +1,4 @@
-"""The parts of benchmarks/gpu.py, one per subprocess: ``python benchmarks/gpu_parts.py NAME --work DIR``.
+"""The parts of benchmarks/gpu.py, one per subprocess: ``python -m benchmarks.gpu_parts NAME --work DIR``.
 
 Each part measures the code path users run (SceneEngine, render_pose, the gRPC server, train_gaussians,
 extract_targets, train_field) on the CUDA device and writes WORK/part-NAME.json. Timings synchronise
@@ -19,12 +19,19 @@ from pathlib import Path
 import numpy as np
 import torch
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-
-from benchmarks.scenes import DATA, garden, synthetic  # noqa: E402
-from benchmarks.server import ENC, TableEncoder, fieldlike, gaussians_from, med_ms, proto_camera  # noqa: E402
-from fmgs.vecmath import safe_normalize  # noqa: E402
+from benchmarks.common import (
+    ENC,
+    ROOT,
+    TableEncoder,
+    canonical_vectors,
+    fieldlike,
+    gaussians_from,
+    machine,
+    med_ms,
+    proto_camera,
+)
+from benchmarks.scenes import DATA, garden, synthetic
+from fmgs.vecmath import safe_normalize
 
 DEVICE = os.environ.get("FMGS_BENCH_DEVICE", "cuda")
 """Where the parts run; "cpu" only to check the script itself on a machine without a GPU (--quick)."""
@@ -97,7 +104,7 @@ def _exported_scene(folder: Path, n: int, seed: int, n_queries: int):
 
     s = synthetic(n, seed=seed)
     emb = fieldlike(s.means)
-    canon = safe_normalize(torch.randn(4, emb.shape[1], generator=torch.Generator().manual_seed(9)))
+    canon = canonical_vectors(emb.shape[1])
     queries = clip_like_queries(emb, n_queries)
     export_scene(folder, gaussians_from(s), torch.arange(n), emb, ENC, canon)
     return s, queries, canon
@@ -107,8 +114,6 @@ def _exported_scene(folder: Path, n: int, seed: int, n_queries: int):
 
 
 def part_env(work: Path, quick: bool) -> dict:
-    from benchmarks.raster import machine
-
     info = machine()
     info["commit"] = os.environ.get("FMGS_COMMIT", info.get("commit") or "unknown")
     info["torch_cuda"] = torch.version.cuda
@@ -498,7 +503,7 @@ def part_text10m(work: Path, quick: bool) -> dict:
     box = torch.stack([ref_means.min(0).values, ref_means.max(0).values])
     for i in range(0, n, step):  # fieldlike embeddings, computed on the GPU, stored float16 like a package
         emb[i : i + step] = fieldlike(means[i : i + step], D, device=dev, box=box).half().cpu()
-    canon = safe_normalize(torch.randn(4, D, generator=torch.Generator().manual_seed(9)))
+    canon = canonical_vectors(D)
     canon_dots = torch.empty(n, 4)
     for i in range(0, n, step):
         canon_dots[i : i + step] = emb[i : i + step].float() @ canon.T

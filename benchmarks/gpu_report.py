@@ -32,7 +32,7 @@ def write_report(results: dict, path: Path) -> None:
     L = [
         "# GPU figures",
         "",
-        "Written by `python benchmarks/gpu.py --out DIR` on the machine named below; every figure here was",
+        "Written by `python -m benchmarks.gpu --out DIR` on the machine named below; every figure here was",
         "measured there (medians after warm-up, device synchronised around each timed call). Figures marked",
         f"'{NOT_RUN}' were not measured. Raw numbers: GPU.json beside this file. Parts kept from",
         "earlier runs (`--resume`) name their machine, commit and date in the Parts table at the end.",

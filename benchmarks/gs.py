@@ -1,8 +1,8 @@
 """3DGS quality and time: train, evaluate on held-out views, and report.
 
-    python benchmarks/gs.py run DATA OUT [--steps N] [--scale S] [--grad-threshold T]  # train + eval
-    python benchmarks/gs.py synth OUT [--views 48] [--size 128x96]                       # make a scene
-    python benchmarks/gs.py report OUT [OUT ...]                                         # -> GS.md
+    python -m benchmarks.gs run DATA OUT [--steps N] [--scale S] [--grad-threshold T]  # train + eval
+    python -m benchmarks.gs synth OUT [--views 48] [--size 128x96]                       # make a scene
+    python -m benchmarks.gs report OUT [OUT ...]                                         # -> GS.md
 
 A run folder holds train.json (fmgs train-gs) and eval/eval.json (fmgs eval-gs); the report reads only those.
 """
@@ -14,8 +14,7 @@ import json
 import sys
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+from benchmarks.common import RESULTS, machine, machine_words
 
 
 def run(args) -> None:
@@ -54,17 +53,13 @@ def run(args) -> None:
 
 
 def report(args) -> None:
-    from benchmarks.raster import machine
-
     info = machine()
     lines = [
         "# 3DGS training: held-out quality against time",
         "",
-        f"Reported {info['date']} from runs on {info['cpu']} ({info['cores']} cores, "
-        + (f"GPU {info['gpu']}" if info["gpu"] else "no GPU")
-        + f"), commit {info['commit']}.",
+        f"Reported {info['date']} from runs on {machine_words(info)}.",
         "Every 8th image is held out (never trained on); PSNR/SSIM are means over those views at the "
-        "training resolution. Regenerate: `python benchmarks/gs.py run DATA OUT ...`, then `report OUT ...`.",
+        "training resolution. Regenerate: `python -m benchmarks.gs run DATA OUT ...`, then `report OUT ...`.",
         "",
         "| dataset | views (train/held-out) | image size | steps | grad threshold | Gaussians | train time "
         "| held-out PSNR | SSIM | backend |",
@@ -90,7 +85,7 @@ def report(args) -> None:
             f"| {t['gaussians']:,} | {t['seconds'] / 60:.1f} min | **{e['psnr']:.2f} dB** | {e['ssim']:.3f} "
             f"| {t.get('backend', cfg['backend'])} |"
         )
-    out = ROOT / "benchmarks" / "GS.md"
+    out = RESULTS / "GS.md"
     out.write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
 

@@ -1,6 +1,6 @@
 """The float16 refinement pass of text queries: its two decodings side by side, one thread.
 
-    python benchmarks/half_dots.py [--rows 200000] [--dim 512] [--repeats 7]
+    python -m benchmarks.half_dots [--rows 200000] [--dim 512] [--repeats 7]
 
 ``half_dots`` decodes by shifting the bits into float32's layout and scaling by 2^112; the field
 decoding (``scaled=False``, exact under flush-to-zero) is what it falls back to. Same rows, same

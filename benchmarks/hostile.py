@@ -1,7 +1,7 @@
 """Hostile-load figures for RELIABILITY.md: shutdown time after hostile calls, time from a client's deadline
 to the release of its compute slot, and peak RSS of the worst request of each kind the limits allow.
 
-    python benchmarks/reliability.py --only hostile     # merges into RELIABILITY.json / .md
+    python -m benchmarks.reliability --only hostile     # merges into RELIABILITY.json / .md
 
 Every figure is taken on the product: ``fmgs-server`` subprocesses (shutdown, RSS) or ``start_server``
 in-process (slot release, read from its slots), serving models/demo with the real MiniLM encoder.

@@ -2,7 +2,7 @@
 
 Renders one synthetic scene twice with ``fmgs synth`` (same cameras; once through an OpenCV lens), reads
 both with ``load_dataset`` (the distorted one is undistorted by pycolmap into its cache), trains 3DGS on
-each with the same settings and compares held-out PSNR/SSIM. Writes benchmarks/LENS.md and LENS.json.
+each with the same settings and compares held-out PSNR/SSIM. Writes benchmarks/results/LENS.md and LENS.json.
 
     python -m benchmarks.lens [--steps 3000] [--views 32] [--size 128x96]
 """
@@ -17,6 +17,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from benchmarks.common import RESULTS
+
 LENS = (-0.25, 0.08, 0.02, -0.015)
 
 
@@ -25,7 +27,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--steps", type=int, default=3000)
     ap.add_argument("--views", type=int, default=32)
     ap.add_argument("--size", default="128x96")
-    ap.add_argument("--out", default=str(Path(__file__).parent / "LENS.md"))
+    ap.add_argument("--out", default=str(RESULTS / "LENS.md"))
     args = ap.parse_args(argv)
     from fmgs.data.dataset import load_dataset
     from fmgs.synth import SynthConfig, generate

@@ -1,7 +1,7 @@
 """Rasteriser benchmark: frames per second, peak memory and error against float64, per backend.
 
-    python benchmarks/raster.py            # full report -> benchmarks/RASTER.md (+ RASTER.json)
-    python benchmarks/raster.py --quick    # small CI-sized run -> benchmarks/out/RASTER-quick.md
+    python -m benchmarks.raster            # full report -> benchmarks/results/RASTER.md (+ RASTER.json)
+    python -m benchmarks.raster --quick    # small CI-sized run -> benchmarks/out/RASTER-quick.md
 
 Every configuration runs in its own subprocess so its peak memory (ru_maxrss) is its own. The float64
 truth for the error column is the CPU backend with float64 features: its geometry and weights are
@@ -11,10 +11,7 @@ float64 and tests/render/test_agreement.py checks it against the brute-force ren
 from __future__ import annotations
 
 import argparse
-import datetime as dt
 import json
-import os
-import platform
 import resource
 import statistics
 import subprocess
@@ -23,8 +20,7 @@ import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+from benchmarks.common import RESULTS, ROOT, machine, rss_gb
 
 
 @dataclass(frozen=True)
@@ -49,22 +45,9 @@ class Config:
 
 def make_scene(cfg: Config):
     """(means, quats, scales, opacities, camera) for a configuration."""
-    from benchmarks.scenes import garden, synthetic
-    from fmgs.cameras import Camera
+    from benchmarks.scenes import view
 
-    if cfg.scene == "garden":
-        s = garden(opacity=cfg.opacity)
-        cam = s.cameras[0]
-        f = cfg.width / cam.width
-        K = cam.K.clone()
-        K[:2] *= f
-        # Resize to the requested width, then centre-crop the rows to the requested height.
-        K[1, 2] -= (round(cam.height * f) - cfg.height) / 2
-        cam = Camera(K, cam.viewmat, cfg.width, cfg.height)
-        return s.means, s.quats, s.scales, s.opacities, cam
-    n = int(cfg.scene.split("-")[1])
-    s = synthetic(n, width=cfg.width, height=cfg.height)
-    return s.means, s.quats, s.scales, s.opacities, s.cameras[1]
+    return view(cfg.scene, cfg.width, cfg.height, cfg.opacity)
 
 
 def run_one(cfg: Config) -> dict:
@@ -81,7 +64,7 @@ def run_one(cfg: Config) -> dict:
     cuda = cfg.backend == "cuda"
     if cuda:
         means, quats, scales, opac, feats = (t.cuda() for t in (means, quats, scales, opac, feats))
-    base_rss = _rss_gb()
+    base_rss = rss_gb()
 
     def once():
         if cfg.backend == "reference+grad":
@@ -129,11 +112,6 @@ def run_one(cfg: Config) -> dict:
     }
 
 
-def _rss_gb() -> float:
-    with open("/proc/self/statm") as f:
-        return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 1e9
-
-
 def _peak_rss_gb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6  # KiB on Linux
 
@@ -160,34 +138,6 @@ def configs(quick: bool, with_cuda: bool) -> list[Config]:
     for o in (0.1, 0.5, 0.8):  # how the CPU path depends on how soon pixels saturate
         out.append(Config("garden", 480, 270, 5, "cpu", 7, opacity=o))
     return out
-
-
-def machine() -> dict:
-    import numba
-    import numpy
-    import torch
-
-    cpu = next(
-        (
-            line.split(":", 1)[1].strip()
-            for line in Path("/proc/cpuinfo").read_text().splitlines()
-            if line.startswith("model name")
-        ),
-        platform.processor(),
-    )
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True)
-    return {
-        "date": dt.datetime.now(dt.UTC).strftime("%Y-%m-%d %H:%M UTC"),
-        "cpu": cpu,
-        "cores": os.cpu_count(),
-        "ram_gb": round(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") / 2**30, 1),
-        "gpu": torch.cuda.get_device_name(0) if torch.cuda.is_available() else None,
-        "python": platform.python_version(),
-        "torch": torch.__version__,
-        "numba": numba.__version__,
-        "numpy": numpy.__version__,
-        "commit": commit.stdout.strip(),
-    }
 
 
 def summary(results: list[dict], info: dict) -> list[str]:
@@ -239,8 +189,8 @@ def write_report(results: list[dict], info: dict, path: Path, quick: bool) -> No
         + f"); Python {info['python']}, torch {info['torch']}, numba {info['numba']}, numpy {info['numpy']}, "
         f"commit {info['commit']}.",
         "",
-        "Regenerate: `python benchmarks/raster.py` (about 15 minutes on 2 cores); "
-        "`--from-json benchmarks/RASTER.json` rewrites this file from the stored figures.",
+        "Regenerate: `python -m benchmarks.raster` (about 15 minutes on 2 cores); "
+        "`--from-json benchmarks/results/RASTER.json` rewrites this file from the stored figures.",
         "",
         "- **FPS**: 1 / median wall time of the timed runs after a warm-up run (compilation excluded; "
         "its time is in RASTER.json). Features float32, no gradients unless the backend says +grad "
@@ -300,11 +250,13 @@ def main() -> int:
         return 0
     import torch
 
-    out = args.out or (ROOT / "benchmarks" / ("out/RASTER-quick.md" if args.quick else "RASTER.md"))
+    out = args.out or (
+        ROOT / "benchmarks" / "out" / "RASTER-quick.md" if args.quick else RESULTS / "RASTER.md"
+    )
     out.parent.mkdir(parents=True, exist_ok=True)
     results = []
     for cfg in configs(args.quick, torch.cuda.is_available()):
-        cmd = [sys.executable, __file__, "--one", json.dumps(asdict(cfg))]
+        cmd = [sys.executable, "-m", "benchmarks.raster", "--one", json.dumps(asdict(cfg))]
         try:
             p = subprocess.run(cmd, capture_output=True, text=True, timeout=args.timeout, cwd=ROOT)
             r = (

@@ -1,6 +1,6 @@
 """Reliability report: load held, load shed, soak memory, fuzz cases, faults injected, errors seen.
 
-    python benchmarks/reliability.py [--quick] [--out benchmarks] [--only load|hostile]
+    python -m benchmarks.reliability [--quick] [--out benchmarks/results] [--only load|hostile]
 
 Serves the demo scene (models/demo, real MiniLM text encoder) in-process on loopback, drives it with
 fmgs_client.load, then runs the fuzz, fault and load test suites and records their outcome; the hostile
@@ -22,16 +22,14 @@ from pathlib import Path
 import numpy as np
 import psutil
 
-ROOT = Path(__file__).resolve().parents[1]
+from benchmarks.common import RESULTS, ROOT, machine
+from fmgs_client.load import LoadConfig, run_load
+from fmgs_server.config import ServerConfig
+from fmgs_server.server import start_server
+from fmgs_wire.proto.fmgs.v1 import fmgs_pb2 as pb
+
 SUITES = ("tests/server/test_fuzz.py", "tests/server/test_faults.py", "tests/client/test_load.py",
           "tests/server/test_server.py")  # fmt: skip
-sys.path.insert(0, str(ROOT))
-
-from benchmarks.raster import machine  # noqa: E402
-from fmgs_client.load import LoadConfig, run_load  # noqa: E402
-from fmgs_server.config import ServerConfig  # noqa: E402
-from fmgs_server.server import start_server  # noqa: E402
-from fmgs_wire.proto.fmgs.v1 import fmgs_pb2 as pb  # noqa: E402
 
 
 def demo_camera(models: Path, w: int = 160, h: int = 120) -> pb.Camera:
@@ -69,7 +67,7 @@ def suites() -> dict:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true")
-    ap.add_argument("--out", type=Path, default=ROOT / "benchmarks")
+    ap.add_argument("--out", type=Path, default=RESULTS)
     ap.add_argument("--models", type=Path, default=ROOT / "models")
     ap.add_argument("--only", choices=["load", "hostile"], help="one part, merged into the existing JSON")
     a = ap.parse_args()
@@ -151,7 +149,7 @@ def report(res: dict, quick: bool) -> str:
         "# Reliability report",
         "",
         f"{m['date']}, {m['cpu']} ({m['cores']} cores), commit {m['commit']}. "
-        f"{'QUICK size.' if quick else ''} Reproduce: `python benchmarks/reliability.py`.",
+        f"{'QUICK size.' if quick else ''} Reproduce: `python -m benchmarks.reliability`.",
         f"Scene: `models/demo` served in-process on loopback with the real MiniLM text encoder; texts: "
         f"{', '.join(res['texts'])}; renders 160x120.",
         "",

@@ -1,8 +1,8 @@
 """Work-precision report: the error every speed knob costs against the time it saves, scaling, floors.
 
-    python benchmarks/run.py                  # full size -> benchmarks/REPORT.md, benchmarks/report/
-    python benchmarks/run.py --quick          # CI size -> a temporary folder (or --out DIR)
-    python benchmarks/run.py --only text,pose # some sections, merged into the results already in --out
+    python -m benchmarks.run                  # full size -> benchmarks/results/REPORT.md and report/
+    python -m benchmarks.run --quick          # CI size -> a temporary folder (or --out DIR)
+    python -m benchmarks.run --only text,pose # some sections, merged into the results already in --out
 
 Sections: ``text`` (per-Gaussian text query), ``pose`` (relevancy image), ``field`` (feature-field
 training), ``gs`` (3DGS training), ``scaling`` (latency and memory against size, gRPC against
@@ -34,13 +34,11 @@ import time
 from collections.abc import Sequence
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-
-from benchmarks.workprec import field, floor, gs, pose, scaling, text  # noqa: E402
-from benchmarks.workprec.measure import exact_failures, set_threads  # noqa: E402
-from benchmarks.workprec.report import SECTIONS, machine_info, write_report  # noqa: E402
-from benchmarks.workprec.sizes import FULL, QUICK, Sizes  # noqa: E402
+from benchmarks.common import RESULTS
+from benchmarks.workprec import field, floor, gs, pose, scaling, text
+from benchmarks.workprec.measure import exact_failures, set_threads
+from benchmarks.workprec.report import SECTIONS, machine_info, write_report
+from benchmarks.workprec.sizes import FULL, QUICK, Sizes
 
 
 def run_section(name: str, sizes: Sizes, work: Path, threads: int) -> dict:
@@ -65,7 +63,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--quick", action="store_true", help="CI size (about 2 minutes)")
     ap.add_argument("--only", default=",".join(SECTIONS), help=f"comma-separated sections of {SECTIONS}")
     ap.add_argument(
-        "--out", type=Path, help="output folder (full default: benchmarks/report; quick: a temp dir)"
+        "--out", type=Path, help="output folder (full default: benchmarks/results/report; quick: a temp dir)"
     )
     ap.add_argument("--work", type=Path, help="keep intermediate scenes and fits here (default: a temp dir)")
     ap.add_argument(
@@ -81,10 +79,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         ap.error(f"unknown sections {bad}; choose from {SECTIONS}")
     sizes = QUICK if a.quick else FULL
     default_out = a.out is None
-    out = a.out or (
-        Path(tempfile.mkdtemp(prefix="fmgs-bench-")) if a.quick else ROOT / "benchmarks" / "report"
-    )
-    report = ROOT / "benchmarks" / "REPORT.md" if default_out and not a.quick else out / "REPORT.md"
+    out = a.out or (Path(tempfile.mkdtemp(prefix="fmgs-bench-")) if a.quick else RESULTS / "report")
+    report = RESULTS / "REPORT.md" if default_out and not a.quick else out / "REPORT.md"
     out.mkdir(parents=True, exist_ok=True)
     store = out / "results.json"
     res: dict = {}

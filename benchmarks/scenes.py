@@ -9,9 +9,10 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
+from benchmarks.common import ROOT
 from fmgs.cameras import Camera
 
-DATA = Path(os.environ.get("FMGS_DATA", Path(__file__).resolve().parents[1].parent / "shared" / "data"))
+DATA = Path(os.environ.get("FMGS_DATA", ROOT.parent / "shared" / "data"))
 
 
 class Scene(NamedTuple):
@@ -70,3 +71,22 @@ def synthetic(n: int, seed: int = 0, width: int = 648, height: int = 420) -> Sce
         V[:3, 3] = torch.tensor([-8.0 * s, 0.0, 8.0 - 8.0 * c], dtype=torch.float64)
         cams.append(Camera(K, V, width, height))
     return Scene(means, quats, scales, opac, colors, cams, f"synthetic-{n}")
+
+
+def view(scene: str, width: int, height: int, opacity: float = 0.8):
+    """(means, quats, scales, opacities, camera) of a named scene at a size: 'garden' (every Gaussian at
+    ``opacity``, view 0 resized to ``width`` and centre-cropped to ``height``) or 'synthetic-<N>' (its
+    middle camera; synthetic scenes draw their opacities)."""
+    if scene == "garden":
+        s = garden(opacity=opacity)
+        cam = s.cameras[0]
+        f = width / cam.width
+        K = cam.K.clone()
+        K[:2] *= f
+        # Resize to the requested width, then centre-crop the rows to the requested height.
+        K[1, 2] -= (round(cam.height * f) - height) / 2
+        cam = Camera(K, cam.viewmat, width, height)
+        return s.means, s.quats, s.scales, s.opacities, cam
+    n = int(scene.split("-")[1])
+    s = synthetic(n, width=width, height=height)
+    return s.means, s.quats, s.scales, s.opacities, s.cameras[1]

@@ -1,20 +1,19 @@
 """Query-server performance: text queries on large scenes, pose renders and pose streams through gRPC.
 
-    python benchmarks/server.py            # full: 1M-Gaussian text scene, garden renders, 32 streams
-    python benchmarks/server.py --quick    # CI size (completion only)
+    python -m benchmarks.server            # full: 1M-Gaussian text scene, garden renders, 32 streams
+    python -m benchmarks.server --quick    # CI size (completion only)
 
-Writes benchmarks/SERVER.md and SERVER.json (or --out DIR). Text embeddings come from a fixed table
-(the target is measured "with the text embedding cached"); scene embeddings are field-like: a random
-two-layer MLP (256 hidden, as the FMGS language head) over Fourier features of the positions, unit-norm.
+Writes benchmarks/results/SERVER.md and SERVER.json (or --out DIR). Text embeddings come from a fixed table
+(the target is measured "with the text embedding cached"); scene embeddings are field-like
+(benchmarks/common.py ``fieldlike``: a random two-layer MLP, 256 hidden as the FMGS language head, over
+Fourier features of the positions, unit-norm).
 """
 
 from __future__ import annotations
 
 import argparse
 import datetime as dt
-import hashlib
 import json
-import statistics
 import sys
 import tempfile
 import threading
@@ -24,108 +23,30 @@ from pathlib import Path
 import numpy as np
 import torch
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-
-from benchmarks.raster import _rss_gb, machine  # noqa: E402
-from benchmarks.scenes import garden, synthetic  # noqa: E402
-from fmgs.gaussians import SH_C0, GaussianSet  # noqa: E402
-from fmgs.query.engine import EngineConfig, SceneEngine  # noqa: E402
-from fmgs.query.index import IndexConfig  # noqa: E402
-from fmgs.scene.package import export_scene  # noqa: E402
-from fmgs.vecmath import safe_normalize  # noqa: E402
-
-D = 512
-ENC = "bench/fixed-table"
-
-
-def fieldlike(
-    means: torch.Tensor,
-    dim: int = D,
-    seed: int = 0,
-    device: str | torch.device = "cpu",
-    box: torch.Tensor | None = None,
-) -> torch.Tensor:
-    """[N,dim] unit embeddings that vary smoothly with position, of rank <= 257 like the real head.
-
-    Computed on ``device`` in chunks, returned there. ``box`` [2,3] (min, max) fixes the normalisation
-    box (default: the means' own), so a scene made chunk by chunk gets the embeddings of one call.
-    """
-    g = torch.Generator().manual_seed(seed)
-    lo, hi = (means.min(0).values, means.max(0).values) if box is None else (box[0], box[1])
-    B = torch.randn(3, 32, generator=g) * torch.linspace(1, 12, 32)
-    W1, b1 = torch.randn(64, 256, generator=g) / 8, torch.randn(256, generator=g) * 0.1
-    W2, b2 = torch.randn(256, dim, generator=g) / 16, torch.randn(dim, generator=g) * 0.3
-    lo, hi, B, W1, b1, W2, b2 = (t.to(device) for t in (lo, hi, B, W1, b1, W2, b2))
-    out = torch.empty(len(means), dim, device=device)
-    for s in range(0, len(means), 65536):
-        x = (means[s : s + 65536].to(device) - lo) / (hi - lo).clamp_min(1e-9) @ B
-        h = torch.relu(torch.cat([x.sin(), x.cos()], 1) @ W1 + b1)
-        out[s : s + 65536] = safe_normalize(h @ W2 + b2)
-    return out
-
-
-class TableEncoder:
-    """Texts 'q<i>' map to fixed query vectors (the embedding cost is not what is measured).
-
-    Any other text (the presence score's vocabulary of negatives) gets a random unit vector seeded
-    by the text's bytes, so the server's whole text path runs, presence included.
-    """
-
-    id, dim = ENC, D
-
-    def __init__(self, queries: torch.Tensor, canonical: torch.Tensor) -> None:
-        self.table = {f"q{i}": v for i, v in enumerate(queries)}
-        self.table.update(zip(("object", "stuff", "things", "texture"), canonical, strict=True))
-
-    def _vector(self, text: str) -> torch.Tensor:
-        if text not in self.table:
-            seed = int.from_bytes(hashlib.blake2b(text.encode(), digest_size=8).digest(), "little")
-            g = torch.Generator().manual_seed(seed)
-            self.table[text] = safe_normalize(torch.randn(self.dim, generator=g))
-        return self.table[text]
-
-    def encode_text(self, texts):
-        return torch.stack([self._vector(t) for t in texts])
-
-
-def make_queries(emb: torch.Tensor, n: int, seed: int = 1) -> torch.Tensor:
-    """Queries near random scene embeddings (each has a clear best region)."""
-    g = torch.Generator().manual_seed(seed)
-    rows = torch.randint(0, len(emb), (n,), generator=g)
-    return safe_normalize(emb[rows] + 0.6 * safe_normalize(torch.randn(n, emb.shape[1], generator=g)))
-
-
-def export(folder: Path, g: GaussianSet, emb: torch.Tensor, canon: torch.Tensor, sel=None) -> Path:
-    sel = torch.arange(g.num) if sel is None else sel
-    return export_scene(folder, g, sel, emb, ENC, canon)
-
-
-def proto_camera(cam):
-    """The wire Camera of an fmgs Camera."""
-    from fmgs_wire.proto.fmgs.v1 import fmgs_pb2 as pb
-
-    v = cam.viewmat.reshape(-1).tolist()
-    return pb.Camera(
-        viewmat=v, fx=cam.fx, fy=cam.fy, cx=cam.cx, cy=cam.cy, width=cam.width, height=cam.height
-    )
-
-
-def gaussians_from(scene) -> GaussianSet:
-    sh = ((scene.colors - 0.5) / SH_C0)[:, None, :]
-    return GaussianSet.from_activated(scene.means, scene.quats, scene.scales, scene.opacities, sh=sh)
-
-
-def med_ms(ts) -> float:
-    """Median of times in seconds, in milliseconds."""
-    return statistics.median(ts) * 1e3
+from benchmarks.common import (
+    RESULTS,
+    D,
+    TableEncoder,
+    canonical_vectors,
+    export,
+    fieldlike,
+    gaussians_from,
+    machine,
+    make_queries,
+    med_ms,
+    proto_camera,
+    rss_gb,
+)
+from benchmarks.scenes import garden, synthetic
+from fmgs.query.engine import EngineConfig, SceneEngine
+from fmgs.query.index import IndexConfig
 
 
 def bench_text(out: Path, n: int, n_queries: int, top_k: int = 100) -> dict:
     s = synthetic(n, seed=3)
     g = gaussians_from(s)
     emb = fieldlike(s.means)
-    canon = safe_normalize(torch.randn(4, D, generator=torch.Generator().manual_seed(9)))
+    canon = canonical_vectors()
     queries = make_queries(emb, n_queries)
     t0 = time.perf_counter()
     pkg = export(out / "text", g, emb, canon)
@@ -134,11 +55,11 @@ def bench_text(out: Path, n: int, n_queries: int, top_k: int = 100) -> dict:
     res = {"gaussians": n, "dim": D, "queries": n_queries, "top_k": top_k, "export_s": export_s}
     engines = {}
     for name, cfg in (("exact", IndexConfig(rank=0)), ("compact", IndexConfig(exact_below=0))):
-        rss0 = _rss_gb()
+        rss0 = rss_gb()
         t0 = time.perf_counter()
         engines[name] = SceneEngine.open(pkg, EngineConfig(index=cfg))
         res[f"{name}_open_s"] = time.perf_counter() - t0
-        res[f"{name}_rss_gb"] = _rss_gb() - rss0
+        res[f"{name}_rss_gb"] = rss_gb() - rss0
         idx = engines[name].index
         res[f"{name}_state_bytes_per_gaussian"] = (
             idx.nbytes() - (idx.basis.numel() * 8 if idx.basis is not None else 0)
@@ -208,7 +129,7 @@ def bench_pose(out: Path, quick: bool, frames: int, streams: int, stream_s: floa
     s = synthetic(20_000, seed=4) if quick else garden()
     g = gaussians_from(s)
     emb = fieldlike(s.means)
-    canon = safe_normalize(torch.randn(4, D, generator=torch.Generator().manual_seed(9)))
+    canon = canonical_vectors()
     queries = make_queries(emb, 4)
     export(out / "pose", g, emb, canon)
     cam = s.cameras[0].resized(480, 270)
@@ -274,14 +195,14 @@ def _streams(address: str, req, n: int, seconds: float) -> dict:
             if not done.is_set() or e.code() != grpc.StatusCode.CANCELLED:
                 errors.append(e.code().name)
 
-    rss = [_rss_gb()]
+    rss = [rss_gb()]
     th = [threading.Thread(target=client, args=(k,), daemon=True) for k in range(n)]
     for t in th:
         t.start()
     t0 = time.perf_counter()
     while time.perf_counter() - t0 < seconds:
         time.sleep(seconds / 4)
-        rss.append(_rss_gb())
+        rss.append(rss_gb())
     done.set()
     for t in th:
         t.join(timeout=30)
@@ -305,7 +226,7 @@ def report(res: dict, info: dict, quick: bool) -> str:
         "",
         f"Machine: {info.get('cpu', '?')}, {info.get('cores', '?')} cores, torch {info.get('torch', '?')}; "
         f"{info.get('date', '')}. {'QUICK (CI) size: not the targets.' if quick else ''}",
-        "Reproduce: `python benchmarks/server.py` (CI: `--quick`). Medians of repeated runs; compact and",
+        "Reproduce: `python -m benchmarks.server` (CI: `--quick`). Medians of repeated runs; compact and",
         "exact text queries alternate in one loop, so their ratio is measured side by side.",
         "",
         f"## Text query: {t['gaussians']:,} Gaussians, D={t['dim']}, top-{t['top_k']}, "
@@ -324,8 +245,8 @@ def report(res: dict, info: dict, quick: bool) -> str:
         f"The compact answers are certified exact: top-{t['top_k']} identical to the exact path "
         f"(same order) in {100 * t['compact_top_k_identical']:.1f}% of queries, max relevancy difference "
         f"{t['compact_max_relevancy_error']:.2e}; median {t['compact_rescored_median']:,.0f} rows "
-        "rescored per query. These queries sit near scene embeddings; benchmarks/TEXT.md measures every "
-        "query set.",
+        "rescored per query. These queries sit near scene embeddings; benchmarks/results/TEXT.md measures "
+        "every query set.",
         "",
         f"## Pose query: {p['scene']} ({p['gaussians']:,} Gaussians, all embedded, D={D}), {p['size']}",
         "",
@@ -354,7 +275,7 @@ def report(res: dict, info: dict, quick: bool) -> str:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true")
-    ap.add_argument("--out", type=Path, default=ROOT / "benchmarks")
+    ap.add_argument("--out", type=Path, default=RESULTS)
     ap.add_argument("--gaussians", type=int, default=1_000_000)
     ap.add_argument("--queries", type=int, default=100)
     ap.add_argument("--frames", type=int, default=20)

@@ -1,7 +1,7 @@
 """Structure-from-motion accuracy on snowmiku_small: photos only, then scored against the provided poses.
 
-    python benchmarks/sfm.py            # all 97 photos -> benchmarks/SFM.md (+ SFM.json)
-    python benchmarks/sfm.py --quick    # first 24 photos -> benchmarks/out/SFM-quick.md
+    python -m benchmarks.sfm            # all 97 photos -> benchmarks/results/SFM.md (+ SFM.json)
+    python -m benchmarks.sfm --quick    # first 24 photos -> benchmarks/out/SFM-quick.md
 
 The provided poses (sparse/0) are never given to the reconstruction; they are used only to score it
 after a similarity alignment of the camera centres. A second part compares intrinsics settings
@@ -21,9 +21,8 @@ import sys
 import tempfile
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-
+from benchmarks.common import RESULTS, ROOT, machine
+from benchmarks.scenes import DATA
 
 CROP = 45
 """Pixels cut from the left of each photo for the off-centre principal point (5% of 450 px)."""
@@ -139,8 +138,6 @@ def study_lines(study: list[dict]) -> list[str]:
 def main() -> int:
     import numpy as np
 
-    from benchmarks.raster import machine
-    from benchmarks.scenes import DATA
     from fmgs.data.dataset import read_colmap
     from fmgs.sfm import SfMConfig
 
@@ -165,7 +162,7 @@ def main() -> int:
     cen_med = statistics.median(err.centre_rel)
     frac = res.registered / res.total
     info = machine()
-    out = ROOT / "benchmarks" / ("out/SFM-quick.md" if args.quick else "SFM.md")
+    out = ROOT / "benchmarks" / "out" / "SFM-quick.md" if args.quick else RESULTS / "SFM.md"
     out.parent.mkdir(parents=True, exist_ok=True)
     data = {
         "machine": info,
@@ -185,7 +182,7 @@ def main() -> int:
         "",
         f"Measured {info['date']} on {info['cpu']} ({info['cores']} cores, no GPU, load average "
         f"{os.getloadavg()[1]:.1f} at the end: times are slower under other jobs), pycolmap 4.2.1, "
-        f"commit {info['commit']}. Regenerate: `python benchmarks/sfm.py`.",
+        f"commit {info['commit']}. Regenerate: `python -m benchmarks.sfm`.",
         "",
         "Photos only (SIFT, one shared SIMPLE_RADIAL camera, exhaustive matching, incremental mapping, "
         "undistortion); the provided poses score the result after a similarity alignment of camera centres.",

@@ -1,7 +1,7 @@
 """SSIM forward + backward on CPU: the separable blur (fmgs.metrics.ssim) beside the full-window twin.
 
-    python benchmarks/ssim_speed.py                  # 128x96x3 and 1920x1080x3, median of 5 runs
-    python benchmarks/ssim_speed.py --threads 2 --runs 7
+    python -m benchmarks.ssim_speed                  # 128x96x3 and 1920x1080x3, median of 5 runs
+    python -m benchmarks.ssim_speed --threads 2 --runs 7
 
 Both run in this one process on the same random float32 images, alternating run by run so load from
 elsewhere on the machine falls on both alike. Prints a markdown table to stdout.
@@ -12,14 +12,10 @@ from __future__ import annotations
 import argparse
 import platform
 import statistics
-import sys
 import time
 from collections.abc import Callable
-from pathlib import Path
 
 import torch
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from fmgs.metrics import ssim, ssim_reference
 

@@ -1,14 +1,15 @@
 """Text queries on a large scene, every query set, against faiss on the same embeddings and thread count.
 
     pip install faiss-cpu               # benchmark-only dependency
-    python benchmarks/text.py           # 1M Gaussians, D=512, 12 queries per set, one thread
-    python benchmarks/text.py --quick   # 50K Gaussians, 3 queries per set (completion only)
+    python -m benchmarks.text           # 1M Gaussians, D=512, 12 queries per set, one thread
+    python -m benchmarks.text --quick   # 50K Gaussians, 3 queries per set (completion only)
 
-Writes benchmarks/TEXT.md and TEXT.json (or --out DIR). The scene is field-like with clone ties
+Writes benchmarks/results/TEXT.md and TEXT.json (or --out DIR). The scene is field-like with clone ties
 (benchmarks/query_sets.py), exported as a package; ours is the engine as the server runs it
 (SceneEngine.open, compact default, text_query). faiss indexes the same float16 embeddings with the
 margin trick (x' = [f, -max_n f.c_n], q' = [q, 1]) so its inner product is our ranking's margin:
-IndexFlatIP (exact float32) and IVF1024,SQ8 with float16 refinement of 1,000 candidates, nprobe 64.
+IndexFlatIP (exact float32) and IVF1024,SQ8 with float16 refinement of 1,000 candidates, nprobe 64
+(benchmarks/faiss_peer.py, the peers of every text report).
 Recall is the fraction of the K answers whose float64 margin reaches the exact K-th margin (tie-aware:
 another copy of a tied row counts); ours is also checked equal to the brute force, rows and order.
 """
@@ -19,7 +20,6 @@ import argparse
 import datetime as dt
 import gc
 import json
-import math
 import resource
 import statistics
 import sys
@@ -30,17 +30,13 @@ from pathlib import Path
 import numpy as np
 import torch
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-
-from benchmarks.query_sets import QUERY_SETS, query_sets, scene_embeddings  # noqa: E402
-from benchmarks.raster import _rss_gb, machine  # noqa: E402
-from fmgs.gaussians import GaussianSet  # noqa: E402
-from fmgs.query.engine import EngineConfig, SceneEngine  # noqa: E402
-from fmgs.scene.package import export_scene  # noqa: E402
-from fmgs.vecmath import safe_normalize  # noqa: E402
-
-D = 512
+from benchmarks.common import RESULTS, D, machine, page_in, rss_gb
+from benchmarks.faiss_peer import IVF, build, margins, recall, timed_search, top_of
+from benchmarks.query_sets import QUERY_SETS, query_sets, scene_embeddings
+from fmgs.gaussians import GaussianSet
+from fmgs.query.engine import EngineConfig, SceneEngine
+from fmgs.scene.package import export_scene
+from fmgs.vecmath import safe_normalize
 
 
 def one_thread() -> None:
@@ -75,110 +71,6 @@ def stored(pkg: Path) -> tuple[torch.Tensor, torch.Tensor]:
     return mmap_torch(f, "embeddings"), mmap_torch(f, "canonical").amax(1)
 
 
-def page_in(folder: Path) -> None:
-    """Read every file under ``folder`` once, into the page cache: the steady state of a served package.
-    Building other indexes may have pushed its pages out, and the first queries would then time the
-    disk."""
-    for f in sorted(folder.rglob("*")):
-        if f.is_file():
-            with f.open("rb") as fh:
-                while fh.read(1 << 24):
-                    pass
-
-
-def margins(emb: torch.Tensor, cmax: torch.Tensor, q: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """float64 margins f.q - cmax [n,M] for queries q [n,D] (one pass over the rows for all of them) and
-    each query's best cosine [n]."""
-    M = len(emb)
-    out = torch.empty(len(q), M, dtype=torch.float64)
-    best = torch.full((len(q),), -2.0, dtype=torch.float64)
-    q64 = q.double()
-    for s in range(0, M, 262144):
-        d = emb[s : s + 262144].double() @ q64.T  # [b,n]
-        best = torch.maximum(best, d.amax(0))
-        out[:, s : s + 262144] = (d - cmax[s : s + 262144].double()[:, None]).T
-    return out, best
-
-
-def top_of(m: torch.Tensor, k: int) -> np.ndarray:
-    """Rows of the k largest margins m [M], best first, ties by row: rows tied at the k-th margin are
-    taken lowest row first (topk alone picks any of them)."""
-    v = torch.topk(m, k, sorted=False).values.min()
-    above = torch.nonzero(m > v).reshape(-1)
-    tied = torch.nonzero(m == v).reshape(-1)[: k - len(above)]  # ascending rows
-    return np.array(sorted(torch.cat([above, tied]).tolist(), key=lambda i: (-float(m[i]), i)))
-
-
-def exact_top(
-    emb: torch.Tensor, cmax: torch.Tensor, q: torch.Tensor, k: int
-) -> tuple[np.ndarray, np.ndarray]:
-    """Rows of the exact top k by float64 margin (ties by row), and all margins [M]."""
-    m = margins(emb, cmax, q[None])[0][0]
-    return top_of(m, k), m.numpy()
-
-
-def recall(ids: np.ndarray, truth: np.ndarray, margin: np.ndarray) -> float:
-    """Tie-aware recall: the fraction of the k answers whose exact margin reaches the k-th exact margin
-    (another copy of a tied row counts as correct)."""
-    ids = ids[ids >= 0]
-    return float((margin[ids] >= margin[truth[-1]]).sum()) / len(truth)
-
-
-def nlist(n: int) -> int:
-    """IVF lists: the power of two nearest sqrt(n) (faiss's rule of thumb; 1,024 at 1M, 4,096 at 10M)."""
-    return max(64, 1 << round(math.log2(math.sqrt(n))))
-
-
-def faiss_indexes(emb: torch.Tensor, cmax: torch.Tensor, flat: bool = True, block: int = 262144) -> dict:
-    """IndexFlatIP (when ``flat``) and IVF-SQ8 + float16 refinement over [f, -cmax], added a block of
-    rows at a time from emb [M,D] (any dtype, e.g. the package's memory map)."""
-    import faiss
-
-    M = len(emb)
-
-    def rows(s: int, e: int) -> np.ndarray:
-        return np.concatenate([emb[s:e].float().numpy(), -cmax[s:e].float().numpy()[:, None]], 1)
-
-    out = {}
-    if flat:
-        t0 = time.perf_counter()
-        index = faiss.IndexFlatIP(D + 1)
-        for s in range(0, M, block):
-            index.add(rows(s, min(M, s + block)))
-        out["faiss_flat"] = {"index": index, "build_s": time.perf_counter() - t0, "bytes": 4 * (D + 1)}
-    t0 = time.perf_counter()
-    lists = nlist(M)
-    ivf = faiss.index_factory(D + 1, f"IVF{lists},SQ8,Refine(SQfp16)", faiss.METRIC_INNER_PRODUCT)
-    rng = np.random.default_rng(0)
-    sample = torch.from_numpy(np.sort(rng.choice(M, min(M, max(100_000, 40 * lists)), replace=False)))
-    ivf.train(np.concatenate([emb[sample].float().numpy(), -cmax[sample].float().numpy()[:, None]], 1))
-    for s in range(0, M, block):
-        ivf.add(rows(s, min(M, s + block)))
-    faiss.extract_index_ivf(ivf).nprobe = 64
-    out["faiss_ivf_sq8_refine"] = {
-        "index": ivf,
-        "build_s": time.perf_counter() - t0,
-        "bytes": (D + 1) + 8 + 2 * (D + 1),
-        "nlist": lists,
-    }
-    return out
-
-
-def faiss_search(name: str, d: dict, q: torch.Tensor, k: int) -> tuple[np.ndarray, float]:
-    """One query through one faiss index: ids [k] and milliseconds."""
-    import faiss
-
-    qx = np.concatenate([q.numpy(), [1.0]]).astype(np.float32)[None]
-    if name == "faiss_ivf_sq8_refine":
-        params = faiss.IndexRefineSearchParameters(k_factor=max(1.0, 1000 / k))
-        t0 = time.perf_counter()
-        _, ids = d["index"].search(qx, k, params=params)
-    else:
-        t0 = time.perf_counter()
-        _, ids = d["index"].search(qx, k)
-    return ids[0], (time.perf_counter() - t0) * 1e3
-
-
 def ks_for(n: int) -> list[int]:
     return [k for k in (1, 100, 10_000) if k <= n // 4]
 
@@ -189,11 +81,11 @@ def measure(n: int, queries: int, tmp: Path, peers: bool = True) -> dict:
     res: dict = {"gaussians": n, "dim": D, "queries_per_set": queries, "threads": 1, "sets": {}}
     pkg, copies, res["export_s"] = package(tmp, n)
     emb, cmax = stored(pkg)
-    rss0 = _rss_gb()
+    rss0 = rss_gb()
     t0 = time.perf_counter()
     eng = SceneEngine.open(pkg, EngineConfig())
     res["fmgs_open_s"] = time.perf_counter() - t0
-    res["fmgs_open_rss_gb"] = _rss_gb() - rss0
+    res["fmgs_open_rss_gb"] = rss_gb() - rss0
     ix = eng.index
     res["fmgs_bytes"] = (ix.nbytes() - (ix.basis.numel() * 8 if ix.basis is not None else 0)) / n + 8
     res["fmgs_path"] = "exact float32" if ix.exact else f"compact rank {ix.state.rank}"
@@ -230,11 +122,11 @@ def measure(n: int, queries: int, tmp: Path, peers: bool = True) -> dict:
     gc.collect()
     flat = 4 * (D + 1) * n < 0.4 * _mem_total()
     res["faiss_flat_skipped"] = not flat
-    fx = faiss_indexes(emb, cmax, flat=flat) if peers else {}
+    fx = build(emb, cmax, flat=flat) if peers else {}
     for f, d in fx.items():
         res[f"{f}_build_s"], res[f"{f}_bytes"] = d["build_s"], d["bytes"]
     if fx:
-        res["faiss_ivf_nlist"] = fx["faiss_ivf_sq8_refine"]["nlist"]
+        res["faiss_ivf_nlist"] = fx[IVF]["nlist"]
     for name in QUERY_SETS:
         for k in ks_for(n):
             row = rows[name, k]
@@ -243,7 +135,7 @@ def measure(n: int, queries: int, tmp: Path, peers: bool = True) -> dict:
             for j, q in enumerate(units[name]):
                 t = truth[name, k, j]
                 for f, d in fx.items():
-                    ids, ms = faiss_search(f, d, q, k)
+                    ids, ms = timed_search(d, q, k)
                     at = torch.from_numpy(np.append(ids[ids >= 0], t[-1]))
                     m = margins(emb[at], cmax[at], q[None])[0][0]  # the answer's and the k-th, together
                     row[f"{f}_ms"].append(ms)
@@ -357,7 +249,7 @@ def main() -> int:
     )
     ap.add_argument("--queries", type=int, default=12, help="queries per set")
     ap.add_argument("--quick", action="store_true")
-    ap.add_argument("--out", type=Path, default=ROOT / "benchmarks")
+    ap.add_argument("--out", type=Path, default=RESULTS)
     ap.add_argument("--stem", default="TEXT", help="report file names (STEM.md, STEM.json)")
     ap.add_argument(
         "--no-peers", action="store_true", help="ours only (no faiss: its 10M build takes 28 min)"
@@ -395,7 +287,7 @@ def report(results: list[dict], info: dict, quick: bool) -> str:
         f"{info.get('date', '')}. {'QUICK size: completion only.' if quick else ''}",
         f"Scenes: {sizes} field-like Gaussians (D={results[0]['dim']}, clone ties), "
         f"{results[0]['queries_per_set']} queries per set (benchmarks/query_sets.py), all sizes in one run. "
-        "Reproduce: `pip install faiss-cpu; python benchmarks/text.py"
+        "Reproduce: `pip install faiss-cpu; python -m benchmarks.text"
         + (f" --gaussians {','.join(str(r['gaussians']) for r in results)}`." if len(results) > 1 else "`."),
         "",
         "Ours: `SceneEngine.open` + `text_query` on the exported package, every answer checked equal to the "

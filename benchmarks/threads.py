@@ -3,7 +3,7 @@
 Each run is its own process (torch and numba pools start fresh), trains ``--steps`` steps of the reduced
 3000-step schedule with ``GSTrainConfig.threads`` set to 1, 2, or left to torch's and numba's own default
 (every core), in turn, ``--repeats`` times; reports the median steps/s of each and the load average seen.
-Writes benchmarks/THREADS.md and THREADS.json.
+Writes benchmarks/results/THREADS.md and THREADS.json.
 
     python -m benchmarks.threads [--steps 100] [--repeats 3]
 """
@@ -20,6 +20,8 @@ import subprocess
 import sys
 import tempfile
 from pathlib import Path
+
+from benchmarks.common import RESULTS
 
 # One run: "default" leaves both pools as they start (what train-gs did before GSTrainConfig.threads).
 RUN = """
@@ -44,7 +46,7 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--steps", type=int, default=100)
     ap.add_argument("--repeats", type=int, default=3)
-    ap.add_argument("--out", default=str(Path(__file__).parent / "THREADS.md"))
+    ap.add_argument("--out", default=str(RESULTS / "THREADS.md"))
     args = ap.parse_args(argv)
     from fmgs.synth import SynthConfig, generate
 

@@ -1,8 +1,8 @@
 """Open-vocabulary quality on generated scenes no setting was tuned on, built as a user builds them.
 
-    python benchmarks/unseen.py --out OUT [--seeds 104,105,106] [--views 48] [--size 128x96] [--gs-steps 3000]
+    python -m benchmarks.unseen --out OUT [--seeds 104,105,106] [--views 48] [--size 128x96] [--gs-steps 3000]
                                 [--grad-threshold 0.001]
-    python benchmarks/unseen.py --quick --out OUT      # CI size: one small scene, short stages
+    python -m benchmarks.unseen --quick --out OUT      # CI size: one small scene, short stages
 
 For each seed: ``fmgs synth --preset cluttered`` (10 of 13 objects: thin, small, flat, touching),
 then ``fmgs build DATA --targets labels`` at the build defaults (only the 3DGS step count and
@@ -10,7 +10,7 @@ densification threshold are set, for CPU time), then every score through the eng
 (``SceneEngine.open``) on held-out views: per-class IoU and mIoU of the served segmentation, 2D (LERF
 protocol) and 3D localisation, and presence for queries of five kinds (names, paraphrases, absent
 catalogue objects, colour swaps, unrelated things).
-Writes OUT/unseen.json and OUT/FIELD.md (``--report``: benchmarks/FIELD.md too).
+Writes OUT/unseen.json and OUT/FIELD.md (``--report``: benchmarks/results/FIELD.md too).
 """
 
 from __future__ import annotations
@@ -21,8 +21,7 @@ import sys
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+from benchmarks.common import machine, machine_words, save_report
 
 # Fixed before any measurement; never edited to suit a result.
 PARAPHRASES = {
@@ -293,9 +292,7 @@ def report(scenes: list[dict], info: dict, cmd: str) -> str:
     lines = [
         "# Open-vocabulary quality on unseen scenes, at the build defaults",
         "",
-        f"Measured {info['date']} on {info['cpu']} ({info['cores']} cores, "
-        + (f"GPU {info['gpu']}" if info["gpu"] else "no GPU")
-        + f"), commit {info['commit']}. Reproduce: `{cmd}`.",
+        f"Measured {info['date']} on {machine_words(info)}. Reproduce: `{cmd}`.",
         "",
         "Scenes: `fmgs synth --preset cluttered --objects 10 --seed S` (a seeded choice of 10 of 13 objects, "
         "thin, small and flat ones among them, about half touching another, on a striped floor). None of "
@@ -399,7 +396,7 @@ def main() -> int:
         help="also score each scene's field packaged with this many embedding neighbours (1: the paper)",
     )
     ap.add_argument("--quick", action="store_true", help="CI size: one 64x48 scene, short stages")
-    ap.add_argument("--report", action="store_true", help="also write benchmarks/FIELD.md")
+    ap.add_argument("--report", action="store_true", help="also write benchmarks/results/FIELD.md")
     ap.add_argument("--from-json", help="only write the report from this unseen.json (its recorded command)")
     ap.add_argument(
         "--evaluate-only",
@@ -408,15 +405,10 @@ def main() -> int:
         "and notes are kept from OUT/unseen.json, and each scene records the commit it was built at",
     )
     args = ap.parse_args()
-    from benchmarks.raster import machine
-
     if args.from_json:
         run = json.loads(Path(args.from_json).read_text())
         text = report(run["scenes"], run["machine"], run["command"])
-        Path(args.out).mkdir(parents=True, exist_ok=True)
-        (Path(args.out) / "FIELD.md").write_text(text)
-        if args.report:
-            (ROOT / "benchmarks" / "FIELD.md").write_text(text)
+        save_report(text, args.out, "FIELD.md", args.report)
         print(text)
         return 0
 
@@ -446,16 +438,14 @@ def main() -> int:
             f"seed {seed}: mIoU {s['miou']:.3f}, 2D {s['localisation_2d']:.1%}, 3D {s['localisation_3d']:.1%}"
         )
     info = machine()
-    cmd = " ".join(["python", "benchmarks/unseen.py", *sys.argv[1:]])
+    cmd = " ".join(["python", "-m", "benchmarks.unseen", *sys.argv[1:]])
     if args.evaluate_only:  # the build's command stays the one that reproduces the packages
         cmd = f"{built_by} then {cmd}"
     text = report(scenes, info, cmd)
     (out / "unseen.json").write_text(
         json.dumps({"machine": info, "command": cmd, "scenes": scenes}, indent=1)
     )
-    (out / "FIELD.md").write_text(text)
-    if args.report:
-        (ROOT / "benchmarks" / "FIELD.md").write_text(text)
+    save_report(text, out, "FIELD.md", args.report)
     print(text)
     return 0
 

@@ -2,6 +2,8 @@
 
     python scripts/make_demo.py [--out models] [--work DIR] [--device cpu]
 
+It imports the project as installed (``.ci/install`` installs this checkout editable into .venv).
+
 Runs, in-process, the same commands a user would type (each is printed first):
   1. ``fmgs synth``: six named objects on a floor, rendered with Open3D (RGB, labels, depth, 3D boxes);
   2. ``fmgs build --targets labels``: 3DGS fit (SH degree 0: the synthetic shading is diffuse), label-mask
@@ -30,7 +32,6 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
 
 NAME = "demo"
 SYNTH = {"--views": "32", "--size": "128x96", "--objects": "6", "--seed": "0", "--points": "5000"}

@@ -1,4 +1,4 @@
-"""The work-precision report behind ``python benchmarks/run.py``.
+"""The work-precision report behind ``python -m benchmarks.run``.
 
 sizes.py    quick (CI) and full sizes of every section
 measure.py  points, error measures, the exact-point check, interleaved timing, growth fits, floors

@@ -10,16 +10,9 @@ from pathlib import Path
 
 import torch
 
-from benchmarks.server import D, export
+from benchmarks.common import export
 from fmgs.gaussians import GaussianSet
 from fmgs.query.engine import EngineConfig, SceneEngine
-
-
-def canonical_vectors(dim: int = D) -> torch.Tensor:
-    """[4,dim] unit canonical vectors, seeded as benchmarks/server.py seeds them."""
-    from fmgs.vecmath import safe_normalize
-
-    return safe_normalize(torch.randn(4, dim, generator=torch.Generator().manual_seed(9)))
 
 
 def server_engine_config() -> EngineConfig:
@@ -34,6 +27,6 @@ def product_engine(
     folder: Path, gaussians: GaussianSet, embeddings: torch.Tensor, canonical: torch.Tensor
 ) -> SceneEngine:
     """Export every Gaussian with its embedding [N,D] to the package ``folder`` (float16 embeddings,
-    canonical dots from them; benchmarks/server.py ``export``), then open it as the server does."""
+    canonical dots from them; benchmarks/common.py ``export``), then open it as the server does."""
     export(folder, gaussians, embeddings, canonical)
     return SceneEngine.open(folder, server_engine_config())

@@ -13,7 +13,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from benchmarks.server import D, med_ms
+from benchmarks.common import D, med_ms
 from benchmarks.workprec.measure import (
     GPU_NOTE,
     PROJECT_FLOPS,

@@ -12,7 +12,7 @@ from typing import Any, NamedTuple
 import numpy as np
 import torch
 
-from benchmarks.server import D
+from benchmarks.common import D
 
 GPU_NOTE = "not measured (no GPU lent)"
 

@@ -10,8 +10,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from benchmarks.server import D, med_ms
-from benchmarks.workprec.engine import canonical_vectors, product_engine
+from benchmarks.common import D, canonical_vectors, fieldlike, make_queries, med_ms
+from benchmarks.workprec.engine import product_engine
 from benchmarks.workprec.measure import GPU_NOTE, Point, e, image_error, interleaved, pct
 from benchmarks.workprec.plots import plot_work_precision
 from benchmarks.workprec.sizes import PoseSizes
@@ -23,10 +23,11 @@ def p90_ms(ts) -> float:
 
 
 def render_scene(name: str, width: int, height: int):
-    """(means, quats, scales, opacities, camera) as benchmarks/raster.py renders them."""
-    from benchmarks.raster import Config, make_scene
+    """(means, quats, scales, opacities, camera) as benchmarks/raster.py renders them (benchmarks/scenes.py
+    ``view``)."""
+    from benchmarks.scenes import view
 
-    return make_scene(Config(name, width, height, 5, "cpu", 1))
+    return view(name, width, height)
 
 
 def upsample(img: torch.Tensor, height: int, width: int) -> torch.Tensor:
@@ -133,7 +134,6 @@ def image_errors(outs: list[torch.Tensor], refs: list[torch.Tensor]) -> dict[str
 
 @torch.no_grad()
 def section(sz: PoseSizes, work: Path) -> dict:
-    from benchmarks.server import fieldlike, make_queries
     from fmgs.gaussians import GaussianSet
     from fmgs.query.index import EmbeddingIndex, IndexConfig
     from fmgs.query.relevancy import TEMPERATURE, relevancy

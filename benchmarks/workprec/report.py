@@ -8,11 +8,10 @@ import os
 import subprocess
 from pathlib import Path
 
-from benchmarks.raster import machine
+from benchmarks.common import ROOT, machine
 from benchmarks.workprec import field, floor, gs, pose, scaling, text
 from benchmarks.workprec.measure import GPU_NOTE, exact_failures
 
-ROOT = Path(__file__).resolve().parents[2]
 MODULES = {"text": text, "pose": pose, "field": field, "gs": gs, "scaling": scaling, "floor": floor}
 """Each section's module (section, markdown, reading, plot), in the order of the report."""
 SECTIONS = tuple(MODULES)
@@ -24,7 +23,7 @@ def git_dirty() -> bool:
 
 
 def machine_info() -> dict:
-    """What every section is stamped with: benchmarks/raster.py ``machine``, the tree state, matplotlib."""
+    """What every section is stamped with: benchmarks/common.py ``machine``, the tree state, matplotlib."""
     import matplotlib
 
     return machine() | {"dirty": git_dirty(), "matplotlib": matplotlib.__version__}
@@ -124,7 +123,7 @@ def write_report(res: dict, out: Path, report: Path, quick: bool) -> None:
         )
         + f". Per-section stamps are also in the plots, the CSV files and `{img('results.json')}`.",
         "",
-        "Regenerate: `python benchmarks/run.py` (full size; `--quick` is the CI size, `--only text,pose` "
+        "Regenerate: `python -m benchmarks.run` (full size; `--quick` is the CI size, `--only text,pose` "
         "re-runs sections into the same results). Measuring took "
         + ", ".join(f"{k} {v['seconds'] / 60:.1f} min" for k, v in res.items())
         + ".",

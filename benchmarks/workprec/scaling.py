@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from benchmarks.server import D, med_ms
+from benchmarks.common import D, med_ms
 from benchmarks.workprec.measure import GPU_NOTE, fit_growth, interleaved, pct, set_threads, with_threads
 from benchmarks.workprec.plots import figure, save
 from benchmarks.workprec.pose import render_scene
@@ -143,7 +143,7 @@ def _render_row(scene: str, w: int, h: int, reps: int, threads: int, cores: int)
 def grpc_scaling(sz: ScalingSizes, work: Path) -> list[dict]:
     """End-to-end text-query latency through gRPC on loopback against the number of concurrent clients
     (the server as ``fmgs serve`` runs it: default limits, workers = cores, default threads)."""
-    from benchmarks.server import TableEncoder, export, gaussians_from
+    from benchmarks.common import TableEncoder, export, gaussians_from
     from fmgs_client.load import LoadConfig, run_load
     from fmgs_server.config import ServerConfig
     from fmgs_server.server import start_server

@@ -12,8 +12,9 @@ from typing import Any, NamedTuple
 import numpy as np
 import torch
 
-from benchmarks.server import D, med_ms
-from benchmarks.workprec.engine import canonical_vectors, product_engine
+from benchmarks.common import D, canonical_vectors, fieldlike, gaussians_from, make_queries, med_ms, page_in
+from benchmarks.faiss_peer import FLAT, IVF, FaissRanker
+from benchmarks.workprec.engine import product_engine
 from benchmarks.workprec.measure import (
     GPU_NOTE,
     Point,
@@ -27,7 +28,7 @@ from benchmarks.workprec.sizes import TextSizes
 
 
 class FieldScene(NamedTuple):
-    """A scene with field-like per-Gaussian embeddings (benchmarks/server.py ``fieldlike``)."""
+    """A scene with field-like per-Gaussian embeddings (benchmarks/common.py ``fieldlike``)."""
 
     scene: Any
     """benchmarks.scenes.Scene."""
@@ -42,7 +43,6 @@ class FieldScene(NamedTuple):
 def field_scene(n: int, queries: int, seed: int = 3) -> FieldScene:
     """n synthetic Gaussians (benchmarks/scenes.py) with field-like embeddings and queries near them."""
     from benchmarks.scenes import synthetic
-    from benchmarks.server import fieldlike, make_queries
 
     s = synthetic(n, seed=seed)
     emb = fieldlike(s.means)
@@ -158,32 +158,6 @@ class EngineRanker:
         return self.engine.index.nbytes()
 
 
-class FaissRanker:
-    """A faiss index over [f, -max_n f.c_n] (benchmarks/text.py ``faiss_indexes``): its inner product with
-    [q, 1] is the served margin. ``refine``: IVF-SQ8 with float16 refinement of 1,000 candidates."""
-
-    def __init__(self, entry: dict, refine: bool, n: int) -> None:
-        self.index, self.refine, self.bytes = entry["index"], refine, entry["bytes"] * n
-
-    def rank(self, q: torch.Tensor, k: int):
-        import faiss
-
-        from fmgs.query.index import Ranked, served_relevancy
-
-        qx = np.concatenate([q.numpy(), [1.0]]).astype(np.float32)[None]
-        if self.refine:
-            params = faiss.IndexRefineSearchParameters(k_factor=max(1.0, 1000 / k))
-            dist, ids = self.index.search(qx, k, params=params)
-        else:
-            dist, ids = self.index.search(qx, k)
-        keep = ids[0] >= 0
-        m = torch.from_numpy(dist[0][keep]).float()
-        return Ranked(torch.from_numpy(ids[0][keep]), served_relevancy(m), m)
-
-    def nbytes(self) -> int:
-        return self.bytes
-
-
 def settings_for(sz: TextSizes, fs: dict, engine, tier1, faiss_entries: dict | None) -> dict:
     """name -> (curve, label, ranker, exact reference?, certified?) for every compared setting."""
     from fmgs.query.index import EmbeddingIndex, IndexConfig
@@ -227,15 +201,14 @@ def settings_for(sz: TextSizes, fs: dict, engine, tier1, faiss_entries: dict | N
         out["faiss_flat"] = (
             "faiss (peer)",
             "IndexFlatIP",
-            FaissRanker(faiss_entries["faiss_flat"], False, n),
+            FaissRanker(faiss_entries[FLAT], n),
             False,
             False,
         )
-        ivf = faiss_entries["faiss_ivf_sq8_refine"]
         out["faiss_ivf"] = (
             "faiss (peer)",
             "IVF1024,SQ8 + refine 1k",
-            FaissRanker(ivf, True, n),
+            FaissRanker(faiss_entries[IVF], n),
             False,
             False,
         )
@@ -243,10 +216,9 @@ def settings_for(sz: TextSizes, fs: dict, engine, tier1, faiss_entries: dict | N
 
 
 def section(sz: TextSizes, work: Path) -> dict:
+    from benchmarks.faiss_peer import build, exact_top, recall
     from benchmarks.query_sets import QUERY_SETS, query_sets, scene_embeddings
     from benchmarks.scenes import synthetic
-    from benchmarks.server import gaussians_from
-    from benchmarks.text import exact_top, faiss_indexes, page_in, recall
     from fmgs.query.engine import EngineConfig, SceneEngine
     from fmgs.query.index import served_relevancy
 
@@ -264,7 +236,7 @@ def section(sz: TextSizes, work: Path) -> dict:
     )
     cd = engine.index.canonical.float()  # the package's canonical dots: what the served margin subtracts
     try:
-        faiss_entries = faiss_indexes(emb, engine.index.canonical_max)
+        faiss_entries = build(emb, engine.index.canonical_max)
     except ImportError:  # faiss-cpu is a benchmark-only dependency
         faiss_entries = None
     fs = {"emb": emb, "canonical_dots": cd, "opacities": scene.opacities}
@@ -397,8 +369,8 @@ def markdown(sec: dict, img: str) -> list[str]:
         L.append(f"| {p['curve']} | {p['label']} | " + " | ".join(cells) + " |")
     L += [
         "",
-        "benchmarks/TEXT.md compares the engine with faiss on the same query sets at K = 1, 100 and 10,000, "
-        "with build and open times.",
+        "benchmarks/results/TEXT.md compares the engine with faiss on the same query sets at K = 1, 100 and "
+        "10,000, with build and open times.",
     ]
     return L
 

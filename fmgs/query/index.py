@@ -15,7 +15,7 @@ for those rows), then a float32 pass over the float16 embeddings (memory-mapped 
 float64. Texts the first tier cannot settle (CLIP-like, absent) start with a pass over every row through
 the first tier and the second tier's head, or the whole second tier (``_tier2_first``). How many rows
 each step takes depends on how well the basis describes the scene's embeddings in the query's direction
-(benchmarks/TEXT.md).
+(benchmarks/results/TEXT.md).
 """
 
 from __future__ import annotations
@@ -55,7 +55,7 @@ TIER2_FIRST_FRACTION = 0.35
 """A text goes straight to the second tier over every row when its first-tier bound is estimated to leave
 more than this fraction of the rows: measured at 1M rows, the first tier costs 9 ms and the second 27 ms
 over every row, and what the first leaves costs the second again plus about 8 ms of selections and
-masks, so the two break even near a third (benchmarks/TEXT.md)."""
+masks, so the two break even near a third (benchmarks/results/TEXT.md)."""
 HEAD_FRACTION = 0.1
 """Of those texts, the ones whose pass through the first tier and the second tier's head is estimated to
 leave at most this fraction of the rows take that pass (the rows it leaves then read the tail); the others

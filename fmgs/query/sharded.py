@@ -272,7 +272,7 @@ def composite(layers: Sequence[ShardLayer], outputs: tuple[str, ...]):
 
     Exact when every pixel's Gaussians of a nearer cell lie in front of a farther cell's; Gaussians
     straddling a split plane and the rasteriser's early stop make the difference measured in
-    benchmarks/CLUSTER.md against the unsharded render.
+    benchmarks/results/CLUSTER.md against the unsharded render.
     """
     from fmgs.query.pose import PoseRender, score_image
 

@@ -17,8 +17,8 @@ from fmgs.errors import BackendUnavailableError
 from fmgs.render.types import RasterConfig, RenderOutput
 
 # Channels gsplat blends per pass (it loops over chunks of this many). Measured on an H100
-# (benchmarks/GPU.md, part "chunks"): a 899-channel garden render takes 38 ms in passes of 513, 20 ms in
-# passes of 32; and gsplat 1.5.3's backward crashes the process (SIGSEGV) with 513-channel passes.
+# (benchmarks/results/GPU.md, part "chunks"): a 899-channel garden render takes 38 ms in passes of 513,
+# 20 ms in passes of 32; and gsplat 1.5.3's backward crashes the process (SIGSEGV) with 513-channel passes.
 CHANNEL_CHUNK = 32
 
 

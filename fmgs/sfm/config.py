@@ -52,7 +52,7 @@ class SfMConfig:
     """Bundle adjustment refines estimated focal lengths (no: held at EXIF's or the guess)."""
     refine_principal_point: bool = False
     """Bundle adjustment refines estimated principal points (no: held at the image centre; refining
-    raised the median rotation error in benchmarks/SFM.md, even for an off-centre principal point)."""
+    raised the median rotation error in benchmarks/results/SFM.md, even for an off-centre principal point)."""
     refine_extra: bool = True
     """Bundle adjustment refines estimated distortion parameters (no: held at zero)."""
     refine_known: bool = False

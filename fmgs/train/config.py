@@ -112,7 +112,7 @@ class GSTrainConfig:
     """CPU threads for torch and numba during the run; 0: auto, the cores idle when it starts (cores
     minus the whole part of the load average, at least 1). torch's and numba's own default, every core,
     oversubscribes a busy machine: train-gs made 0.26 steps/s with 2 threads on a 2-core EPYC under a
-    load of 6-8 against 2.6 with 1; idle, 2 threads won (benchmarks/THREADS.md)."""
+    load of 6-8 against 2.6 with 1; idle, 2 threads won (benchmarks/results/THREADS.md)."""
 
     @classmethod
     def reduced(cls, steps: int, **kw) -> GSTrainConfig:

@@ -2,7 +2,7 @@
 
 Both pools default to every core and spin while they wait, so on a machine whose cores other jobs already
 use they oversubscribe: a train-gs run on a loaded 2-core machine made 0.26 steps/s with 2 threads and
-2.6 with 1 (benchmarks/THREADS.md). ``auto`` therefore takes only the cores idle when the run starts.
+2.6 with 1 (benchmarks/results/THREADS.md). ``auto`` therefore takes only the cores idle when the run starts.
 """
 
 from __future__ import annotations

@@ -24,8 +24,8 @@ def test_report_names_failed_and_skipped_parts(tmp_path):
 
 
 def test_committed_report_is_written_from_the_committed_figures(tmp_path):
-    figures = json.loads((ROOT / "benchmarks" / "GPU.json").read_text())
+    figures = json.loads((ROOT / "benchmarks" / "results" / "GPU.json").read_text())
     write_report(figures, tmp_path / "GPU.md")
-    assert (tmp_path / "GPU.md").read_text() == (ROOT / "benchmarks" / "GPU.md").read_text()
+    assert (tmp_path / "GPU.md").read_text() == (ROOT / "benchmarks" / "results" / "GPU.md").read_text()
     tests = figures["parts"]["tests"]
     assert tests["collected"] == tests["passed"] > 0  # the device run's CUDA tests all passed

@@ -1,5 +1,5 @@
 """A CI-sized unseen scene built at the defaults: segmentation and presence floors (benchmarks/unseen.py
-holds the full-size report, benchmarks/FIELD.md)."""
+holds the full-size report, benchmarks/results/FIELD.md)."""
 
 from __future__ import annotations
 

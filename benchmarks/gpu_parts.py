@@ -162,7 +162,7 @@ def part_tests(work: Path, quick: bool) -> dict:
 
     xml = work / "cuda-tests.xml"
     # Only the modules that hold CUDA tests: others may import packages the GPU image lacks (pycolmap).
-    files = sorted(str(p) for p in (ROOT / "tests").glob("test_*.py") if "mark.cuda" in p.read_text())
+    files = sorted(str(p) for p in (ROOT / "tests").rglob("test_*.py") if "mark.cuda" in p.read_text())
     cmd = [sys.executable, "-X", "faulthandler", "-m", "pytest", "-v", "-m", "cuda", "-p", "no:cacheprovider"]
     cmd += ["--junitxml", str(xml)]
     cmd += files

@@ -27,8 +27,8 @@ File ``query_state.safetensors`` in the package (written by ``export_scene``):
   r2 when it is stored whole), bounds2 [M,2] float32 (its error and residual norms, rounded up), and when
   h < r2 codes2_tail [M,r2-h] int8 and bounds2_head [M,2] float32 (the head's error and residual norms);
   metadata {format: "fmgs-query-state", version, rank, rank2, head2, num, dim, code_norm_max,
-  code_norm_max2, source}. Version 1 files (no second tier) still load, and the index then runs on the
-  first tier alone; version 2 files (no head2: the second tier stored whole) load without the head pass.
+  code_norm_max2, source}. Only the current version (STATE_VERSION) is read: an older file is refused
+  with what to do (``fmgs build`` exports the package again), and the server builds the state in memory.
 ``source`` fingerprints the embeddings file (size and sampled blocks), so a state that does not belong to
 the embeddings beside it is refused and rebuilt in memory.
 """
@@ -47,7 +47,10 @@ from fmgs.errors import ValidationError
 STATE_FILE = "query_state.safetensors"
 STATE_FORMAT = "fmgs-query-state"
 STATE_VERSION = 3
-READS_VERSIONS = ("1", "2", "3")
+"""The version written, and the only one read (1: no second tier; 2: no head2, the tier stored whole)."""
+REEXPORT = "fmgs build SOURCE --name NAME"
+"""The command that exports a package again (its completed stages are reused: only the package is
+written anew)."""
 TIER2_RANK = 256
 """Default total rank of both tiers (first tier + second tier basis vectors)."""
 TIER2_HEAD = 128
@@ -302,9 +305,11 @@ def load_state(path: Path, num: int, dim: int, source: str) -> QueryState:
         raise ValidationError(where, f"cannot read ({e})") from e
     if meta.get("format") != STATE_FORMAT:
         raise ValidationError(where, f"not a query state (format {meta.get('format')!r})")
-    if meta.get("version") not in READS_VERSIONS:
+    if meta.get("version") != str(STATE_VERSION):
         raise ValidationError(
-            where, f"query state version {meta.get('version')!r}, this build reads {'/'.join(READS_VERSIONS)}"
+            where,
+            f"query state version {meta.get('version')!r}, this build reads version {STATE_VERSION} only: "
+            f"export the package again ({REEXPORT}) or delete this file (the state is then built at load)",
         )
     if meta.get("source") != source:
         raise ValidationError(where, "written for other embeddings than the package's (stale)")
@@ -337,21 +342,20 @@ def load_state(path: Path, num: int, dim: int, source: str) -> QueryState:
 
 
 def _load_tier2(path: Path, meta: dict, n: int, d: int, r: int) -> Tier2 | None:
-    """The second tier of a version-2 or 3 state (None when it has none), codes and bounds memory-mapped;
-    version 2 has no head2 (the tier stored whole)."""
+    """The second tier of a state (None when it has none), codes and bounds memory-mapped; head2 = rank2
+    when the tier is stored whole."""
     from safetensors import safe_open
 
     from fmgs.io.mmap_tensors import mmap_torch
 
     where = str(path)
     try:
-        r2 = int(meta.get("rank2", "0"))
-        cmax2 = float(meta.get("code_norm_max2", "0"))
-        h = int(meta.get("head2", str(r2)))
-    except ValueError as e:
+        r2 = int(meta["rank2"])
+        if r2 == 0:
+            return None
+        cmax2, h = float(meta["code_norm_max2"]), int(meta["head2"])
+    except (KeyError, ValueError) as e:
         raise ValidationError(where, f"bad metadata ({e})") from e
-    if r2 == 0:
-        return None
     if not 0 < r + r2 < d or not np.isfinite(cmax2) or cmax2 < 0:
         raise ValidationError(where, f"second tier rank {r2} (first {r}, dim {d}) or code_norm_max2 invalid")
     if not 0 < h <= r2:

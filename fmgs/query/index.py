@@ -28,6 +28,7 @@ import numpy as np
 import torch
 
 from fmgs.errors import ValidationError
+from fmgs.query import tuning
 from fmgs.query.certify import (
     Pending,
     Refined,
@@ -41,41 +42,6 @@ from fmgs.query.config import IndexConfig
 from fmgs.query.relevancy import TEMPERATURE
 from fmgs.query.state import QueryState, build_state
 
-RESCORE_CHUNK = 8192
-"""Rows rescored at once: bounds the working memory of a rescoring pass (RESCORE_CHUNK x D x 12 bytes)."""
-REFINE_ABOVE = 2048
-"""More rows than this to rescore are first bounded by the second tier and a float32 pass
-(fmgs.query.certify); also caps the first rescoring at k + this many rows. 2048 against 4096, 1M rows,
-one thread, 3 runs each: typical texts at k = 100 16.0-16.7 against 16.7-17.6 ms (2511 -> 400 rows
-rescored), a batch of 8 of them 58-69 against 65-67 ms, near at k = 10,000 29.8-30.6 against 31.3-33.8
-ms; CLIP-like and absent texts unchanged within noise (1024 made typical k = 10,000 slower)."""
-REFINE_CHUNK = 262144
-"""Rows per refinement pass: bounds its working memory (about 40 bytes per row and text)."""
-TIER2_FIRST_FRACTION = 0.35
-"""A text goes straight to the second tier over every row when its first-tier bound is estimated to leave
-more than this fraction of the rows: measured at 1M rows, the first tier costs 9 ms and the second 27 ms
-over every row, and what the first leaves costs the second again plus about 8 ms of selections and
-masks, so the two break even near a third (benchmarks/TEXT.md)."""
-HEAD_FRACTION = 0.1
-"""Of those texts, the ones whose pass through the first tier and the second tier's head is estimated to
-leave at most this fraction of the rows take that pass (the rows it leaves then read the tail); the others
-read the whole second tier over every row. 1M rows, ranks 64 + 128 + 64: the head pass costs 27 ms and the
-whole tier 36 ms, and a CLIP-like text at k = 10,000, whose head pass left most rows, took 64 against
-55 ms (measured)."""
-HEAD_TEXTS = 2
-"""The head pass is taken only when at most this many texts of a request leave the first tier: for more,
-the pass is bound by its multiply-adds rather than by reading the codes, and the rows the head leaves
-cost more than the tail saves. 1M rows, k = 100, one thread, head against whole tier: 1 CLIP-like text
-34-35 against 37-38 ms, 2 texts 57-58 against 62-63 ms, 4 texts 68 against 61-63 ms, 8 texts 108-110
-against 101-102 ms (absent texts: 35-37 against 37-38, 62-64 against 62-64, 77 against 64-66, 116-119
-against 97-102 ms; measured)."""
-TIER2_FIRST_STEP = 256
-"""Every this-many-th row makes the sample that estimates it."""
-HINT_BELOW = 2
-"""A text's hint for certify_start is at most its sample's (HINT_BELOW ks + 1)-th best lower bound
-(``_hints``)."""
-TIER2_FIRST_MIN_SAMPLE = 256
-"""Smaller scenes (under 64K rows) skip the estimate: the first tier is cheap there."""
 _U32 = 2.0**-24
 
 
@@ -274,7 +240,7 @@ class EmbeddingIndex:
             if self._estimates_first_pass:
                 # codes, three norms, bounds2 and the head's bounds (when stored apart)
                 per_row = self.state.rank + self.tier2.rank + 4 * 3 + 8 + self._head_bounds.shape[1] * 4
-                sample = -(-self.num // TIER2_FIRST_STEP) * per_row
+                sample = -(-self.num // tuning.TIER2_FIRST_STEP) * per_row
         return sum(x.numel() * x.element_size() for x in t) + sample
 
     @property
@@ -349,8 +315,8 @@ class EmbeddingIndex:
             from fmgs.query.kernels import half_dots64
 
             half_dots64(self.half, uniq.astype(np.int64), v64.numpy(), out.numpy())
-        for s in range(0, len(uniq) if self.half is None else 0, RESCORE_CHUNK):
-            part = uniq[s : s + RESCORE_CHUNK]
+        for s in range(0, len(uniq) if self.half is None else 0, tuning.RESCORE_CHUNK):
+            part = uniq[s : s + tuning.RESCORE_CHUNK]
             if self.state is None:
                 f = self.table[torch.from_numpy(part).to(self.device)]
             else:
@@ -375,17 +341,17 @@ class EmbeddingIndex:
         W, wn, vn = self._weights(q)
         up1 = (torch.from_numpy(s.codes1).float() @ W.T - torch.from_numpy(s.shift)[:, None]).T  # [n,S]
         up1 = up1 + torch.from_numpy(s.err1) * wn[:, None] + torch.from_numpy(s.res1) * vn[:, None]
-        ks = max(1, -(-k // TIER2_FIRST_STEP))
-        best = torch.topk(lo2, min(HINT_BELOW * ks + 1, n_s), dim=1).values
+        ks = max(1, -(-k // tuning.TIER2_FIRST_STEP))
+        best = torch.topk(lo2, min(tuning.HINT_BELOW * ks + 1, n_s), dim=1).values
         L = best[:, min(ks, n_s) - 1, None]  # [n,1]: the sample's ks-th best lower bound
         frac = (up1.double() >= L).double().mean(1)
-        second = [j for j in range(len(q)) if float(frac[j]) > TIER2_FIRST_FRACTION]
+        second = [j for j in range(len(q)) if float(frac[j]) > tuning.TIER2_FIRST_FRACTION]
         est = up1.double()  # each text's sample bounds from the pass it will take
         head = []
-        if second and self._has_head and len(second) <= HEAD_TEXTS:
+        if second and self._has_head and len(second) <= tuning.HEAD_TEXTS:
             up15 = self._head_upper(q[second], _empty32(len(second), n_s), codes=s).double()
             frac15 = (up15 >= L[second]).double().mean(1)
-            head = [j for c, j in enumerate(second) if float(frac15[c]) <= HEAD_FRACTION]
+            head = [j for c, j in enumerate(second) if float(frac15[c]) <= tuning.HEAD_FRACTION]
             est[head] = up15[[second.index(j) for j in head]]
         direct = [j for j in second if j not in head]
         est[direct] = up2[direct]
@@ -396,9 +362,7 @@ class EmbeddingIndex:
         bounds est [n,S] (of the pass it takes) and low [n], the sample's (HINT_BELOW ks + 1)-th best
         lower bound: low enough that the ``first`` rows of highest bound reach it (twice their share of
         the sample, as certify.top_rows estimates), and that, most often, so does every row reaching the
-        k-th exact margin (a sample of 1/256 of the rows rarely holds HINT_BELOW ks + 1 of the k best).
-        At 1M rows it held for 299 of 300 texts (benchmarks/query_sets.py's five sets of 12, k from 1 to
-        10,000; measured)."""
+        k-th exact margin (benchmarks/results/TEXT.md, "Tuning constants")."""
         n_s = est.shape[1]
         take = min(n_s, 2 * -(-first * n_s // self.num) + 8)
         top = torch.topk(est, take, dim=1).values[:, -1]
@@ -412,14 +376,14 @@ class EmbeddingIndex:
     @property
     def _estimates_first_pass(self) -> bool:
         """Whether ``_tier2_first`` estimates (a second tier, and a sample of TIER2_FIRST_MIN_SAMPLE rows)."""
-        return self.tier2 is not None and self.num // TIER2_FIRST_STEP >= TIER2_FIRST_MIN_SAMPLE
+        return self.tier2 is not None and self.num // tuning.TIER2_FIRST_STEP >= tuning.TIER2_FIRST_MIN_SAMPLE
 
     @functools.cached_property
     def _sample(self) -> _Codes:
         """Every TIER2_FIRST_STEP-th row's codes and norms, copied together on first use (about 1.1 bytes
         per Gaussian, counted by ``nbytes``): the estimate then reads them in one run instead of a page of
         each memory-mapped table per row."""
-        rows = torch.arange(0, self.num, TIER2_FIRST_STEP)
+        rows = torch.arange(0, self.num, tuning.TIER2_FIRST_STEP)
         return _Codes(
             self.coeffs[rows].contiguous().numpy(),
             self.tier2.codes[rows].contiguous().numpy(),
@@ -467,19 +431,19 @@ class EmbeddingIndex:
         The pass runs REFINE_CHUNK rows at a time into reused buffers and keeps, per text, only the rows
         whose second-tier upper bound reaches that text's L: the others are out whatever L becomes (it
         only rises), and their lower bounds, below L, cannot raise it."""
-        big = [j for j, p in enumerate(pending) if p.n2 > REFINE_ABOVE and j not in skip]
+        big = [j for j, p in enumerate(pending) if p.n2 > tuning.REFINE_ABOVE and j not in skip]
         if self.tier2 is None or not big:
             return pending
         union = _union(pending, big, self.num)
         qb = q[big]
-        size = min(REFINE_CHUNK, len(union))
+        size = min(tuning.REFINE_CHUNK, len(union))
         buf = (
             torch.empty(len(big), size, dtype=torch.float64),
             torch.empty(len(big), size, dtype=torch.float64),
         )
         kept: list[list[tuple[torch.Tensor, ...]]] = [[] for _ in big]
-        for s in range(0, len(union), REFINE_CHUNK):
-            part = union[s : s + REFINE_CHUNK]
+        for s in range(0, len(union), tuning.REFINE_CHUNK):
+            part = union[s : s + tuning.REFINE_CHUNK]
             lo, up = (b[:, : len(part)] for b in buf)
             self._tier2_bounds(part, qb, into=(lo, up))
             for c, j in enumerate(big):
@@ -559,14 +523,14 @@ class EmbeddingIndex:
         """Tighter bounds for the texts with more than REFINE_ABOVE rows left: one float32 pass over the
         union of those rows for all of them at once. Returns {text: Refined} over the union (a sorted
         superset of each text's rows2: certify_finish reads it as it is, no per-text gathering)."""
-        big = [j for j, p in enumerate(pending) if p.n2 > REFINE_ABOVE]
+        big = [j for j, p in enumerate(pending) if p.n2 > tuning.REFINE_ABOVE]
         if self.half is None or not big:
             return {}
         union = _union(pending, big, self.num)
         lo = torch.empty(len(big), len(union), dtype=torch.float64)
         up = torch.empty_like(lo)
-        for s in range(0, len(union), REFINE_CHUNK):  # bounded working memory for the kernel's inputs
-            part = union[s : s + REFINE_CHUNK]
+        for s in range(0, len(union), tuning.REFINE_CHUNK):  # bounded working memory for the kernel's inputs
+            part = union[s : s + tuning.REFINE_CHUNK]
             self._refine(part, q[big], cv, (lo[:, s : s + len(part)], up[:, s : s + len(part)]))
         return {j: Refined(union, lo[c], up[c]) for c, j in enumerate(big)}
 
@@ -618,7 +582,7 @@ class EmbeddingIndex:
         settles more cheaply); k on the exact path."""
         if self.state is None:
             return k
-        return min(self.num, max(k, min(self.cfg.rerank * k, k + REFINE_ABOVE)))
+        return min(self.num, max(k, min(self.cfg.rerank * k, k + tuning.REFINE_ABOVE)))
 
     def rank(
         self,

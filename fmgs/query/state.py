@@ -43,6 +43,7 @@ import numpy as np
 import torch
 
 from fmgs.errors import ValidationError
+from fmgs.query import tuning
 
 STATE_FILE = "query_state.safetensors"
 STATE_FORMAT = "fmgs-query-state"
@@ -53,15 +54,6 @@ REEXPORT = "fmgs build SOURCE --name NAME"
 written anew)."""
 TIER2_RANK = 256
 """Default total rank of both tiers (first tier + second tier basis vectors)."""
-TIER2_HEAD = 128
-"""Basis vectors of the second tier's head (see the module docstring). 1M rows, ranks 64 + 192, one
-thread: a CLIP-like text at k = 100 took 32-33 ms through a head of 128 against 39-40 ms through the whole
-second tier, an absent one 36 against 39 ms; a head of 96 left several times more rows to the tail and
-made absent texts slower than the whole tier (41-43 ms); a head of 64 left 20-70% of the rows (measured
-on benchmarks/query_sets.py's sets)."""
-TIER2_TAIL_MIN = 32
-"""The second tier is split only when its tail would hold at least this many basis vectors (else the head
-pass saves too little over the whole tier to pay for the rows it leaves)."""
 TIER2_ENERGY = 1e-6
 """The second tier stops at the embeddings' numerical rank: where the sample's remaining energy falls
 below this fraction (float16 rounding leaves about 1e-8)."""
@@ -134,12 +126,13 @@ def build_state(
     rank: int,
     basis_sample: int = 100_000,
     rank2: int = TIER2_RANK,
-    head: int = TIER2_HEAD,
+    head: int = tuning.TIER2_HEAD,
 ) -> QueryState:
     """From embeddings [M,D] (any float dtype, e.g. a float16 memory map); two chunked passes, never a
     float32 copy of the whole table. ``rank2``: the total rank of both tiers at most (capped at the
     embeddings' numerical rank; no second tier when that leaves nothing beyond ``rank``). ``head``: basis
-    vectors of the second tier's head (split only when at least TIER2_TAIL_MIN remain; 0: never split)."""
+    vectors of the second tier's head (split only when at least tuning.TIER2_TAIL_MIN remain; 0: never
+    split)."""
     M, D = embeddings.shape
     if not 0 < rank < D:
         raise ValueError(f"rank must lie in (0, {D}), got {rank}")
@@ -154,7 +147,7 @@ def build_state(
     scales = (amax / 127).clamp_min(1e-30).float()
     s64 = scales.double()
     codes = torch.empty(M, rank, dtype=torch.int8)
-    h = head if 0 < head and top - rank - head >= TIER2_TAIL_MIN else top - rank
+    h = head if 0 < head and top - rank - head >= tuning.TIER2_TAIL_MIN else top - rank
     split = rank + h  # the head's last basis vector + 1
     codes2 = torch.empty(M, h, dtype=torch.int8)
     tail = torch.empty(M, top - split, dtype=torch.int8)

@@ -10,10 +10,10 @@ import torch
 
 import fmgs.query.certify as certify_mod
 import fmgs.query.index as index_mod
+import fmgs.query.tuning as tuning
 from benchmarks.query_sets import QUERY_SETS, query_sets, scene_embeddings
 from fmgs.errors import ValidationError
 from fmgs.query.certify import (
-    TOP_SAMPLE_STEP,
     Refined,
     _drop_sorted,
     _keep_sorted,
@@ -27,6 +27,7 @@ from fmgs.query.certify import (
 )
 from fmgs.query.index import EmbeddingIndex, IndexConfig, rank_reference, served_relevancy
 from fmgs.query.state import build_state
+from fmgs.query.tuning import TOP_SAMPLE_STEP
 from fmgs.vecmath import safe_normalize
 
 M, D = 6000, 96
@@ -62,14 +63,14 @@ def _index(scene, path, monkeypatch):
     (every text's first pass through the first tier and the head)."""
     emb, _, canon, _, _ = scene
     if path.endswith("-refined"):
-        monkeypatch.setattr(index_mod, "REFINE_ABOVE", 0)
+        monkeypatch.setattr(tuning, "REFINE_ABOVE", 0)
     if path.endswith(("-direct", "-head")):  # every text's first pass is over the second tier
-        monkeypatch.setattr(index_mod, "TIER2_FIRST_MIN_SAMPLE", 0)
-        monkeypatch.setattr(index_mod, "TIER2_FIRST_STEP", 64)
-        monkeypatch.setattr(index_mod, "TIER2_FIRST_FRACTION", -1.0)
+        monkeypatch.setattr(tuning, "TIER2_FIRST_MIN_SAMPLE", 0)
+        monkeypatch.setattr(tuning, "TIER2_FIRST_STEP", 64)
+        monkeypatch.setattr(tuning, "TIER2_FIRST_FRACTION", -1.0)
     if path.endswith("-head"):
-        monkeypatch.setattr(index_mod, "HEAD_FRACTION", 2.0)
-        monkeypatch.setattr(index_mod, "HEAD_TEXTS", 1000)
+        monkeypatch.setattr(tuning, "HEAD_FRACTION", 2.0)
+        monkeypatch.setattr(tuning, "HEAD_TEXTS", 1000)
     return _indexes(emb, canon)[path.split("-")[0]]
 
 
@@ -283,8 +284,8 @@ def test_split_second_tier_bounds_hold_and_match_the_whole_tier(scene):
 
 def test_texts_the_first_tier_cannot_settle_go_straight_to_the_second(scene, monkeypatch):
     emb, _, canon, _, sets = scene
-    monkeypatch.setattr(index_mod, "TIER2_FIRST_MIN_SAMPLE", 0)
-    monkeypatch.setattr(index_mod, "TIER2_FIRST_STEP", 64)  # a 94-row sample of this small scene
+    monkeypatch.setattr(tuning, "TIER2_FIRST_MIN_SAMPLE", 0)
+    monkeypatch.setattr(tuning, "TIER2_FIRST_STEP", 64)  # a 94-row sample of this small scene
     ix = _indexes(emb, canon)
     idx = ix["compact"]
     q = torch.cat([sets[n] for n in QUERY_SETS])
@@ -302,18 +303,18 @@ def test_texts_the_first_tier_cannot_settle_go_straight_to_the_second(scene, mon
     # Split: the same texts leave the first tier; those whose head pass is estimated to leave at most
     # HEAD_FRACTION of the rows take it (all of them at 2, none at -1), the others the whole tier.
     split = ix["split"]
-    monkeypatch.setattr(index_mod, "HEAD_TEXTS", len(q))
+    monkeypatch.setattr(tuning, "HEAD_TEXTS", len(q))
     for frac, want_head in ((2.0, chosen), (-1.0, set())):
-        monkeypatch.setattr(index_mod, "HEAD_FRACTION", frac)
+        monkeypatch.setattr(tuning, "HEAD_FRACTION", frac)
         direct, head, _ = split._tier2_first(q, 10, 40)
         assert set(head) == want_head and set(direct) | set(head) == chosen and not set(direct) & set(head)
-    monkeypatch.setattr(index_mod, "HEAD_FRACTION", 0.1)
+    monkeypatch.setattr(tuning, "HEAD_FRACTION", 0.1)
     direct, head, _ = split._tier2_first(q, 10, 40)
     assert direct and head  # this scene's texts take all three passes
     # More texts leaving the first tier than HEAD_TEXTS: none takes the head pass.
-    monkeypatch.setattr(index_mod, "HEAD_TEXTS", len(chosen) - 1)
+    monkeypatch.setattr(tuning, "HEAD_TEXTS", len(chosen) - 1)
     assert split._tier2_first(q, 10, 40)[:2] == (sorted(chosen), [])
-    monkeypatch.setattr(index_mod, "HEAD_TEXTS", len(q))
+    monkeypatch.setattr(tuning, "HEAD_TEXTS", len(q))
     for qi, a in zip(q, split.rank_many(q, 10), strict=True):
         _same(a, rank_reference(emb, canon, qi, 10))
 
@@ -324,8 +325,8 @@ def test_hinted_selections_keep_answers_exact(scene, monkeypatch, hint):
     candidates and every row reaching L, and costs one more scan when it does not: answers are exact
     either way."""
     emb, _, canon, _, sets = scene
-    monkeypatch.setattr(index_mod, "TIER2_FIRST_MIN_SAMPLE", 0)
-    monkeypatch.setattr(index_mod, "TIER2_FIRST_STEP", 64)
+    monkeypatch.setattr(tuning, "TIER2_FIRST_MIN_SAMPLE", 0)
+    monkeypatch.setattr(tuning, "TIER2_FIRST_STEP", 64)
     q = torch.cat([sets[n] for n in QUERY_SETS])
     scans = []
     monkeypatch.setattr(certify_mod, "rows_at_least", lambda x, c: scans.append(c) or rows_at_least(x, c))
@@ -472,7 +473,7 @@ def test_sorted_row_helpers_match_set_operations(monkeypatch, room):
     NaN never selected, float64 and strided input too, a length that is not a multiple of the kernel's
     lanes); the sorted difference and intersection against Python sets, empty and disjoint inputs
     included."""
-    monkeypatch.setattr(certify_mod, "SELECT_ROOM", room)
+    monkeypatch.setattr(tuning, "SELECT_ROOM", room)
     g = torch.Generator().manual_seed(11)
     x = torch.randint(0, 20, (5003,), generator=g).float()
     x[::97] = float("nan")
@@ -510,7 +511,7 @@ def test_union_of_pending_rows_both_ways():
 def test_second_tier_sample_holds_the_strided_rows(scene, monkeypatch):
     emb, _, canon, _, _ = scene
     idx = _indexes(emb, canon)["compact"]
-    s, rows = idx._sample, torch.arange(0, M, index_mod.TIER2_FIRST_STEP)
+    s, rows = idx._sample, torch.arange(0, M, tuning.TIER2_FIRST_STEP)
     assert np.array_equal(s.codes1, idx.coeffs[rows].numpy())
     assert np.array_equal(s.codes2, idx.tier2.codes[rows].numpy())
     assert np.array_equal(s.bounds2, idx.tier2.bounds[rows].numpy())
@@ -523,5 +524,5 @@ def test_second_tier_sample_holds_the_strided_rows(scene, monkeypatch):
     assert np.array_equal(t.head_bounds, split.tier2.head_bounds[rows].numpy())
     # Counted as resident where the estimate runs (scenes of TIER2_FIRST_MIN_SAMPLE sample rows or more).
     without = idx.nbytes()
-    monkeypatch.setattr(index_mod, "TIER2_FIRST_MIN_SAMPLE", 0)
+    monkeypatch.setattr(tuning, "TIER2_FIRST_MIN_SAMPLE", 0)
     assert idx.nbytes() - without == sum(a.nbytes for a in s)

@@ -35,7 +35,6 @@ from fmgs.query.certify import (
     certify_finish,
     certify_narrow,
     certify_start,
-    order_rows,
     threshold_margin,
 )
 from fmgs.query.config import IndexConfig
@@ -704,22 +703,3 @@ def _float32_on(embeddings: torch.Tensor, device: torch.device, step: int = 1 <<
     for s in range(0, embeddings.shape[0], step):
         out[s : s + step] = embeddings[s : s + step].to(device, non_blocking=False)
     return out
-
-
-def rank_reference(
-    embeddings: torch.Tensor, canonical: torch.Tensor, query: torch.Tensor, top_k: int, threshold: float = 0.0
-) -> Ranked:
-    """Exact twin of ``EmbeddingIndex.rank`` by brute force in float64: embeddings [M,D], canonical dots
-    [M,C], query [D]."""
-    sim = embeddings.double() @ query.float().double()
-    m = sim - (canonical.float().amax(1).double() if canonical.shape[1] else 0.0)
-    rows = torch.arange(len(sim))
-    order = order_rows(m, rows)[: max(0, min(int(top_k), len(sim)))]
-    rel = served_relevancy(m[order].float())
-    keep = rel >= threshold
-    return Ranked(rows[order][keep], rel[keep], sim[order][keep].float(), len(sim), m[order][keep])
-
-
-def int8_dots_reference(coeffs: torch.Tensor, scales: torch.Tensor, basis: torch.Tensor, v: torch.Tensor):
-    """Twin of the kernel path of ``EmbeddingIndex.dots``: [M,n] (dequantised coefficients) . (B v)."""
-    return ((coeffs.double() * scales.double()) @ (v.double() @ basis.T).T).float()

@@ -25,7 +25,8 @@ from fmgs.query.certify import (
     threshold_margin,
     top_rows,
 )
-from fmgs.query.index import EmbeddingIndex, IndexConfig, rank_reference, served_relevancy
+from fmgs.query.index import EmbeddingIndex, IndexConfig, served_relevancy
+from fmgs.query.reference import rank_reference, tier2_bounds_reference
 from fmgs.query.state import build_state
 from fmgs.query.tuning import TOP_SAMPLE_STEP
 from fmgs.vecmath import safe_normalize
@@ -198,8 +199,6 @@ def test_compact_bounds_hold_for_every_row(scene):
 
 
 def test_second_tier_bounds_hold_are_tight_and_match_their_twin(scene):
-    from fmgs.query.kernels import tier2_bounds_reference
-
     emb, _, canon, _, sets = scene
     idx = _indexes(emb, canon)["compact"]
     t2 = idx.tier2
@@ -243,8 +242,6 @@ def _no_tail(m: int, n: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 def test_split_second_tier_bounds_hold_and_match_the_whole_tier(scene):
-    from fmgs.query.kernels import tier2_bounds_reference
-
     emb, _, canon, _, sets = scene
     ix = _indexes(emb, canon)
     split, whole = ix["split"], ix["compact"]

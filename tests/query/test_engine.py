@@ -8,10 +8,11 @@ import torch
 
 from fmgs.errors import ValidationError
 from fmgs.query.engine import EngineConfig, SceneEngine
-from fmgs.query.index import EmbeddingIndex, IndexConfig, rank_reference
+from fmgs.query.index import EmbeddingIndex, IndexConfig
 from fmgs.query.instances import InstanceConfig, dbscan
 from fmgs.query.points import NoFieldError, query_points
 from fmgs.query.pose import render_pose, render_pose_reference
+from fmgs.query.reference import int8_dots_reference, rank_reference
 from fmgs.query.segment import segment
 from fmgs.scene.package import load_scene
 from fmgs.vecmath import safe_normalize
@@ -224,8 +225,6 @@ def test_engine_config_rejects_nonsense():
 
 
 def test_int8_kernel_matches_reference():
-    from fmgs.query.index import int8_dots_reference
-
     g = torch.Generator().manual_seed(3)
     emb = safe_normalize(torch.randn(3000, 48, generator=g))
     idx = EmbeddingIndex.build(emb, torch.randn(3000, 4, generator=g), IndexConfig(rank=24, exact_below=0))

@@ -13,7 +13,8 @@ from benchmarks.query_sets import query_sets, scene_embeddings
 from fmgs.errors import ValidationError
 from fmgs.gaussians import GaussianSet
 from fmgs.query.engine import EngineConfig, SceneEngine
-from fmgs.query.index import IndexConfig, rank_reference
+from fmgs.query.index import IndexConfig
+from fmgs.query.reference import rank_reference
 from fmgs.query.state import STATE_FILE, fingerprint, load_state
 from fmgs.scene.package import export_scene, load_scene
 from fmgs.vecmath import safe_normalize

@@ -1,4 +1,4 @@
-"""numba kernels for text queries (called from fmgs.query.index and certify, which import this module
+"""numba kernels for text queries (called from fmgs.query.bounds and certify, which import this module
 only when a query needs it): the compact state's int8 coefficients times float32 weights, and dots of
 the float16 embeddings decoded exactly.
 
@@ -453,7 +453,7 @@ def half_dots(
 ) -> bool:
     """out[t,k] = float32 sum_j A[rows[t],j] V[k,j] and mag[t,k] = sum_j |A V| (any summation order), for
     A [M,D] float16 bits (uint16), V [n,D] float32. The rounding error of out is at most (D+4) 2^-24 mag
-    (the bound fmgs.query.index uses). Twin: ``reference.half_dots_reference``.
+    (the bound fmgs.query.bounds uses). Twin: ``reference.half_dots_reference``.
 
     Fast decoding (``scaled``): a float16's bits shifted into float32's layout, times 2^112 (four integer
     operations and a product per value, twice as fast as decoding the fields). Float16 subnormals then

@@ -238,10 +238,10 @@ def test_int8_kernel_matches_reference():
     # The upper-bound kernel (four queries per sweep from 4 on, a tail after) against the same twin.
     for n in (1, 3, 4, 7, 8):
         w = safe_normalize(torch.randn(n, 48, generator=g))
-        up = idx._upper(w, None).double()
+        up = idx.compact.first_tier_upper(w).double()
         r = int8_dots_reference(idx.coeffs, idx.scales, idx.basis, w).double()
-        _, wn, vn = idx._weights(w)
-        err, res = idx._err.double()[:, None], idx._res.double()[:, None]
+        _, wn, vn = idx.compact.first_tier_weights(w)
+        err, res = idx.compact.err.double()[:, None], idx.compact.res.double()[:, None]
         terms = err * wn.double()[None] + res * vn.double()[None]
         want = r - idx.canonical_max.double()[:, None] + terms + idx.slack
         assert up.shape == (3000, n) and (up - want).abs().max() < 1e-5, n

@@ -4,7 +4,8 @@ Gaussians are ranked by the served margin m_i = f_i.q - max_n f_i.c_n (ties by r
 float64 from the stored embeddings; relevancy = sigmoid(t m_i) orders them the same way but saturates.
 Every answer is the exact top K of that ranking, whatever the query (fmgs.query.certify): a cheap pass
 gives each row an upper bound on its margin, and rows are rescored exactly until no unscored row can
-reach the K-th margin. ``Ranked.rescored`` says how many were.
+reach the K-th margin. ``Ranked.rescored`` says how many were; ``EmbeddingIndex.explain`` says which
+passes a text took and what each left.
 
 Exact path (small scenes, ``rank=0``, CUDA): the embeddings [M,D] as float32; the pass is one matrix
 product, bounded by float32 rounding (about D 2^-24), so only near-ties are rescored.
@@ -32,6 +33,7 @@ from fmgs.checks import check_rows_finite
 from fmgs.query import plan, tuning
 from fmgs.query.certify import threshold_margin
 from fmgs.query.config import IndexConfig
+from fmgs.query.plan import NO_PASS, Explanation
 from fmgs.query.relevancy import TEMPERATURE
 from fmgs.query.state import QueryState, build_state
 
@@ -278,6 +280,24 @@ class EmbeddingIndex:
             keep = rel >= threshold
             out.append(Ranked(c.rows[keep], rel[keep], sim[keep].float(), c.rescored, c.margin[keep]))
         return out
+
+    def explain(
+        self,
+        queries: torch.Tensor,
+        top_k: int,
+        threshold: float = 0.0,
+        canonical_vectors: torch.Tensor | None = None,
+    ) -> list[Explanation]:
+        """How ``rank_many`` certifies each of the unit queries [n,D]: which pass bounded every row (the
+        first tier, the first tier and the second tier's head, the whole second tier, or the float32
+        table), how many rows were rescored first, how many each later step left, and how many were
+        scored exactly in all (fmgs.query.plan.Explanation). Runs the same passes as ``rank_many``."""
+        k, q, cv = self._request(queries, top_k, canonical_vectors)
+        if k == 0 or len(q) == 0:
+            return [Explanation(NO_PASS, self.num, 0, 0, None, None, 0, False) for _ in range(len(q))]
+        explained: list[Explanation] = []
+        plan.certify_texts(self, q, k, _threshold_margin(float(threshold)), cv, explained=explained)
+        return explained
 
     def _request(
         self, queries: torch.Tensor, top_k: int, canonical_vectors: torch.Tensor | None

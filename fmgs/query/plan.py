@@ -12,8 +12,8 @@ For the texts of one request (queries q [n,D], top k):
 2. ``first_pass_upper``: every row's upper bound for each text through the pass it takes.
 3. certify_start: the ``first_rescore_count`` rows of highest bound are rescored exactly; their k-th
    margin is L, and the rows whose bound reaches L are left.
-4. ``narrow_pending``: texts that did not start with the second tier and have more than REFINE_ABOVE
-   rows left bound them through both tiers (certify_narrow).
+4. ``narrow_pending``: texts that did not take the whole second tier first and have more than
+   REFINE_ABOVE rows left bound them through both tiers (certify_narrow).
 5. ``refine_pending``: texts still above REFINE_ABOVE bound them by a float32 pass over their float16
    embeddings; certify_finish rescores in float64 what still reaches L.
 """
@@ -39,6 +39,17 @@ from fmgs.query.certify import (
 if TYPE_CHECKING:
     from fmgs.query.index import EmbeddingIndex
 
+EXACT_TABLE = "float32 table"
+"""The exact path's first pass: one float32 product with every stored row."""
+FIRST_TIER = "first tier"
+"""The compact state's first tier over every row (r int8 codes a row)."""
+FIRST_TIER_AND_HEAD = "first tier + head"
+"""The first tier and the second tier's head over every row; the rows it leaves read the tail."""
+SECOND_TIER = "second tier"
+"""Both tiers whole over every row."""
+NO_PASS = "none"
+"""Nothing to rank (top_k 0 or an empty index)."""
+
 
 class FirstPass(NamedTuple):
     """How each text of a request takes its pass over every row (``choose_first_pass``); texts in
@@ -50,6 +61,30 @@ class FirstPass(NamedTuple):
     """Texts through the first tier and the second tier's head."""
     hint: np.ndarray | None
     """[n] float64: each text's cut for certify_start (``hints``; None: not estimated)."""
+
+
+class Explanation(NamedTuple):
+    """How one text's answer was certified (``EmbeddingIndex.explain``)."""
+
+    first_pass: str
+    """The pass that bounded every row: EXACT_TABLE, FIRST_TIER, FIRST_TIER_AND_HEAD, SECOND_TIER (or
+    NO_PASS)."""
+    rows: int
+    """Rows in the index."""
+    first_rescored: int
+    """Rows of highest bound rescored exactly first (``first_rescore_count``, at least k)."""
+    left_by_first_pass: int
+    """Other rows whose first-pass bound reached L, the k-th margin among those: still to settle."""
+    left_by_second_tier: int | None
+    """Of those, the rows the second tier's bounds left (None: not narrowed by it)."""
+    left_by_refinement: int | None
+    """Rows the float32 refinement left to float64 rescoring (None: not refined; it bounds a superset
+    shared by the request's texts, so this may count a few rows outside the ones left)."""
+    scored_exactly: int
+    """Rows scored exactly in all: the first ones and what the last step left. (``Ranked.rescored`` is
+    first_rescored plus the rows left after the second tier: it counts those refinement settled.)"""
+    hinted: bool
+    """Whether certify_start had a cut estimated from the sample (``hints``)."""
 
 
 def first_rescore_count(index: EmbeddingIndex, k: int) -> int:
@@ -224,6 +259,11 @@ class Scorer:
             return d[:, 0] - self.cmax[rows.to(self.cmax.device)].cpu().double()
         return d[:, 0] - d[:, 1:].amax(1)
 
+    @property
+    def scored(self) -> int:
+        """Rows scored so far."""
+        return sum(len(r) for r in self.rows)
+
     def similarity(self, rows: torch.Tensor) -> torch.Tensor:
         """[k] float64 f.q of rows scored before."""
         if len(rows) == 0:
@@ -243,11 +283,12 @@ def certify_texts(
     m_min: float,
     cv: torch.Tensor | None,
     between: Callable[[int], None] | None = None,
+    explained: list[Explanation] | None = None,
 ) -> list[tuple[Certified, Scorer]]:
     """The certified top k (1 <= k <= rows) of each unit query q [n,D] (on the index's device) with
     margin >= m_min, and the scorer that holds its rows' similarities; cv [C,D]: custom canonical
     vectors (None: the stored maxima). ``between(j)`` runs before text j is certified (a deadline check
-    may raise there)."""
+    may raise there); ``explained``: each text's Explanation is appended to it."""
     n = len(q)
     first = first_rescore_count(index, k)
     fp = choose_first_pass(index, q, k, first) if cv is None else FirstPass([], [], None)
@@ -264,10 +305,43 @@ def certify_texts(
             between(j)
         hint = None if fp.hint is None else float(fp.hint[j])
         pending.append(certify_start(upper[j], k, scorers[j], m_min, first, hint))
+    started = pending
     if cv is None:
         pending = narrow_pending(index, pending, q, k, skip=fp.direct)
     refined = refine_pending(index, pending, q, cv)
     done = [
         (certify_finish(p, k, scorers[j], m_min, refined.get(j)), scorers[j]) for j, p in enumerate(pending)
     ]
+    if explained is not None:
+        for j in range(n):
+            explained.append(_explain(index, fp, j, started[j], pending[j], j in refined, scorers[j]))
     return done
+
+
+def _explain(
+    index: EmbeddingIndex,
+    fp: FirstPass,
+    j: int,
+    started: Pending,
+    narrowed: Pending,
+    refined: bool,
+    scorer: Scorer,
+) -> Explanation:
+    """Text j's Explanation from its Pending after certify_start and after narrowing, and its scorer."""
+    if j in fp.direct:
+        first_pass = SECOND_TIER
+    elif j in fp.head:
+        first_pass = FIRST_TIER_AND_HEAD
+    else:
+        first_pass = EXACT_TABLE if index.exact else FIRST_TIER
+    n1 = len(started.rows1)
+    return Explanation(
+        first_pass,
+        index.num,
+        n1,
+        started.n2,
+        narrowed.n2 if narrowed is not started else None,
+        scorer.scored - n1 if refined else None,
+        scorer.scored,
+        fp.hint is not None,
+    )

@@ -27,7 +27,15 @@ from fmgs.query.certify import (
     top_rows,
 )
 from fmgs.query.index import EmbeddingIndex, IndexConfig, served_relevancy
-from fmgs.query.plan import choose_first_pass, union_rows
+from fmgs.query.plan import (
+    EXACT_TABLE,
+    FIRST_TIER,
+    FIRST_TIER_AND_HEAD,
+    NO_PASS,
+    SECOND_TIER,
+    choose_first_pass,
+    union_rows,
+)
 from fmgs.query.reference import rank_reference, tier2_bounds_reference
 from fmgs.query.state import build_state
 from fmgs.query.tuning import TOP_SAMPLE_STEP
@@ -291,6 +299,9 @@ def test_texts_the_first_tier_cannot_settle_go_straight_to_the_second(scene, mon
     direct, head, _ = choose_first_pass(idx, q, 10, 40)
     assert head == []  # a second tier stored whole has no head pass
     chosen = set(direct)
+    # explain reports the pass chosen (``first``, the rows rescored first, moves only the hints).
+    want = [SECOND_TIER if j in chosen else FIRST_TIER for j in range(len(q))]
+    assert [e.first_pass for e in idx.explain(q, 10)] == want
     # What the first tier actually leaves: the share of rows whose upper bound reaches the 10th margin.
     exact = emb.double() @ q.double().T - canon.amax(1).double()[:, None]
     left = (
@@ -312,12 +323,48 @@ def test_texts_the_first_tier_cannot_settle_go_straight_to_the_second(scene, mon
     monkeypatch.setattr(tuning, "HEAD_FRACTION", 0.1)
     direct, head, _ = choose_first_pass(split, q, 10, 40)
     assert direct and head  # this scene's texts take all three passes
+    want = [
+        SECOND_TIER if j in direct else FIRST_TIER_AND_HEAD if j in head else FIRST_TIER
+        for j in range(len(q))
+    ]
+    assert [e.first_pass for e in split.explain(q, 10)] == want
     # More texts leaving the first tier than HEAD_TEXTS: none takes the head pass.
     monkeypatch.setattr(tuning, "HEAD_TEXTS", len(chosen) - 1)
     assert choose_first_pass(split, q, 10, 40)[:2] == (sorted(chosen), [])
     monkeypatch.setattr(tuning, "HEAD_TEXTS", len(q))
     for qi, a in zip(q, split.rank_many(q, 10), strict=True):
         _same(a, rank_reference(emb, canon, qi, 10))
+
+
+@pytest.mark.parametrize("path", ["exact", "compact", "compact-refined", "split-head", "tier1-refined"])
+def test_explain_says_what_each_pass_left(scene, path, monkeypatch):
+    """explain runs rank_many's passes and says, per text, the first pass and what each step left: the
+    rows rescored first and those the second tier left add up to the answer's ``rescored``, and the rows
+    scored exactly in all are the first ones and what the last step left."""
+    sets = scene[4]
+    idx = _index(scene, path, monkeypatch)
+    q = torch.cat([sets[n] for n in QUERY_SETS])
+    refined = 0
+    for k in (1, 100):
+        ranked, explained = idx.rank_many(q, k), idx.explain(q, k)
+        assert len(explained) == len(q)
+        for r, e in zip(ranked, explained, strict=True):
+            assert e.rows == M and k <= e.first_rescored <= M
+            assert e.first_pass == {"exact": EXACT_TABLE, "split-head": FIRST_TIER_AND_HEAD}.get(
+                path, FIRST_TIER
+            )
+            if path.startswith(("exact", "tier1")):  # no second tier to narrow with
+                assert e.left_by_second_tier is None
+            left = e.left_by_first_pass if e.left_by_second_tier is None else e.left_by_second_tier
+            assert left <= e.left_by_first_pass and e.first_rescored + left == r.rescored
+            if e.left_by_refinement is None:
+                assert e.scored_exactly == e.first_rescored + left
+            else:
+                assert e.scored_exactly == e.first_rescored + e.left_by_refinement
+                refined += 1
+    if path.endswith("-refined"):
+        assert refined > 0
+    assert [e.first_pass for e in idx.explain(q, 0)] == [NO_PASS] * len(q)
 
 
 @pytest.mark.parametrize("hint", ["estimated", "above every row", "near the top", "below every row"])

@@ -35,6 +35,7 @@ from benchmarks.faiss_peer import IVF, build, margins, recall, timed_search, top
 from benchmarks.query_sets import QUERY_SETS, query_sets, scene_embeddings
 from fmgs.gaussians import GaussianSet
 from fmgs.query.engine import EngineConfig, SceneEngine
+from fmgs.query.plan import choose_first_pass, first_pass_upper, first_rescore_count
 from fmgs.scene.package import export_scene
 from fmgs.vecmath import safe_normalize
 
@@ -186,16 +187,17 @@ def batch(eng: SceneEngine, sets: dict, res: dict) -> None:
         # floor under the batch's, whatever the rest costs.
         # Each takes the pass rank_many would choose for it: a text alone, or the eight together.
         qu = eng.unit(qs)
-        passes = ix._tier2_first(qu, 100, ix._first(100))
-        alone = [ix._tier2_first(qu[j : j + 1], 100, ix._first(100)) for j in range(8)]
+        rescore_first = first_rescore_count(ix, 100)
+        passes = choose_first_pass(ix, qu, 100, rescore_first)
+        alone = [choose_first_pass(ix, qu[j : j + 1], 100, rescore_first) for j in range(8)]
         kone, keight = [], []
         for _ in range(3):
             for j in range(8):
                 t0 = time.perf_counter()
-                ix._uppers(qu[j : j + 1], None, alone[j])
+                first_pass_upper(ix, qu[j : j + 1], None, alone[j])
                 kone.append(time.perf_counter() - t0)
             t0 = time.perf_counter()
-            ix._uppers(qu, None, passes)
+            first_pass_upper(ix, qu, None, passes)
             keight.append(time.perf_counter() - t0)
         # Per call: the eight-text batch's, and the 24 single texts' together over 3 (one batch's worth).
         res[f"batch8_{name}_faults"] = [x / 3 for x in faults["eight"]]

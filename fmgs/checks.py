@@ -45,3 +45,15 @@ def check_shape(name: str, t: torch.Tensor, shape: tuple[int | None, ...]) -> No
     if not ok:
         want = "[" + ",".join("*" if s is None else str(s) for s in shape) + "]"
         raise ValidationError(name, f"expected shape {want}, got {list(t.shape)}")
+
+
+def damaged_embedding(row: int) -> ValidationError:
+    """The error for a stored embedding ``row`` that is not finite (a damaged package)."""
+    return ValidationError("embeddings", f"row {row} is not finite: the package is damaged")
+
+
+def check_rows_finite(values: torch.Tensor, rows) -> None:
+    """Raise ``damaged_embedding`` for the first of ``rows`` [k] whose scores ``values`` [k,n] are not
+    finite."""
+    if not bool(torch.isfinite(values).all()):
+        raise damaged_embedding(int(rows[int((~torch.isfinite(values)).any(1).nonzero()[0, 0])]))

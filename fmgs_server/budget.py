@@ -54,7 +54,7 @@ def text_bytes(top_k: int, texts: int, columns: int, embedded: int = 0, dim: int
     magnitudes, float64 bounds: 64 bytes each), a rescoring chunk (RESCORE_CHUNK rows); per
     answer row the index, scores and asked columns (about 4 bytes each), answers held for every text,
     and their message copies."""
-    from fmgs.query.index import RESCORE_CHUNK
+    from fmgs.query.tuning import RESCORE_CHUNK
 
     scan = embedded * (4 * texts + 64) + RESCORE_CHUNK * dim * 12
     return BASE_BYTES + scan + 2 * texts * top_k * (16 + 4 * columns)

@@ -63,7 +63,7 @@ def scan_cases(sz: FloorSizes, q: torch.Tensor):
 
     M = sz.compact_gaussians
     ix = random_compact_state(M)
-    W = ix._weights(q[None])[0].numpy()
+    W = ix.compact.first_tier_weights(q[None])[0].numpy()
     out = np.empty((M, 1), np.float32)
     shift, A = ix.canonical_max.numpy(), ix.coeffs.numpy()
     yield (

@@ -26,6 +26,8 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
+from fmgs.query import tuning
+
 ExactScorer = Callable[[torch.Tensor], torch.Tensor]
 """rows [k] int64 (sorted, unique) -> [k] float64 exact margins."""
 Refiner = Callable[[torch.Tensor], tuple[torch.Tensor, torch.Tensor]]
@@ -73,16 +75,11 @@ def rows_at_least(x: torch.Tensor, cut: float) -> torch.Tensor:
     c = np.float32(cut)
     if float(c) < cut:  # the least float32 >= cut: float32 values reach it exactly when they reach cut
         c = np.nextafter(c, np.float32(np.inf))
-    out = np.empty(SELECT_ROOM + LANES, np.int64)
+    out = np.empty(tuning.SELECT_ROOM + LANES, np.int64)
     m = at_least(a, c, out)
     if m < 0:  # more rows than the buffer holds: numpy counts them, then writes them
         return torch.from_numpy(np.flatnonzero(a >= c))
     return torch.from_numpy(out[:m])
-
-
-SELECT_ROOM = 1 << 18
-"""Rows ``rows_at_least``'s kernel writes at most (a 2 MB buffer, under numpy's 4 MB for huge pages, whose
-first touch zeroes 2 MB; only the pages written are touched); selections that keep more go through numpy."""
 
 
 def _drop_sorted(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
@@ -105,10 +102,6 @@ def _keep_sorted(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
         return a[:0]
     pos = torch.searchsorted(b, a).clamp_max(len(b) - 1)
     return a[b[pos] == a]
-
-
-TOP_SAMPLE_STEP = 64
-"""``top_rows`` estimates its cut on every this-many-th value."""
 
 
 def top_rows(x: torch.Tensor, n: int) -> torch.Tensor:
@@ -134,9 +127,10 @@ def _candidates(
         cand = rows_at_least(x, hint)
         if len(cand) >= n:
             return cand, x.numpy()[cand.numpy()], hint
-    if len(x) >= 16 * TOP_SAMPLE_STEP and 0 < n <= len(x) // 8:  # about 2n candidates: a saving
-        s = x[::TOP_SAMPLE_STEP]
-        cut = float(torch.topk(s, min(len(s), 2 * -(-n // TOP_SAMPLE_STEP) + 8), sorted=False).values.min())
+    step = tuning.TOP_SAMPLE_STEP
+    if len(x) >= 16 * step and 0 < n <= len(x) // 8:  # about 2n candidates: a saving
+        s = x[::step]
+        cut = float(torch.topk(s, min(len(s), 2 * -(-n // step) + 8), sorted=False).values.min())
         cand = rows_at_least(x, cut)
         if len(cand) >= n:  # else the sample misjudged the cut
             return cand, x.numpy()[cand.numpy()], cut

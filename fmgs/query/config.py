@@ -24,9 +24,9 @@ class IndexConfig:
     """Scenes with fewer embedded Gaussians use the exact path (4*D bytes per Gaussian)."""
     rerank: int = 4
     """The compact path first rescores the rerank * k candidates of highest upper bound (at least k, at
-    most k + 4096), then as many more as the certificate needs: a speed knob, the answer is exact for
-    every value. 4: at 1M Gaussians and k = 100, 2.2 ms faster than 10 for CLIP-like texts and 1.4 ms
-    for typical ones, the same at k = 1 and 10,000 (measured)."""
+    most k + 2048: fmgs.query.tuning.REFINE_ABOVE), then as many more as the certificate needs: a speed
+    knob, the answer is exact for every value. 4: at 1M Gaussians and k = 100, 2.2 ms faster than 10 for
+    CLIP-like texts and 1.4 ms for typical ones, the same at k = 1 and 10,000 (measured)."""
     basis_sample: int = 100_000
     """Rows used to estimate the basis (a seeded sample; all rows when fewer)."""
     device: str = "cpu"

@@ -1,8 +1,9 @@
-"""numba kernels for text queries (imported lazily): the compact state's int8 coefficients times float32
-weights, and dots of the float16 embeddings decoded exactly.
+"""numba kernels for text queries (called from fmgs.query.bounds and certify, which import this module
+only when a query needs it): the compact state's int8 coefficients times float32 weights, and dots of
+the float16 embeddings decoded exactly.
 
-Twins: ``int8_dots_reference`` (torch, float32; fastmath lets the compiler reassociate the sum of r
-products, so results agree to a few float32 ulps of the sum's magnitude) and ``half_dots_reference``.
+Each kernel names its exact twin in fmgs.query.reference (float64 numpy or torch). fastmath lets the
+compiler reassociate the float32 sums, so a kernel agrees with its twin within the rounding it states.
 """
 
 from __future__ import annotations
@@ -26,7 +27,7 @@ from fmgs.query.simd import (
 @numba.njit(parallel=True, fastmath=True, cache=True)
 def int8_dots(A: np.ndarray, W: np.ndarray, shift: np.ndarray, out: np.ndarray) -> None:  # pragma: no cover
     """out[i,k] = sum_j A[i,j] W[k,j] - shift[i]; A [M,r] int8, W [n,r] float32 (contiguous rows: the
-    inner sum vectorises), shift [M], out [M,n]."""
+    inner sum vectorises), shift [M], out [M,n]. Twin: ``reference.int8_dots_reference``."""
     M, r = A.shape
     n = W.shape[0]
     for i in numba.prange(M):
@@ -52,7 +53,7 @@ def int8_upper(
     """out[k,i] = sum_j A[i,j] W[k,j] - shift[i] + err[i] wn[k] + res[i] vn[k] + slack: an upper bound on
     every row's margin for each query (fmgs.query.state); W [nw,r] (nw >= n: rows past n are padding,
     see ``pad_texts``), err, res [M] float32, wn, vn [n]; out [n,M]: each query's bounds contiguous, as
-    certification reads them."""
+    certification reads them. Twin: ``reference.int8_upper_reference``."""
     M, r = A.shape
     n, nw = out.shape[0], W.shape[0]
     vector = r % LANES == 0
@@ -113,7 +114,7 @@ def int8_upper(
 def at_least(x: np.ndarray, cut: float, out: np.ndarray) -> int:  # pragma: no cover
     """Positions i of x [M] float32 with x[i] >= cut, in order, written to out (int64); returns how many,
     or -1 when out is too small for them (then it holds a part: call again with len(out) >= M + LANES).
-    Twin: numpy's flatnonzero(x >= cut)."""
+    Twin: ``reference.at_least_reference`` (numpy's flatnonzero(x >= cut))."""
     m, i, n = 0, 0, x.shape[0]
     c = np.float32(cut)
     while i + LANES <= n:  # fmgs.query.simd: sixteen values per compare, no branch per value
@@ -179,7 +180,7 @@ def tier2_bounds(
     A1 [M,r1], A2 [M,r2], A3 [M,r3] int8 (the second tier's head and tail; r3 may be 0); W1 [n,r1],
     W2 [n,r2], W3 [n,r3] float32; err1 [M], shift [M] float32; bounds2 [M,2] float32;
     wn1, wn2, vn2 [n] float64; lo, up [n,m] float64; the weights may hold padding rows past n
-    (``pad_texts``). Twin: ``tier2_bounds_reference``."""
+    (``pad_texts``). Twin: ``reference.tier2_bounds_reference``."""
     n, nw = lo.shape[0], W1.shape[0]
     m = rows.shape[0]
     vector = A1.shape[1] % LANES == 0 and A2.shape[1] % LANES == 0 and A3.shape[1] % LANES == 0
@@ -334,7 +335,8 @@ def tier2_upper(
     up: np.ndarray,
 ) -> None:  # pragma: no cover
     """``tier2_bounds``'s upper bound for every row i (up [n,M] float32, rounded up: the float64 bound u
-    plus |u| 2^-22 + 1e-30 before float32's round-to-nearest, which moves it by at most |u| 2^-24)."""
+    plus |u| 2^-22 + 1e-30 before float32's round-to-nearest, which moves it by at most |u| 2^-24).
+    Twin: ``reference.tier2_bounds_reference``'s upper bound over every row, before that rounding."""
     n, nw = up.shape[0], W1.shape[0]
     vector = A1.shape[1] % LANES == 0 and A2.shape[1] % LANES == 0 and A3.shape[1] % LANES == 0
     for i in numba.prange(A1.shape[0]):
@@ -386,16 +388,6 @@ def _up32(acc, sh, e1, e2, res, wn1, wn2, vn2, slack, k):  # pragma: no cover
     return np.float32(u + abs(u) * 2.0**-22 + 1e-30)
 
 
-def tier2_bounds_reference(A1, W1, A2, W2, A3, W3, rows, shift, err1, bounds2, wn1, wn2, vn2, slack):
-    """Twin of ``tier2_bounds`` in float64 numpy: (lo, up) [n,m]."""
-    a = sum(A[rows].astype(np.float64) @ W.astype(np.float64).T for A, W in ((A1, W1), (A2, W2), (A3, W3)))
-    d = a - shift[rows].astype(np.float64)[:, None]
-    b2 = bounds2[rows].astype(np.float64)
-    g = err1[rows].astype(np.float64)[:, None] * wn1[None] + b2[:, :1] * wn2[None] + b2[:, 1:] * vn2[None]
-    g = g + slack
-    return (d - g).T, (d + g).T
-
-
 _TWO_M24 = np.float32(2.0**-24)
 """One mantissa unit of a float16 subnormal."""
 _REBIAS = np.uint32(112 << 23)
@@ -435,7 +427,8 @@ def _decode_row(A, r, bits, buf):  # pragma: no cover
 @numba.njit(parallel=True, cache=True)
 def half_decode(A: np.ndarray, out: np.ndarray) -> None:  # pragma: no cover
     """out [M,D] float32 = the float16 values whose bits are A [M,D] uint16 (inf for inf and NaN); the
-    decoding every kernel here uses, exposed for its test against numpy's float16."""
+    decoding every kernel here uses, exposed for its test against its twin,
+    ``reference.half_decode_reference`` (numpy's float16)."""
     for r in numba.prange(A.shape[0]):
         bits = np.empty(A.shape[1], np.uint32)
         buf = bits.view(np.float32)
@@ -460,7 +453,7 @@ def half_dots(
 ) -> bool:
     """out[t,k] = float32 sum_j A[rows[t],j] V[k,j] and mag[t,k] = sum_j |A V| (any summation order), for
     A [M,D] float16 bits (uint16), V [n,D] float32. The rounding error of out is at most (D+4) 2^-24 mag
-    (the bound fmgs.query.index uses). Twin: ``half_dots_reference``.
+    (the bound fmgs.query.bounds uses). Twin: ``reference.half_dots_reference``.
 
     Fast decoding (``scaled``): a float16's bits shifted into float32's layout, times 2^112 (four integer
     operations and a product per value, twice as fast as decoding the fields). Float16 subnormals then
@@ -540,8 +533,8 @@ def half_bounds(
     instead of a magnitude per dot, and texts go through the row two at a time, sharing its loads. The
     norm's float32 sum of squares is low by at most a factor 1 - (D+1) 2^-24 (positive terms), which
     ``grow`` undoes. On unit vectors the bound is about 1.6x looser than the magnitude's, around 5e-5 at
-    D = 512, far below the margins' gaps. Subnormals: as ``half_dots``. Twin: ``half_dots_reference``
-    (tests check the bounds hold and are tight)."""
+    D = 512, far below the margins' gaps. Subnormals: as ``half_dots``. Twin:
+    ``reference.half_dots_reference`` (tests check the bounds hold and are tight)."""
     D = A.shape[1]
     vn = np.sqrt((np.asarray(V, np.float64) ** 2).sum(1))
     c = (D + 4) * 2.0**-24
@@ -609,7 +602,7 @@ def _half_bounds(A, rows, V, shift, vn, c, grow, lo, up, scaled, probe, flushed,
 def half_dots64(A: np.ndarray, rows: np.ndarray, V: np.ndarray, out: np.ndarray) -> None:
     """out[t,k] = sum_j A[rows[t],j] V[k,j] in float64, summed in order j = 0..D-1 (so equal rows give equal
     sums): the exact score. A [M,D] float16 bits, V [n,D] float64 holding float32 values (each product
-    is exact in float64). Twin: ``half_dots_reference``.
+    is exact in float64). Twin: ``reference.half_dots_reference`` (bit for bit).
 
     Rows are decoded exactly (``_decode_row``, then widened) and summed four at a time: the four ordered
     sums are independent chains, and the next rows' cache lines are read ahead so that their misses
@@ -673,14 +666,3 @@ def _half_dots64(A, rows, V, out, sink):  # pragma: no cover
                     out[t + 3, k] = c3
             t += g
         sink[b] = s  # kept, so the reads ahead are not optimised away
-
-
-def half_dots_reference(A: np.ndarray, rows: np.ndarray, V: np.ndarray) -> np.ndarray:
-    """Twin of half_dots and half_dots64: [m,n] float64 dots of the float16 rows (numpy's decoding, inf
-    for inf and NaN) with V, summed in order j = 0..D-1."""
-    f = A[rows].view(np.float16).astype(np.float64)
-    f[~np.isfinite(f)] = np.inf
-    out = np.zeros((len(rows), len(V)))
-    for j in range(A.shape[1]):  # in order, as half_dots64
-        out += f[:, j : j + 1] * np.asarray(V, np.float64)[None, :, j]
-    return out

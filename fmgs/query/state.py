@@ -27,8 +27,8 @@ File ``query_state.safetensors`` in the package (written by ``export_scene``):
   r2 when it is stored whole), bounds2 [M,2] float32 (its error and residual norms, rounded up), and when
   h < r2 codes2_tail [M,r2-h] int8 and bounds2_head [M,2] float32 (the head's error and residual norms);
   metadata {format: "fmgs-query-state", version, rank, rank2, head2, num, dim, code_norm_max,
-  code_norm_max2, source}. Version 1 files (no second tier) still load, and the index then runs on the
-  first tier alone; version 2 files (no head2: the second tier stored whole) load without the head pass.
+  code_norm_max2, source}. Only the current version (STATE_VERSION) is read: an older file is refused
+  with what to do (``fmgs build`` exports the package again), and the server builds the state in memory.
 ``source`` fingerprints the embeddings file (size and sampled blocks), so a state that does not belong to
 the embeddings beside it is refused and rebuilt in memory.
 """
@@ -43,22 +43,17 @@ import numpy as np
 import torch
 
 from fmgs.errors import ValidationError
+from fmgs.query import tuning
 
 STATE_FILE = "query_state.safetensors"
 STATE_FORMAT = "fmgs-query-state"
 STATE_VERSION = 3
-READS_VERSIONS = ("1", "2", "3")
+"""The version written, and the only one read (1: no second tier; 2: no head2, the tier stored whole)."""
+REEXPORT = "fmgs build SOURCE --name NAME"
+"""The command that exports a package again (its completed stages are reused: only the package is
+written anew)."""
 TIER2_RANK = 256
 """Default total rank of both tiers (first tier + second tier basis vectors)."""
-TIER2_HEAD = 128
-"""Basis vectors of the second tier's head (see the module docstring). 1M rows, ranks 64 + 192, one
-thread: a CLIP-like text at k = 100 took 32-33 ms through a head of 128 against 39-40 ms through the whole
-second tier, an absent one 36 against 39 ms; a head of 96 left several times more rows to the tail and
-made absent texts slower than the whole tier (41-43 ms); a head of 64 left 20-70% of the rows (measured
-on benchmarks/query_sets.py's sets)."""
-TIER2_TAIL_MIN = 32
-"""The second tier is split only when its tail would hold at least this many basis vectors (else the head
-pass saves too little over the whole tier to pay for the rows it leaves)."""
 TIER2_ENERGY = 1e-6
 """The second tier stops at the embeddings' numerical rank: where the sample's remaining energy falls
 below this fraction (float16 rounding leaves about 1e-8)."""
@@ -131,12 +126,13 @@ def build_state(
     rank: int,
     basis_sample: int = 100_000,
     rank2: int = TIER2_RANK,
-    head: int = TIER2_HEAD,
+    head: int = tuning.TIER2_HEAD,
 ) -> QueryState:
     """From embeddings [M,D] (any float dtype, e.g. a float16 memory map); two chunked passes, never a
     float32 copy of the whole table. ``rank2``: the total rank of both tiers at most (capped at the
     embeddings' numerical rank; no second tier when that leaves nothing beyond ``rank``). ``head``: basis
-    vectors of the second tier's head (split only when at least TIER2_TAIL_MIN remain; 0: never split)."""
+    vectors of the second tier's head (split only when at least tuning.TIER2_TAIL_MIN remain; 0: never
+    split)."""
     M, D = embeddings.shape
     if not 0 < rank < D:
         raise ValueError(f"rank must lie in (0, {D}), got {rank}")
@@ -151,7 +147,7 @@ def build_state(
     scales = (amax / 127).clamp_min(1e-30).float()
     s64 = scales.double()
     codes = torch.empty(M, rank, dtype=torch.int8)
-    h = head if 0 < head and top - rank - head >= TIER2_TAIL_MIN else top - rank
+    h = head if 0 < head and top - rank - head >= tuning.TIER2_TAIL_MIN else top - rank
     split = rank + h  # the head's last basis vector + 1
     codes2 = torch.empty(M, h, dtype=torch.int8)
     tail = torch.empty(M, top - split, dtype=torch.int8)
@@ -302,9 +298,11 @@ def load_state(path: Path, num: int, dim: int, source: str) -> QueryState:
         raise ValidationError(where, f"cannot read ({e})") from e
     if meta.get("format") != STATE_FORMAT:
         raise ValidationError(where, f"not a query state (format {meta.get('format')!r})")
-    if meta.get("version") not in READS_VERSIONS:
+    if meta.get("version") != str(STATE_VERSION):
         raise ValidationError(
-            where, f"query state version {meta.get('version')!r}, this build reads {'/'.join(READS_VERSIONS)}"
+            where,
+            f"query state version {meta.get('version')!r}, this build reads version {STATE_VERSION} only: "
+            f"export the package again ({REEXPORT}) or delete this file (the state is then built at load)",
         )
     if meta.get("source") != source:
         raise ValidationError(where, "written for other embeddings than the package's (stale)")
@@ -337,21 +335,20 @@ def load_state(path: Path, num: int, dim: int, source: str) -> QueryState:
 
 
 def _load_tier2(path: Path, meta: dict, n: int, d: int, r: int) -> Tier2 | None:
-    """The second tier of a version-2 or 3 state (None when it has none), codes and bounds memory-mapped;
-    version 2 has no head2 (the tier stored whole)."""
+    """The second tier of a state (None when it has none), codes and bounds memory-mapped; head2 = rank2
+    when the tier is stored whole."""
     from safetensors import safe_open
 
     from fmgs.io.mmap_tensors import mmap_torch
 
     where = str(path)
     try:
-        r2 = int(meta.get("rank2", "0"))
-        cmax2 = float(meta.get("code_norm_max2", "0"))
-        h = int(meta.get("head2", str(r2)))
-    except ValueError as e:
+        r2 = int(meta["rank2"])
+        if r2 == 0:
+            return None
+        cmax2, h = float(meta["code_norm_max2"]), int(meta["head2"])
+    except (KeyError, ValueError) as e:
         raise ValidationError(where, f"bad metadata ({e})") from e
-    if r2 == 0:
-        return None
     if not 0 < r + r2 < d or not np.isfinite(cmax2) or cmax2 < 0:
         raise ValidationError(where, f"second tier rank {r2} (first {r}, dim {d}) or code_norm_max2 invalid")
     if not 0 < h <= r2:

@@ -1,5 +1,5 @@
-"""benchmarks/text.py's batch measurement runs against the engine's current internals (it calls the bound
-passes directly), on a compact-path scene large enough for the sample estimate."""
+"""benchmarks/text.py's batch measurement runs against the engine's current query plan (it calls the bound
+passes of fmgs.query.plan directly), on a compact-path scene large enough for the sample estimate."""
 
 from __future__ import annotations
 
@@ -17,7 +17,7 @@ def test_batch_measurement_runs_on_the_compact_path(tmp_path):
     n = 70_000  # at least TIER2_FIRST_MIN_SAMPLE * TIER2_FIRST_STEP rows: hints are estimated
     pkg, copies, _ = text.package(tmp_path, n)
     eng = SceneEngine.open(pkg, EngineConfig(index=IndexConfig(exact_below=0)))
-    assert not eng.index.exact and eng.index._estimates_first_pass
+    assert not eng.index.exact and eng.index.compact.estimates_first_pass
     emb, _ = text.stored(pkg)
     sets = query_sets(emb, copies, 8)
     res: dict = {}

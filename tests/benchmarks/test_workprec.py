@@ -61,7 +61,8 @@ def test_exact_failures_flags_only_exact_points_with_nonzero_error():
 
 def test_exact_point_of_a_tiny_text_query_is_zero():
     """The index's exact path against its reference twin, as the text section compares them."""
-    from fmgs.query.index import EmbeddingIndex, IndexConfig, rank_reference
+    from fmgs.query.index import EmbeddingIndex, IndexConfig
+    from fmgs.query.reference import rank_reference
 
     g = torch.Generator().manual_seed(0)
     emb = torch.nn.functional.normalize(torch.randn(500, 32, generator=g), dim=1)

@@ -13,8 +13,9 @@ import torch
 
 from fmgs.data.dataset import load_dataset
 from fmgs.query.engine import EngineConfig, SceneEngine
-from fmgs.query.index import IndexConfig, rank_reference
+from fmgs.query.index import IndexConfig
 from fmgs.query.pose import render_pose
+from fmgs.query.reference import rank_reference
 from fmgs.render import rasterize
 from fmgs.train.evaluate import evaluate
 from fmgs.train.field import train_field

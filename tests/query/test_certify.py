@@ -9,11 +9,12 @@ import pytest
 import torch
 
 import fmgs.query.certify as certify_mod
-import fmgs.query.index as index_mod
+import fmgs.query.plan as plan_mod
+import fmgs.query.tuning as tuning
 from benchmarks.query_sets import QUERY_SETS, query_sets, scene_embeddings
 from fmgs.errors import ValidationError
 from fmgs.query.certify import (
-    TOP_SAMPLE_STEP,
+    Pending,
     Refined,
     _drop_sorted,
     _keep_sorted,
@@ -25,8 +26,19 @@ from fmgs.query.certify import (
     threshold_margin,
     top_rows,
 )
-from fmgs.query.index import EmbeddingIndex, IndexConfig, rank_reference, served_relevancy
+from fmgs.query.index import EmbeddingIndex, IndexConfig, served_relevancy
+from fmgs.query.plan import (
+    EXACT_TABLE,
+    FIRST_TIER,
+    FIRST_TIER_AND_HEAD,
+    NO_PASS,
+    SECOND_TIER,
+    choose_first_pass,
+    union_rows,
+)
+from fmgs.query.reference import rank_reference, tier2_bounds_reference
 from fmgs.query.state import build_state
+from fmgs.query.tuning import TOP_SAMPLE_STEP
 from fmgs.vecmath import safe_normalize
 
 M, D = 6000, 96
@@ -62,14 +74,14 @@ def _index(scene, path, monkeypatch):
     (every text's first pass through the first tier and the head)."""
     emb, _, canon, _, _ = scene
     if path.endswith("-refined"):
-        monkeypatch.setattr(index_mod, "REFINE_ABOVE", 0)
+        monkeypatch.setattr(tuning, "REFINE_ABOVE", 0)
     if path.endswith(("-direct", "-head")):  # every text's first pass is over the second tier
-        monkeypatch.setattr(index_mod, "TIER2_FIRST_MIN_SAMPLE", 0)
-        monkeypatch.setattr(index_mod, "TIER2_FIRST_STEP", 64)
-        monkeypatch.setattr(index_mod, "TIER2_FIRST_FRACTION", -1.0)
+        monkeypatch.setattr(tuning, "TIER2_FIRST_MIN_SAMPLE", 0)
+        monkeypatch.setattr(tuning, "TIER2_FIRST_STEP", 64)
+        monkeypatch.setattr(tuning, "TIER2_FIRST_FRACTION", -1.0)
     if path.endswith("-head"):
-        monkeypatch.setattr(index_mod, "HEAD_FRACTION", 2.0)
-        monkeypatch.setattr(index_mod, "HEAD_TEXTS", 1000)
+        monkeypatch.setattr(tuning, "HEAD_FRACTION", 2.0)
+        monkeypatch.setattr(tuning, "HEAD_TEXTS", 1000)
     return _indexes(emb, canon)[path.split("-")[0]]
 
 
@@ -172,7 +184,7 @@ def test_refined_bounds_hold_and_damaged_rows_are_named(scene):
     idx = _indexes(emb, canon)["compact"]
     q = sets["clip"][:1]
     rows = torch.arange(M)
-    lo, up = (x[:, 0] for x in idx._refine(rows, q, None))
+    lo, up = (x[:, 0] for x in idx.half_rows.refine(rows, q, None))
     exact = emb.double() @ q[0].double() - canon.amax(1).double()
     assert bool((lo <= exact).all() and (exact <= up).all()) and float((up - lo).max()) < 1e-4
     assert torch.equal(idx.exact_dots(rows, q)[:, 0], idx.exact_dots(rows.flip(0), q)[:, 0].flip(0))
@@ -180,7 +192,7 @@ def test_refined_bounds_hold_and_damaged_rows_are_named(scene):
     bad[17, 3] = float("inf")
     broken = EmbeddingIndex.build(bad, canon, IndexConfig(rank=16, exact_below=0))
     with pytest.raises(ValidationError, match="row 17 is not finite"):
-        broken._refine(rows, q, None)
+        broken.half_rows.refine(rows, q, None)
     with pytest.raises(ValidationError, match="row 17 is not finite"):
         broken.exact_dots(rows, q)
 
@@ -189,7 +201,8 @@ def test_compact_bounds_hold_for_every_row(scene):
     emb, _, canon, _, sets = scene
     idx = _indexes(emb, canon)["compact"]
     q = torch.cat([sets[n] for n in QUERY_SETS])
-    up = idx._upper(q, None).double()
+    up = idx.compact.first_tier_upper(q).double()
+    assert torch.equal(up, idx.upper_bounds(q).double())  # the index's cheap pass on the compact path
     exact = emb.double() @ q.double().T - canon.amax(1).double()[:, None]
     assert bool((up >= exact).all())
     slack = up - exact
@@ -197,40 +210,37 @@ def test_compact_bounds_hold_for_every_row(scene):
 
 
 def test_second_tier_bounds_hold_are_tight_and_match_their_twin(scene):
-    from fmgs.query.kernels import tier2_bounds_reference
-
     emb, _, canon, _, sets = scene
     idx = _indexes(emb, canon)["compact"]
+    b = idx.compact
     t2 = idx.tier2
     q = torch.cat([sets[n] for n in QUERY_SETS])
     rows = torch.arange(M)
-    lo, up = idx._tier2_bounds(rows, q)
+    lo, up = b.tier2_bounds(rows, q)
     exact = (emb.double() @ q.double().T - canon.amax(1).double()[:, None]).T
     assert bool((lo <= exact).all() and (exact <= up).all())
     # Tighter than the first tier alone: the second tier is what settles CLIP-like queries.
-    first = idx._upper(q, None).double().T - exact
+    first = b.first_tier_upper(q).double().T - exact
     assert float((up - exact).median()) < float(first.median()) / 4
     # Against the float64 twin (the kernel sums in float32: within its slack).
     v64 = q.double()
     w1, w2 = v64 @ idx.basis.T, v64 @ t2.basis.T
     perp = v64 - w1 @ idx.basis - w2 @ t2.basis
-    W1 = (v64 @ idx._W_basis.T).float().numpy()
-    W2 = (v64 @ idx._W_basis2.T).float().numpy()
+    W1 = (v64 @ b.weighted_basis.T).float().numpy()
+    W2 = (v64 @ b.weighted_basis2.T).float().numpy()
     rlo, rup = tier2_bounds_reference(
         idx.coeffs.numpy(), W1, t2.codes.numpy(), W2, *_no_tail(M, len(q)), rows.numpy(),
-        idx.canonical_max.numpy(), idx._err.numpy(), t2.bounds.numpy(), w1.norm(dim=1).numpy(),
-        w2.norm(dim=1).numpy(), perp.norm(dim=1).numpy(), idx.slack2,
+        idx.canonical_max.numpy(), b.err.numpy(), t2.bounds.numpy(), w1.norm(dim=1).numpy(),
+        w2.norm(dim=1).numpy(), perp.norm(dim=1).numpy(), b.slack2,
     )  # fmt: skip
-    assert np.allclose(lo.numpy(), rlo, rtol=0, atol=idx.slack2) and np.allclose(
-        up.numpy(), rup, atol=idx.slack2
-    )
+    assert np.allclose(lo.numpy(), rlo, rtol=0, atol=b.slack2) and np.allclose(up.numpy(), rup, atol=b.slack2)
     # Every row's upper bound alone, float32 rounded up (the direct first pass): never below the twin's.
-    up32 = idx._tier2_upper(q, torch.empty(len(q), M))
+    up32 = b.tier2_upper(q, torch.empty(len(q), M))
     assert bool((up32.double() >= exact).all())  # the bound holds on every row
-    assert np.allclose(up32.double().numpy(), rup, rtol=0, atol=idx.slack2)  # its twin, up to the float32 sum
+    assert np.allclose(up32.double().numpy(), rup, rtol=0, atol=b.slack2)  # its twin, up to the float32 sum
     # Odd row subsets and one text (the kernel's single-text tail).
     sub = torch.arange(3, M, 7)
-    lo1, up1 = idx._tier2_bounds(sub, q[:1])
+    lo1, up1 = b.tier2_bounds(sub, q[:1])
     assert torch.allclose(lo1[0], lo[0, sub], rtol=0, atol=1e-5) and torch.allclose(
         up1[0], up[0, sub], atol=1e-5
     )
@@ -242,58 +252,61 @@ def _no_tail(m: int, n: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 def test_split_second_tier_bounds_hold_and_match_the_whole_tier(scene):
-    from fmgs.query.kernels import tier2_bounds_reference
-
     emb, _, canon, _, sets = scene
     ix = _indexes(emb, canon)
-    split, whole = ix["split"], ix["compact"]
+    split, whole = ix["split"].compact, ix["compact"].compact
     t2 = split.tier2
     q = torch.cat([sets[n] for n in QUERY_SETS])
     rows = torch.arange(M)
     exact = (emb.double() @ q.double().T - canon.amax(1).double()[:, None]).T
     # Head and tail together are the whole second tier: the same bounds up to the float32 sum's order.
-    lo, up = split._tier2_bounds(rows, q)
-    wlo, wup = whole._tier2_bounds(rows, q)
+    lo, up = split.tier2_bounds(rows, q)
+    wlo, wup = whole.tier2_bounds(rows, q)
     assert bool((lo <= exact).all() and (exact <= up).all())
     assert torch.allclose(lo, wlo, rtol=0, atol=split.slack2) and torch.allclose(
         up, wup, rtol=0, atol=split.slack2
     )
-    up32 = split._tier2_upper(q, torch.empty(len(q), M))
+    up32 = split.tier2_upper(q, torch.empty(len(q), M))
     assert bool((up32.double() >= exact).all()) and torch.allclose(
         up32.double(), wup, rtol=0, atol=split.slack2
     )
     # The head pass: every row's upper bound from the first tier and the head, never below the margin,
     # equal to its float64 twin up to the float32 sum, looser than the whole tier and tighter than the first.
-    head = split._head_upper(q, torch.empty(len(q), M)).double()
+    head = split.tier2_upper(q, torch.empty(len(q), M), head=True).double()
     assert bool((head >= exact).all())
     v64 = q.double()
     w1, w2 = v64 @ split.basis.T, v64 @ t2.basis[:32].T
     perp = v64 - w1 @ split.basis - w2 @ t2.basis[:32]
     _, rup = tier2_bounds_reference(
-        split.coeffs.numpy(), (v64 @ split._W_basis.T).float().numpy(), t2.codes.numpy(),
-        (v64 @ split._W_basis2[:32].T).float().numpy(), *_no_tail(M, len(q)), rows.numpy(),
-        split.canonical_max.numpy(), split._err.numpy(), t2.head_bounds.numpy(), w1.norm(dim=1).numpy(),
+        split.codes.numpy(), (v64 @ split.weighted_basis.T).float().numpy(), t2.codes.numpy(),
+        (v64 @ split.weighted_basis2[:32].T).float().numpy(), *_no_tail(M, len(q)), rows.numpy(),
+        split.canonical_max.numpy(), split.err.numpy(), t2.head_bounds.numpy(), w1.norm(dim=1).numpy(),
         w2.norm(dim=1).numpy(), perp.norm(dim=1).numpy(), split.slack2,
     )  # fmt: skip
     assert np.allclose(head.numpy(), rup, rtol=0, atol=split.slack2)
-    first = split._upper(q, None).double().T
+    first = split.first_tier_upper(q).double().T
     assert float((head - exact).median()) < float((first - exact).median())
     assert float((head - exact).median()) > float((up - exact).median())
 
 
 def test_texts_the_first_tier_cannot_settle_go_straight_to_the_second(scene, monkeypatch):
     emb, _, canon, _, sets = scene
-    monkeypatch.setattr(index_mod, "TIER2_FIRST_MIN_SAMPLE", 0)
-    monkeypatch.setattr(index_mod, "TIER2_FIRST_STEP", 64)  # a 94-row sample of this small scene
+    monkeypatch.setattr(tuning, "TIER2_FIRST_MIN_SAMPLE", 0)
+    monkeypatch.setattr(tuning, "TIER2_FIRST_STEP", 64)  # a 94-row sample of this small scene
     ix = _indexes(emb, canon)
     idx = ix["compact"]
     q = torch.cat([sets[n] for n in QUERY_SETS])
-    direct, head, _ = idx._tier2_first(q, 10, 40)
+    direct, head, _ = choose_first_pass(idx, q, 10, 40)
     assert head == []  # a second tier stored whole has no head pass
     chosen = set(direct)
+    # explain reports the pass chosen (``first``, the rows rescored first, moves only the hints).
+    want = [SECOND_TIER if j in chosen else FIRST_TIER for j in range(len(q))]
+    assert [e.first_pass for e in idx.explain(q, 10)] == want
     # What the first tier actually leaves: the share of rows whose upper bound reaches the 10th margin.
     exact = emb.double() @ q.double().T - canon.amax(1).double()[:, None]
-    left = (idx._upper(q, None).double() >= torch.topk(exact, 10, dim=0).values[-1]).double().mean(0)
+    left = (
+        (idx.compact.first_tier_upper(q).double() >= torch.topk(exact, 10, dim=0).values[-1]).double().mean(0)
+    )
     assert {j for j in range(len(q)) if left[j] > 0.8} <= chosen  # CLIP-like and absent: most rows left
     assert not {j for j in range(len(q)) if left[j] < 0.05} & chosen  # settled by the first tier
     # Each text of a mixed batch takes its own first pass; answers exact either way.
@@ -302,20 +315,56 @@ def test_texts_the_first_tier_cannot_settle_go_straight_to_the_second(scene, mon
     # Split: the same texts leave the first tier; those whose head pass is estimated to leave at most
     # HEAD_FRACTION of the rows take it (all of them at 2, none at -1), the others the whole tier.
     split = ix["split"]
-    monkeypatch.setattr(index_mod, "HEAD_TEXTS", len(q))
+    monkeypatch.setattr(tuning, "HEAD_TEXTS", len(q))
     for frac, want_head in ((2.0, chosen), (-1.0, set())):
-        monkeypatch.setattr(index_mod, "HEAD_FRACTION", frac)
-        direct, head, _ = split._tier2_first(q, 10, 40)
+        monkeypatch.setattr(tuning, "HEAD_FRACTION", frac)
+        direct, head, _ = choose_first_pass(split, q, 10, 40)
         assert set(head) == want_head and set(direct) | set(head) == chosen and not set(direct) & set(head)
-    monkeypatch.setattr(index_mod, "HEAD_FRACTION", 0.1)
-    direct, head, _ = split._tier2_first(q, 10, 40)
+    monkeypatch.setattr(tuning, "HEAD_FRACTION", 0.1)
+    direct, head, _ = choose_first_pass(split, q, 10, 40)
     assert direct and head  # this scene's texts take all three passes
+    want = [
+        SECOND_TIER if j in direct else FIRST_TIER_AND_HEAD if j in head else FIRST_TIER
+        for j in range(len(q))
+    ]
+    assert [e.first_pass for e in split.explain(q, 10)] == want
     # More texts leaving the first tier than HEAD_TEXTS: none takes the head pass.
-    monkeypatch.setattr(index_mod, "HEAD_TEXTS", len(chosen) - 1)
-    assert split._tier2_first(q, 10, 40)[:2] == (sorted(chosen), [])
-    monkeypatch.setattr(index_mod, "HEAD_TEXTS", len(q))
+    monkeypatch.setattr(tuning, "HEAD_TEXTS", len(chosen) - 1)
+    assert choose_first_pass(split, q, 10, 40)[:2] == (sorted(chosen), [])
+    monkeypatch.setattr(tuning, "HEAD_TEXTS", len(q))
     for qi, a in zip(q, split.rank_many(q, 10), strict=True):
         _same(a, rank_reference(emb, canon, qi, 10))
+
+
+@pytest.mark.parametrize("path", ["exact", "compact", "compact-refined", "split-head", "tier1-refined"])
+def test_explain_says_what_each_pass_left(scene, path, monkeypatch):
+    """explain runs rank_many's passes and says, per text, the first pass and what each step left: the
+    rows rescored first and those the second tier left add up to the answer's ``rescored``, and the rows
+    scored exactly in all are the first ones and what the last step left."""
+    sets = scene[4]
+    idx = _index(scene, path, monkeypatch)
+    q = torch.cat([sets[n] for n in QUERY_SETS])
+    refined = 0
+    for k in (1, 100):
+        ranked, explained = idx.rank_many(q, k), idx.explain(q, k)
+        assert len(explained) == len(q)
+        for r, e in zip(ranked, explained, strict=True):
+            assert e.rows == M and k <= e.first_rescored <= M
+            assert e.first_pass == {"exact": EXACT_TABLE, "split-head": FIRST_TIER_AND_HEAD}.get(
+                path, FIRST_TIER
+            )
+            if path.startswith(("exact", "tier1")):  # no second tier to narrow with
+                assert e.left_by_second_tier is None
+            left = e.left_by_first_pass if e.left_by_second_tier is None else e.left_by_second_tier
+            assert left <= e.left_by_first_pass and e.first_rescored + left == r.rescored
+            if e.left_by_refinement is None:
+                assert e.scored_exactly == e.first_rescored + left
+            else:
+                assert e.scored_exactly == e.first_rescored + e.left_by_refinement
+                refined += 1
+    if path.endswith("-refined"):
+        assert refined > 0
+    assert [e.first_pass for e in idx.explain(q, 0)] == [NO_PASS] * len(q)
 
 
 @pytest.mark.parametrize("hint", ["estimated", "above every row", "near the top", "below every row"])
@@ -324,20 +373,20 @@ def test_hinted_selections_keep_answers_exact(scene, monkeypatch, hint):
     candidates and every row reaching L, and costs one more scan when it does not: answers are exact
     either way."""
     emb, _, canon, _, sets = scene
-    monkeypatch.setattr(index_mod, "TIER2_FIRST_MIN_SAMPLE", 0)
-    monkeypatch.setattr(index_mod, "TIER2_FIRST_STEP", 64)
+    monkeypatch.setattr(tuning, "TIER2_FIRST_MIN_SAMPLE", 0)
+    monkeypatch.setattr(tuning, "TIER2_FIRST_STEP", 64)
     q = torch.cat([sets[n] for n in QUERY_SETS])
     scans = []
     monkeypatch.setattr(certify_mod, "rows_at_least", lambda x, c: scans.append(c) or rows_at_least(x, c))
     exact = emb.double() @ q.double().T - canon.amax(1).double()[:, None]  # [M,n]
     if hint != "estimated":
 
-        def forced(self, est, low, first):
+        def forced(est, low, first, num):
             if hint == "near the top":  # above L: enough rows for the first candidates, not all of L's
                 return torch.topk(exact, 2, dim=0).values[-1].numpy()
             return np.full(len(est), 1e30 if hint == "above every row" else -1e30)
 
-        monkeypatch.setattr(index_mod.EmbeddingIndex, "_hints", forced)
+        monkeypatch.setattr(plan_mod, "hints", forced)
     for name in ("compact", "split"):
         idx = _indexes(emb, canon)[name]
         for k in (1, 10, 300):
@@ -472,7 +521,7 @@ def test_sorted_row_helpers_match_set_operations(monkeypatch, room):
     NaN never selected, float64 and strided input too, a length that is not a multiple of the kernel's
     lanes); the sorted difference and intersection against Python sets, empty and disjoint inputs
     included."""
-    monkeypatch.setattr(certify_mod, "SELECT_ROOM", room)
+    monkeypatch.setattr(tuning, "SELECT_ROOM", room)
     g = torch.Generator().manual_seed(11)
     x = torch.randint(0, 20, (5003,), generator=g).float()
     x[::97] = float("nan")
@@ -493,35 +542,37 @@ def test_sorted_row_helpers_match_set_operations(monkeypatch, room):
 
 
 def test_union_of_pending_rows_both_ways():
-    """_union by sorting short lists and by a mask over the rows when they are long: the same sorted set."""
-    from fmgs.query.certify import Pending
-
+    """union_rows by sorting short lists and by a mask over the rows when they are long: the same sorted
+    set."""
     g = torch.Generator().manual_seed(12)
     e = torch.zeros(0)
     for num, size in ((100_000, 50), (100_000, 40_000), (1000, 999)):
         ps = [Pending(e, e, 0.0, torch.randperm(num, generator=g)[:size].sort().values) for _ in range(4)]
         want = sorted(set().union(*(set(p.rows2.tolist()) for p in ps)))
         for texts in ([0], [1, 3], [0, 1, 2, 3]):
-            got = index_mod._union(ps, texts, num)
+            got = union_rows(ps, texts, num)
             assert got.tolist() == sorted(set().union(*(set(ps[j].rows2.tolist()) for j in texts)))
-        assert index_mod._union(ps, [0, 1, 2, 3], num).tolist() == want
+        assert union_rows(ps, [0, 1, 2, 3], num).tolist() == want
 
 
 def test_second_tier_sample_holds_the_strided_rows(scene, monkeypatch):
     emb, _, canon, _, _ = scene
     idx = _indexes(emb, canon)["compact"]
-    s, rows = idx._sample, torch.arange(0, M, index_mod.TIER2_FIRST_STEP)
-    assert np.array_equal(s.codes1, idx.coeffs[rows].numpy())
-    assert np.array_equal(s.codes2, idx.tier2.codes[rows].numpy())
-    assert np.array_equal(s.bounds2, idx.tier2.bounds[rows].numpy())
+    b = idx.compact
+    s, rows = b.sample, torch.arange(0, M, tuning.TIER2_FIRST_STEP)
+    assert np.array_equal(s.first_codes, idx.coeffs[rows].numpy())
+    assert np.array_equal(s.head_codes, idx.tier2.codes[rows].numpy())
+    assert np.array_equal(s.tier2_norms, idx.tier2.bounds[rows].numpy())
     assert np.array_equal(s.shift, idx.canonical_max[rows].numpy())
-    assert np.array_equal(s.err1, idx._err[rows].numpy()) and np.array_equal(s.res1, idx._res[rows].numpy())
-    assert s.codes3.shape == (len(rows), 0) and s.head_bounds.shape == (len(rows), 0)  # stored whole
+    assert np.array_equal(s.first_err, b.err[rows].numpy()) and np.array_equal(
+        s.first_res, b.res[rows].numpy()
+    )
+    assert s.tail_codes.shape == (len(rows), 0) and s.head_norms.shape == (len(rows), 0)  # stored whole
     split = _indexes(emb, canon)["split"]
-    t = split._sample
-    assert np.array_equal(t.codes3, split.tier2.tail[rows].numpy())
-    assert np.array_equal(t.head_bounds, split.tier2.head_bounds[rows].numpy())
+    t = split.compact.sample
+    assert np.array_equal(t.tail_codes, split.tier2.tail[rows].numpy())
+    assert np.array_equal(t.head_norms, split.tier2.head_bounds[rows].numpy())
     # Counted as resident where the estimate runs (scenes of TIER2_FIRST_MIN_SAMPLE sample rows or more).
     without = idx.nbytes()
-    monkeypatch.setattr(index_mod, "TIER2_FIRST_MIN_SAMPLE", 0)
+    monkeypatch.setattr(tuning, "TIER2_FIRST_MIN_SAMPLE", 0)
     assert idx.nbytes() - without == sum(a.nbytes for a in s)

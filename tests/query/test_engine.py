@@ -8,10 +8,11 @@ import torch
 
 from fmgs.errors import ValidationError
 from fmgs.query.engine import EngineConfig, SceneEngine
-from fmgs.query.index import EmbeddingIndex, IndexConfig, rank_reference
+from fmgs.query.index import EmbeddingIndex, IndexConfig
 from fmgs.query.instances import InstanceConfig, dbscan
 from fmgs.query.points import NoFieldError, query_points
 from fmgs.query.pose import render_pose, render_pose_reference
+from fmgs.query.reference import int8_dots_reference, rank_reference
 from fmgs.query.segment import segment
 from fmgs.scene.package import load_scene
 from fmgs.vecmath import safe_normalize
@@ -224,8 +225,6 @@ def test_engine_config_rejects_nonsense():
 
 
 def test_int8_kernel_matches_reference():
-    from fmgs.query.index import int8_dots_reference
-
     g = torch.Generator().manual_seed(3)
     emb = safe_normalize(torch.randn(3000, 48, generator=g))
     idx = EmbeddingIndex.build(emb, torch.randn(3000, 4, generator=g), IndexConfig(rank=24, exact_below=0))
@@ -239,10 +238,10 @@ def test_int8_kernel_matches_reference():
     # The upper-bound kernel (four queries per sweep from 4 on, a tail after) against the same twin.
     for n in (1, 3, 4, 7, 8):
         w = safe_normalize(torch.randn(n, 48, generator=g))
-        up = idx._upper(w, None).double()
+        up = idx.compact.first_tier_upper(w).double()
         r = int8_dots_reference(idx.coeffs, idx.scales, idx.basis, w).double()
-        _, wn, vn = idx._weights(w)
-        err, res = idx._err.double()[:, None], idx._res.double()[:, None]
+        _, wn, vn = idx.compact.first_tier_weights(w)
+        err, res = idx.compact.err.double()[:, None], idx.compact.res.double()[:, None]
         terms = err * wn.double()[None] + res * vn.double()[None]
         want = r - idx.canonical_max.double()[:, None] + terms + idx.slack
         assert up.shape == (3000, n) and (up - want).abs().max() < 1e-5, n

@@ -7,19 +7,20 @@ import numpy as np
 import pytest
 
 from fmgs.query import kernels
-
-
-def _numpy_decode(bits: np.ndarray) -> np.ndarray:
-    f = bits.view(np.float16).astype(np.float32)
-    f[~np.isfinite(f)] = np.inf
-    return f
+from fmgs.query.reference import (
+    at_least_reference,
+    half_decode_reference,
+    half_dots_reference,
+    int8_upper_reference,
+    tier2_bounds_reference,
+)
 
 
 def test_every_float16_bit_pattern_decodes_exactly():
     allbits = np.arange(65536, dtype=np.uint32).astype(np.uint16).reshape(256, 256)
     out = np.empty((256, 256), np.float32)
     kernels.half_decode(allbits, out)
-    ref = _numpy_decode(allbits)
+    ref = half_decode_reference(allbits)
     assert np.array_equal(out.view(np.uint32), ref.view(np.uint32))  # signed zeros and subnormals too
 
 
@@ -48,8 +49,8 @@ def test_float32_pass_is_within_its_bound(n, flush):
     # A zero probe reads as a thread that flushes subnormals: the call must fall back to field decoding.
     probe = np.zeros(1, np.float32) if flush else kernels.SUBNORMAL_PROBE
     assert kernels.half_dots(A, rows, V, out, mag, probe) is flush
-    ref = kernels.half_dots_reference(A, rows, V)
-    absref = np.abs(_numpy_decode(A[rows]).astype(np.float64)) @ np.abs(V.astype(np.float64)).T
+    ref = half_dots_reference(A, rows, V)
+    absref = np.abs(half_decode_reference(A[rows]).astype(np.float64)) @ np.abs(V.astype(np.float64)).T
     bound = (A.shape[1] + 4) * 2.0**-24 * mag
     assert np.all(np.abs(out - ref) <= bound)
     assert np.all(np.abs(mag - absref) <= bound)  # mag is the sum of |products| it claims to be
@@ -74,7 +75,7 @@ def test_float64_pass_equals_the_ordered_sum():
     rows = np.arange(len(A), dtype=np.int64)[::-1].copy()
     out = np.empty((len(rows), 2))
     kernels.half_dots64(A, rows, V, out)
-    assert np.array_equal(out, kernels.half_dots_reference(A, rows, V))
+    assert np.array_equal(out, half_dots_reference(A, rows, V))
     # Every group size (rows are summed four at a time, 64 per block) and text count; repeated rows.
     for m in (1, 2, 3, 5, 63, 64, 65, 130):
         r = np.random.default_rng(m).integers(0, len(A), m).astype(np.int64)
@@ -82,7 +83,7 @@ def test_float64_pass_equals_the_ordered_sum():
             o = np.empty((m, n))
             kernels.half_dots64(A, r, V[:1].repeat(n, 0) * np.arange(1, n + 1)[:, None], o)
             assert np.array_equal(
-                o, kernels.half_dots_reference(A, r, V[:1].repeat(n, 0) * np.arange(1, n + 1)[:, None])
+                o, half_dots_reference(A, r, V[:1].repeat(n, 0) * np.arange(1, n + 1)[:, None])
             )
 
 
@@ -95,7 +96,7 @@ def test_float64_pass_reads_damaged_values_as_infinite():
     rows = np.arange(12, dtype=np.int64)
     out = np.empty((12, 1))
     kernels.half_dots64(A, rows, V, out)
-    assert np.array_equal(out, kernels.half_dots_reference(A, rows, V), equal_nan=True)
+    assert np.array_equal(out, half_dots_reference(A, rows, V), equal_nan=True)
     assert np.isposinf(out[[2, 5, 7, 9], 0]).all() and np.isfinite(out[[0, 1, 3, 4, 6, 8, 10, 11]]).all()
 
 
@@ -111,9 +112,9 @@ def test_fused_bounds_hold_and_are_tight(n, flush):
     lo, up = np.empty((n, len(rows))), np.empty((n, len(rows)))
     probe = np.zeros(1, np.float32) if flush else kernels.SUBNORMAL_PROBE
     assert kernels.half_bounds(A, rows, V, shift, lo, up, probe) == -1
-    exact = kernels.half_dots_reference(A, rows, V).T - shift[rows].astype(np.float64)[None]
+    exact = half_dots_reference(A, rows, V).T - shift[rows].astype(np.float64)[None]
     assert np.all(lo <= exact) and np.all(exact <= up)
-    f = _numpy_decode(A[rows]).astype(np.float64)
+    f = half_decode_reference(A[rows]).astype(np.float64)
     width = (A.shape[1] + 4) * 2.0**-24 * np.linalg.norm(f, axis=1)[None] * 1.0001 + 2.1e-12
     assert np.all(up - lo <= 2 * width)  # no looser than Cauchy-Schwarz says
     normal = np.abs(f).max(1) < 10  # unit-scale rows: the interval is far below margins' gaps
@@ -169,9 +170,8 @@ def test_first_tier_upper_bounds_match_their_twin(r, n, padded):
     assert len(Wk) == (n + 4 - n % 4 if padded and n % 4 >= 2 and n != 2 else n)
     kernels.int8_upper(A, Wk, shift, err, res, wn, vn, np.float32(1e-6), out)
     assert np.isnan(guard).all()
-    e, v = err.astype(np.float64), res.astype(np.float64)
-    ew, rv = e[None] * wn[:, None], v[None] * vn[:, None]
-    ref = (A.astype(np.float64) @ W.astype(np.float64).T).T - shift[None] + ew + rv + 1e-6
+    ref = int8_upper_reference(A, W, shift, err, res, wn, vn, 1e-6)
+    ew, rv = err.astype(np.float64)[None] * wn[:, None], res.astype(np.float64)[None] * vn[:, None]
     tol = _sum_tolerance(A, W, shift[None], ew, rv)
     assert np.all(np.abs(out - ref) <= tol)
 
@@ -201,7 +201,7 @@ def test_second_tier_kernels_match_their_twin(ranks, n, padded):
     tiers = [x for pair in zip((A1, A2, A3), Wk, strict=True) for x in pair]
     kernels.tier2_bounds(*tiers, rows, *args, lo, up)
     assert np.isnan(lo_guard).all() and np.isnan(up_guard).all()
-    rlo, rup = kernels.tier2_bounds_reference(A1, W1, A2, W2, A3, W3, rows, *args)
+    rlo, rup = tier2_bounds_reference(A1, W1, A2, W2, A3, W3, rows, *args)
     A, W = np.concatenate([A1, A2, A3], 1), np.concatenate([W1, W2, W3], 1)
     tol = _sum_tolerance(A, W)
     assert np.all(np.abs(lo - rlo) <= tol[:, rows]) and np.all(np.abs(up - rup) <= tol[:, rows])
@@ -209,7 +209,7 @@ def test_second_tier_kernels_match_their_twin(ranks, n, padded):
     up32, guard = _with_guard(n, M, np.float32)
     kernels.tier2_upper(*tiers, *args, up32)
     assert np.isnan(guard).all()
-    _, rup_all = kernels.tier2_bounds_reference(A1, W1, A2, W2, A3, W3, every, *args)
+    _, rup_all = tier2_bounds_reference(A1, W1, A2, W2, A3, W3, every, *args)
     assert np.all(up32 >= rup_all - tol)  # rounded up: never below the sum's own error
     assert np.all(up32 - rup_all <= tol + np.abs(rup_all) * 2.0**-21)
 
@@ -220,7 +220,7 @@ def test_at_least_matches_flatnonzero_and_says_when_its_buffer_is_short():
         x = rng.standard_normal(m).astype(np.float32)
         x[::13] = np.nan  # never selected
         for cut in (-np.inf, -0.5, 0.0, 1.5, np.inf):
-            want = np.flatnonzero(x >= np.float32(cut))
+            want = at_least_reference(x, cut)
             out = np.empty(m + kernels.LANES, np.int64)
             got = kernels.at_least(x, np.float32(cut), out)
             assert got == len(want) and np.array_equal(out[:got], want)

@@ -13,7 +13,8 @@ from benchmarks.query_sets import query_sets, scene_embeddings
 from fmgs.errors import ValidationError
 from fmgs.gaussians import GaussianSet
 from fmgs.query.engine import EngineConfig, SceneEngine
-from fmgs.query.index import IndexConfig, rank_reference
+from fmgs.query.index import IndexConfig
+from fmgs.query.reference import rank_reference
 from fmgs.query.state import STATE_FILE, fingerprint, load_state
 from fmgs.scene.package import export_scene, load_scene
 from fmgs.vecmath import safe_normalize
@@ -133,12 +134,14 @@ def test_second_tier_is_stored_mapped_and_checked(tmp_path):
     with safe_open(str(f), framework="pt") as h:
         meta = dict(h.metadata())
     tensors = load_file(str(f))
-    # A version-1 state (first tier only) still loads and answers exactly, without the second tier.
+    # A version-1 state (first tier only) is refused, naming its version, the one read and the fix; the
+    # server then builds the state in memory (both tiers) and answers exactly.
     v1 = {k: v for k, v in tensors.items() if not k.endswith("2")}
     save_file(v1, str(f), metadata={k: v for k, v in meta.items() if "2" not in k} | {"version": "1"})
-    assert load_state(f, M, D, src).tier2 is None
+    with pytest.raises(ValidationError, match=r"version '1', this build reads version 3 only: .*fmgs build"):
+        load_state(f, M, D, src)
     eng = SceneEngine.open(p, COMPACT)
-    assert eng.index.tier2 is None and not eng.index.exact
+    assert eng.index.tier2 is not None and not eng.index.tier2.mapped and not eng.index.exact
     q = sets["absent"][0]
     assert torch.equal(eng.index.rank(q, 40).rows, rank_reference(emb, canon, q, 40).rows)
     # Declared but missing, or damaged.
@@ -161,7 +164,7 @@ def test_second_tier_is_stored_mapped_and_checked(tmp_path):
     assert eng.index.tier2 is None
 
 
-def test_split_second_tier_round_trips_and_version_2_still_loads(tmp_path):
+def test_split_second_tier_round_trips_and_version_2_is_refused(tmp_path):
     from safetensors import safe_open
     from safetensors.torch import load_file, save_file
 
@@ -213,16 +216,19 @@ def test_split_second_tier_round_trips_and_version_2_still_loads(tmp_path):
     save_file(tensors, str(f), metadata=meta | {"head2": str(t2.rank + 1)})
     with pytest.raises(ValidationError, match="head"):
         load_state(f, M, D, src)
-    # A version-2 state (the second tier stored whole, no head2) loads without a tail.
+    # A second tier stored whole (head2 = rank2, no tail) loads without a tail.
     whole = build_state(emb.half(), R, head=0)
     assert whole.tier2.tail is None and whole.tier2.head == whole.tier2.rank
     save_state(whole, f, src)
+    back = load_state(f, M, D, src)
+    assert (
+        back.tier2.tail is None
+        and back.tier2.head_bounds is None
+        and torch.equal(back.tier2.codes, whole.tier2.codes)
+    )
+    # A version-2 state (the second tier stored whole, no head2) is refused with the fix.
     with safe_open(str(f), framework="pt") as h:
         meta = {k: v for k, v in dict(h.metadata()).items() if k != "head2"} | {"version": "2"}
     save_file(load_file(str(f)), str(f), metadata=meta)
-    old = load_state(f, M, D, src)
-    assert (
-        old.tier2.tail is None
-        and old.tier2.head_bounds is None
-        and torch.equal(old.tier2.codes, whole.tier2.codes)
-    )
+    with pytest.raises(ValidationError, match=r"version '2', this build reads version 3 only: .*fmgs build"):
+        load_state(f, M, D, src)

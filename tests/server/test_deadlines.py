@@ -116,15 +116,15 @@ def test_text_query_stops_between_texts(served, caplog, monkeypatch):
     caplog.set_level(logging.INFO, logger="fmgs_server")
     srv, stub = served
     list(stub.TextQuery(pb.TextQueryRequest(scene="f", texts=["red cube"], top_k=5)))  # load
-    import fmgs.query.index as index
+    import fmgs.query.plan as plan
 
-    slow = index.certify_start
+    slow = plan.certify_start
 
     def certify_start(*a, **k):  # each text's certification takes 0.2 s
         time.sleep(0.2)
         return slow(*a, **k)
 
-    monkeypatch.setattr(index, "certify_start", certify_start)
+    monkeypatch.setattr(plan, "certify_start", certify_start)
     since = len(caplog.records)  # the loading call's line is not this call's
     timeout = 0.5
     t0 = time.monotonic()

@@ -15,6 +15,25 @@ def _f(x, fmt: str = ".1f") -> str:
     return str(x)
 
 
+def _agreement(by_set: dict | None) -> list[str]:
+    """The CPU and CUDA engines' relevancy images per query set, and each against the float64 reference."""
+    if not by_set:
+        return ["Agreement per query set: not measured in this run (added after it).", ""]
+    L = [
+        "Agreement per query set (target: every figure <= 1e-4): max |relevancy difference| between the "
+        "engines, and of each against a float64 dot-then-render of the stored embeddings.",
+        "",
+        "| query set | CPU vs CUDA | CPU vs float64 | CUDA vs float64 |",
+        "|---|---:|---:|---:|",
+    ]
+    for name, w in by_set.items():
+        L.append(
+            f"| {name} | {_f(w['cpu_vs_cuda'], '.2e')} | {_f(w['cpu_vs_f64'], '.2e')} | "
+            f"{_f(w['cuda_vs_f64'], '.2e')} |"
+        )
+    return [*L, ""]
+
+
 def _status(p: dict | None) -> str | None:
     """Why a part has no figures (None when it has them)."""
     if p is None:
@@ -93,6 +112,7 @@ def write_report(results: dict, path: Path) -> None:
             f"{_f(p['cuda_peak_gib'], '.2f')} GiB.",
             "",
         ]
+        L += _agreement(p.get("agreement"))
     q = P.get("paper")
     L += [
         "## The paper's full render: CLIP 512 + DINO 384 + RGB, garden (138,766 Gaussians)",

@@ -23,6 +23,11 @@ scored image and the float32 answer and its message copies."""
 RGB_BYTES_PER_PIXEL = 96
 """Colour (and depth) render of all Gaussians: float32 RGB, float64 alpha and depth, clamped copies, the
 answer and its message copies."""
+RENDER_BYTES_PER_GAUSSIAN = 320
+"""Per Gaussian of the scene a render projects: the rasteriser's projection arrays (about 125 bytes:
+float64 screen positions, depths, conics, int64 boxes), the same again for the visibility pass of a
+relevancy render on the compact path, and the exact scores of the Gaussians it touches (float64 dots,
+sorted rows and their inverse). Computed from the arrays' sizes, not measured."""
 POINT_BYTES_IN_FLIGHT = 48 << 10
 """Per point going through the field at once (hash-grid corners, the heads' activations): measured 25 to
 32 KiB with the allocator's overhead (300K points x 2 texts on the demo scene, on two runs)."""
@@ -30,14 +35,14 @@ BASE_BYTES = 8 * MiB
 """Any request: decoded request, encoder call, bookkeeping."""
 
 
-def render_bytes(width: int, height: int, outputs: tuple[str, ...], png: bool) -> int:
-    """Estimated peak working memory of a pose render."""
+def render_bytes(width: int, height: int, outputs: tuple[str, ...], png: bool, gaussians: int = 0) -> int:
+    """Estimated peak working memory of a pose render of a scene of ``gaussians`` Gaussians."""
     px = width * height
     n = px * (RENDER_BYTES_PER_PIXEL if ("relevancy" in outputs or "alpha" in outputs) else 0)
     n += px * (RGB_BYTES_PER_PIXEL if ("rgb" in outputs or "depth" in outputs) else 0)
     if png:
         n += px * 8 * len(outputs)  # uint8/uint16 buffers and the encoded bytes
-    return BASE_BYTES + n
+    return BASE_BYTES + n + gaussians * RENDER_BYTES_PER_GAUSSIAN
 
 
 def point_bytes(points: int, texts: int, chunk: int) -> int:

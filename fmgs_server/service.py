@@ -173,7 +173,8 @@ class FmgsService(pb_grpc.FmgsServicer):
                 yield from self.sharded.render(request, context, stop)
             return
         engine = self.repo.get(request.scene)
-        need = budget.render_bytes(cam.width, cam.height, outputs, encoding == pb.IMAGE_ENCODING_PNG)
+        png = encoding == pb.IMAGE_ENCODING_PNG
+        need = budget.render_bytes(cam.width, cam.height, outputs, png, engine.num_gaussians)
         with self.budget.reserve(need, context, "this render", patient):
             yield from self._render_work(request, context, engine, cam, outputs, encoding, patient)
 

@@ -68,14 +68,25 @@ NO_GAUSSIANS = Presence(0.0, False, -2.0, -1)
 """The presence of any query in a scene without embedded Gaussians (-2: the least margin of unit vectors)."""
 
 
+class _Channels:
+    """One query's relevancy channels [M,1+C] float32 and, on the compact path, which rows hold exact
+    values yet (``scored`` [M] bool; None when every row does). Filled under ``lock``."""
+
+    __slots__ = ("lock", "scored", "values")
+
+    def __init__(self, values: torch.Tensor, scored: np.ndarray | None) -> None:
+        self.values, self.scored, self.lock = values, scored, threading.Lock()
+
+
 class SceneEngine:
     """Everything a server needs to answer queries on one scene."""
 
     CHANNEL_CACHE = 8
-    """Relevancy channel sets kept for repeated queries ([M,5] float32 each)."""
+    """Relevancy channel sets kept for repeated queries ([M,5] float32 each, and on the compact path an
+    [M] mask of the rows scored so far)."""
 
     def __init__(self, package: ScenePackage, cfg: EngineConfig = EngineConfig()) -> None:
-        self._chan_cache: OrderedDict[bytes, torch.Tensor] = OrderedDict()
+        self._chan_cache: OrderedDict[bytes, _Channels] = OrderedDict()
         self._cache_lock = threading.Lock()
         self.name = package.name
         self.manifest = package.manifest
@@ -121,7 +132,8 @@ class SceneEngine:
         n += sum(t.numel() * t.element_size() for t in self.geometry)
         if self.field is not None:
             n += sum(p.numel() * p.element_size() for p in self.field.state_dict().values())
-        return n + self.CHANNEL_CACHE * self.num_embedded * (1 + self.index.canonical.shape[1]) * 4
+        per_row = (1 + self.index.canonical.shape[1]) * 4 + (0 if self.index.exact else 1)
+        return n + self.CHANNEL_CACHE * self.num_embedded * per_row
 
     def unit(self, vectors: torch.Tensor, what: str = "query embedding") -> torch.Tensor:
         """[n,D] finite non-zero vectors, unit-normalised; ValidationError names ``what`` otherwise."""
@@ -292,31 +304,72 @@ class SceneEngine:
             return self._eps
         return default_eps(self.gaussians.means.detach().cpu().double().numpy(), cfg.eps_fraction)
 
-    def channels(self, vectors: torch.Tensor) -> torch.Tensor:
-        """[M,n] f.v per embedded Gaussian for unit vectors [n,D] (the index's dots)."""
-        return self.index.dots(vectors)
+    def channels(self, vectors: torch.Tensor, rows: torch.Tensor | None = None) -> torch.Tensor:
+        """[M,n] f.v per embedded Gaussian for unit vectors [n,D], float32: the exact float32 table's dots,
+        or on the compact path the stored embeddings' float64 dots rounded to float32 for ``rows`` ([M]
+        bool; None: every row) and 0 elsewhere. The compact state's int8 scores never reach an image or a
+        label: they choose candidates for text queries only."""
+        if self.index.exact:
+            return self.index.dots(vectors)
+        out = torch.zeros(self.num_embedded, len(vectors))
+        idx = np.arange(self.num_embedded) if rows is None else np.flatnonzero(rows.numpy())
+        if len(idx):
+            out[torch.from_numpy(idx)] = self._exact_rows(vectors, idx)
+        return out
 
-    def relevancy_channels(self, query: torch.Tensor, canonical: torch.Tensor | None = None) -> torch.Tensor:
+    def _exact_rows(self, vectors: torch.Tensor, rows: np.ndarray) -> torch.Tensor:
+        """[k,n] float32 f.v for sorted rows [k]: the stored embeddings' float64 dots, rounded once."""
+        return self.index.exact_dots(torch.from_numpy(rows), vectors).float()
+
+    def relevancy_channels(
+        self, query: torch.Tensor, canonical: torch.Tensor | None = None, rows: torch.Tensor | None = None
+    ) -> torch.Tensor:
         """[M,1+C] (f.q, f.c_n) per embedded Gaussian, the channels of a relevancy render.
 
-        Cached for the last few queries: a pose stream asks the same text for many poses, and then
-        each frame costs only the rasterisation.
+        ``rows`` [M] bool: the Gaussians the render can touch (fmgs.render.visible; None: every row). On
+        the compact path only those are guaranteed to hold their values (``channels``: exact dots of the
+        stored embeddings; the stored canonical dots are exact already), others may hold 0: the compact
+        scores may choose rows for text queries, they never colour an image, so a relevancy image does not
+        depend on the scene's size or the device. Cached for the last few queries: a pose stream asks the
+        same text for many poses, and then a frame scores only the rows no earlier frame touched.
         """
         vecs = self.unit(query[None])
         canon = None if canonical is None else self.unit(canonical, "canonical embeddings")
         key = vecs.numpy().tobytes() + (b"" if canon is None else canon.numpy().tobytes())
+        scored_vecs = vecs if canon is None else torch.cat([vecs, canon])
         # Channels live on the index's device (the GPU with a CUDA engine): a cached query costs no copy.
         with self._cache_lock:
-            hit = self._chan_cache.get(key)
-            if hit is not None:
+            entry = self._chan_cache.get(key)
+            if entry is not None:
                 self._chan_cache.move_to_end(key)
-                return hit
-        if canon is None:
-            chans = torch.cat([self.channels(vecs), self.index.canonical], 1)
-        else:
-            chans = self.channels(torch.cat([vecs, canon]))
-        with self._cache_lock:
-            self._chan_cache[key] = chans
-            while len(self._chan_cache) > self.CHANNEL_CACHE:
-                self._chan_cache.popitem(last=False)
-        return chans
+        if entry is None:
+            entry = self._new_channels(scored_vecs, canon is None)
+            with self._cache_lock:
+                entry = self._chan_cache.setdefault(key, entry)  # a concurrent first render's, if any
+                self._chan_cache.move_to_end(key)
+                while len(self._chan_cache) > self.CHANNEL_CACHE:
+                    self._chan_cache.popitem(last=False)
+        if entry.scored is not None:
+            with entry.lock:
+                need = ~entry.scored if rows is None else rows.numpy() & ~entry.scored
+                idx = np.flatnonzero(need)
+                if len(idx):
+                    entry.values[torch.from_numpy(idx), : len(scored_vecs)] = self._exact_rows(
+                        scored_vecs, idx
+                    )
+                    entry.scored[idx] = True
+        return entry.values
+
+    def _new_channels(self, vecs: torch.Tensor, stored_canonical: bool) -> _Channels:
+        """A query's channels: every row's exact dots on the exact path; on the compact path the stored
+        canonical dots (when ``stored_canonical``) and zeros for the rows to score."""
+        if self.index.exact:
+            dots = self.channels(vecs)
+            values = torch.cat([dots, self.index.canonical], 1) if stored_canonical else dots
+            return _Channels(values, None)
+        values = torch.zeros(
+            self.num_embedded, len(vecs) + (self.index.canonical.shape[1] if stored_canonical else 0)
+        )
+        if stored_canonical:
+            values[:, len(vecs) :] = self.index.canonical
+        return _Channels(values, np.zeros(self.num_embedded, bool))

@@ -10,7 +10,7 @@ import torch
 from fmgs.cameras import Camera
 from fmgs.errors import ValidationError
 from fmgs.query.relevancy import TEMPERATURE, relevancy
-from fmgs.render import rasterize
+from fmgs.render import rasterize, visible
 from fmgs.render.rgb import render_rgb
 
 OUTPUTS = ("relevancy", "rgb", "depth", "alpha")
@@ -37,7 +37,9 @@ def relevancy_layer(engine, camera: Camera, query: torch.Tensor | None, canonica
     if query is None:
         chans = torch.ones(engine.num_embedded, 1)
     else:
-        chans = engine.relevancy_channels(query, canonical)
+        # The compact path scores exactly only the Gaussians this view can touch (the rest blend nothing).
+        rows = None if engine.index.exact else visible(*engine.geometry, camera, backend=engine.cfg.backend)
+        chans = engine.relevancy_channels(query, canonical, rows)
     return rasterize(
         *engine.geometry, chans.to(engine.geometry[0]), camera, backend=engine.cfg.backend,
         between_tiles=between_tiles,

@@ -21,7 +21,9 @@ from fmgs.checks import check_finite, check_shape, first_bad_row
 from fmgs.errors import ValidationError
 from fmgs.render.types import Projection, RasterConfig, RenderOutput
 
-__all__ = ["BACKENDS", "Projection", "RasterConfig", "RenderOutput", "rasterize", "validate_inputs"]
+__all__ = [
+    "BACKENDS", "Projection", "RasterConfig", "RenderOutput", "rasterize", "validate_inputs", "visible",
+]  # fmt: skip
 
 BACKENDS = ("auto", "reference", "cpu", "cuda")
 
@@ -66,6 +68,30 @@ def validate_inputs(
     if background is not None:
         check_shape("background", background, (features.shape[1],))
         check_finite("background", background)
+
+
+@torch.no_grad()
+def visible(
+    means: torch.Tensor,
+    quats: torch.Tensor,
+    scales: torch.Tensor,
+    opacities: torch.Tensor,
+    camera: Camera,
+    config: RasterConfig | None = None,
+    backend: str = "auto",
+) -> torch.Tensor:
+    """[N] bool: the Gaussians ``rasterize`` can blend into a pixel of ``camera``'s image (in the depth
+    range, opacity at least alpha_min, alpha box overlapping the image); the others contribute nothing,
+    whatever their features. The cpu backend's own culling (its projection kernel) on CPU tensors, the
+    float64 projection's conservative box elsewhere. Activated inputs, as for ``rasterize``."""
+    config = config or RasterConfig()
+    if means.device.type == "cpu" and backend in ("auto", "cpu"):
+        from fmgs.render.cpu_fast import project_cpu
+
+        return torch.from_numpy(project_cpu(means, quats, scales, opacities, camera, config)["visible"])
+    from fmgs.render.projection import project
+
+    return project(means, quats, scales, opacities, camera, config).visible.cpu()
 
 
 def _grad_channels() -> int:

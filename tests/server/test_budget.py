@@ -63,6 +63,12 @@ def test_estimates_grow_with_the_request():
     assert budget.render_bytes(64, 64, ("relevancy",), False) < budget.render_bytes(
         64, 64, ("relevancy", "rgb"), True
     )
+    # A render projects every Gaussian of its scene (and scores the visible ones exactly on the compact path).
+    assert (
+        budget.render_bytes(64, 64, ("relevancy",), False, 1_000_000)
+        - budget.render_bytes(64, 64, ("relevancy",), False)
+        == 1_000_000 * budget.RENDER_BYTES_PER_GAUSSIAN
+    )
     assert (
         budget.point_bytes(10_000, 1, 8192)
         < budget.point_bytes(20_000, 1, 8192)

@@ -14,14 +14,12 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-if str(ROOT) not in sys.path:  # run from a checkout without an install
-    sys.path.insert(0, str(ROOT))
+from fmgs_client import CameraSpec, FmgsClient
+from fmgs_server.config import ServerConfig
+from fmgs_server.server import start_server
+from fmgs_wire.images import colorize, to_uint8
 
-from fmgs_client import CameraSpec, FmgsClient  # noqa: E402
-from fmgs_server.config import ServerConfig  # noqa: E402
-from fmgs_server.server import start_server  # noqa: E402
-from fmgs_wire.images import colorize, to_uint8  # noqa: E402
+ROOT = Path(__file__).resolve().parents[1]
 
 GAP = 6
 """White pixels between the two panels."""

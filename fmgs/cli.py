@@ -128,6 +128,8 @@ def cmd_synth(args: argparse.Namespace) -> int:
         points=args.points,
         distortion=dist,
         preset=args.preset,
+        rig=args.rig,
+        declare_background=not args.undeclared_background,
     )
     t0 = time.perf_counter()
     path = generate(args.out, cfg)
@@ -184,6 +186,8 @@ def cmd_eval_gs(args: argparse.Namespace) -> int:
     g = _load_scene(Path(args.scene))
     res = evaluate(g, ds, args.out, scale=args.scale, background=dataset_background(ds), progress=True)
     print(res.table())
+    if res.warning():
+        print(f"warning: {res.warning()}")
     if args.out:
         print(
             f"wrote {Path(args.out) / 'eval.json'} and side-by-side renders in {Path(args.out) / 'renders'}"
@@ -454,6 +458,19 @@ def build_parser() -> argparse.ArgumentParser:
         default="0,0,0,0",
         metavar="K1,K2,P1,P2",
         help="render through an OpenCV lens with these coefficients (written to transforms.json)",
+    )
+    sy.add_argument(
+        "--rig",
+        default="ring",
+        choices=["ring", "grazing"],
+        help="ring (default): cameras on one ring at two heights; grazing: every third camera on a low "
+        "ring looking across the floor, where the backdrop fills the upper image",
+    )
+    sy.add_argument(
+        "--undeclared-background",
+        action="store_true",
+        help="leave the constant backdrop colour out of transforms.json (default: declared as "
+        '"background"), as most real captures do',
     )
     sy.set_defaults(func=cmd_synth)
     sf = sub.add_parser("sfm", help="photos to poses with pycolmap; writes OUT/undistorted (a dataset)")

@@ -37,6 +37,12 @@ OBJECTS = (
     ("white plate", (0.95, 0.95, 0.93)),
     ("red mug", (0.75, 0.1, 0.12)),
 )
+RIGS = ("ring", "grazing")
+"""ring: every camera on one ring, alternating between two heights. grazing: three rings of equal share
+(the two heights and a low one just above the floor, looking across it: the backdrop fills the upper part
+of those images, as outdoor captures with sky and turntables on a backdrop do)."""
+GRAZING_HEIGHT = 0.3
+"""Camera height of the grazing ring (scene units; the objects stand on the floor at z = 0)."""
 PRESETS = ("basic", "cluttered")
 """basic: the first ``objects`` of OBJECTS, spread apart on a checkered floor. cluttered: a seeded
 choice of ``objects`` from all of OBJECTS, about half placed touching another, on a striped floor."""
@@ -50,7 +56,7 @@ class SynthConfig:
     """What to generate."""
 
     views: int = 32
-    """Number of cameras (on a ring, alternating between two elevations)."""
+    """Number of cameras (placed by ``rig``)."""
     width: int = 128
     """Image width in pixels."""
     height: int = 96
@@ -75,6 +81,11 @@ class SynthConfig:
     pixels); written as transforms.json keys with camera_model OPENCV when non-zero."""
     preset: str = "basic"
     """Scene kind (PRESETS): "basic" or "cluttered" (thin, small and touching objects, more classes)."""
+    rig: str = "ring"
+    """Camera placement (RIGS): "ring" (two heights) or "grazing" (adds a low ring that sees the backdrop)."""
+    declare_background: bool = True
+    """Write the constant backdrop colour into transforms.json ("background"); False leaves it undeclared,
+    as most captures do, so a trainer must cope with it on its own."""
 
 
 def _look_at(eye: np.ndarray, target: np.ndarray) -> np.ndarray:
@@ -89,6 +100,18 @@ def _look_at(eye: np.ndarray, target: np.ndarray) -> np.ndarray:
     V[:3, :3] = R
     V[:3, 3] = -R @ eye
     return V
+
+
+def _camera_position(cfg: SynthConfig, v: int) -> tuple[np.ndarray, np.ndarray]:
+    """Eye and look-at target of camera v: on the ring, two heights for parallax; the grazing rig puts
+    every third camera on a low ring looking across the floor (its own angles, so it sees new sides)."""
+    ang = 2 * np.pi * v / cfg.views
+    if cfg.rig == "grazing" and v % 3 == 2:
+        eye = np.array([cfg.ring_radius * np.cos(ang), cfg.ring_radius * np.sin(ang), GRAZING_HEIGHT])
+        return eye, np.array([0.0, 0.0, GRAZING_HEIGHT])
+    elev = 0.9 if v % 2 == 0 else 1.6
+    eye = np.array([cfg.ring_radius * np.cos(ang), cfg.ring_radius * np.sin(ang), elev])
+    return eye, np.array([0.0, 0.0, 0.25])
 
 
 def _meshes(cfg: SynthConfig):
@@ -216,6 +239,8 @@ def generate(out: str | Path, cfg: SynthConfig = SynthConfig()) -> Path:
     W, H, S = cfg.width, cfg.height, cfg.supersample
     if S < 1 or S % 2 == 0:
         raise ValueError(f"supersample must be odd and positive, got {S}")
+    if cfg.rig not in RIGS:
+        raise ValueError(f"rig must be one of {RIGS}, got {cfg.rig!r}")
     fx = 0.5 * W / math.tan(math.radians(cfg.fov_deg) / 2)
     K = np.array([[fx, 0, W / 2], [0, fx, H / 2], [0, 0, 1.0]])
     # S x S sub-pixel samples per pixel; the middle one is the pixel centre (j + 0.5, i + 0.5).
@@ -227,10 +252,8 @@ def generate(out: str | Path, cfg: SynthConfig = SynthConfig()) -> Path:
 
     frames, views = [], []
     for v in range(cfg.views):
-        ang = 2 * np.pi * v / cfg.views
-        elev = 0.9 if v % 2 == 0 else 1.6  # two heights for parallax
-        eye = np.array([cfg.ring_radius * np.cos(ang), cfg.ring_radius * np.sin(ang), elev])
-        V = _look_at(eye, np.array([0.0, 0.0, 0.25]))
+        eye, target = _camera_position(cfg, v)
+        V = _look_at(eye, target)
         R = V[:3, :3]
         dirs = d_cam @ R  # world directions (R^T d), keeping the camera z component = 1
         rays = np.concatenate([np.broadcast_to(eye, dirs.shape), dirs], -1).astype(np.float32)
@@ -279,7 +302,7 @@ def generate(out: str | Path, cfg: SynthConfig = SynthConfig()) -> Path:
         "camera_model": "PINHOLE" if lens.is_zero else "OPENCV",
         **({} if lens.is_zero else dict(zip(("k1", "k2", "p1", "p2"), cfg.distortion, strict=True))),
         "ply_file_path": "points3D.ply",
-        "background": list(BACKGROUND),
+        **({"background": list(BACKGROUND)} if cfg.declare_background else {}),
         "frames": frames,
     }
     objects = []

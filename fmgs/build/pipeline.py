@@ -22,6 +22,7 @@ from fmgs.build.config import EMBEDDING_NEIGHBOURS, MAX_EMBEDDING_NEIGHBOURS, Bu
 from fmgs.errors import ValidationError
 from fmgs.gaussians import GaussianSet
 from fmgs.io.atomic import atomic_path
+from fmgs.train.evaluate import LOW_VIEW_PSNR_DB
 from fmgs.train.field import FieldTrainResult
 from fmgs.train.threads import auto_threads
 
@@ -110,8 +111,9 @@ def extract_features(ds, cache_dir: Path, spec: TargetSpec, device: str, progres
     return extract_targets(ds, cache_dir, clip, dino, pyr, ecfg)
 
 
-LOW_PSNR_DB = 20.0
-"""Held-out PSNR below which the build warns that the geometry is poor (the field can only be as good)."""
+LOW_PSNR_DB = LOW_VIEW_PSNR_DB
+"""Held-out PSNR below which the build warns: the mean (the geometry is poor, the field can only be as
+good), and each held-out view (the geometry fails from there, whatever the mean)."""
 
 
 GEOMETRY_REPORT = "geometry.json"
@@ -119,8 +121,9 @@ GEOMETRY_REPORT = "geometry.json"
 
 
 def _report_geometry(gaussians, ds, cfg: BuildConfig, work: Path) -> None:
-    """Print the geometry's held-out PSNR/SSIM (every HOLDOUT_EVERY-th view) and store them in
-    WORK/geometry.json; warn when they are low."""
+    """Print the geometry's held-out PSNR/SSIM (every HOLDOUT_EVERY-th view; the mean and the worst view)
+    and store them in WORK/geometry.json with every view's; warn naming each view below LOW_PSNR_DB, and
+    when the mean is."""
     from fmgs.train.evaluate import evaluate
     from fmgs.train.gaussians import dataset_background
 
@@ -130,10 +133,17 @@ def _report_geometry(gaussians, ds, cfg: BuildConfig, work: Path) -> None:
         return
     r = evaluate(gaussians, ds, None, cfg.gs.image_scale, dataset_background(ds), cfg.gs.holdout_every)
     n = f"{gaussians.num:,} Gaussians"
-    _stage(2, "geometry", f"{n}; held-out PSNR {r.psnr:.2f} dB, SSIM {r.ssim:.3f} ({len(test)} views)")
-    scores = {"psnr": r.psnr, "ssim": r.ssim, "views": len(test), "gaussians": gaussians.num}
+    w = r.worst
+    _stage(
+        2, "geometry",
+        f"{n}; held-out PSNR {r.psnr:.2f} dB, SSIM {r.ssim:.3f} ({len(test)} views; worst {w['name']} "
+        f"{w['psnr']:.2f} dB)",
+    )  # fmt: skip
+    scores = {**r.summary(LOW_PSNR_DB), "views": len(test), "gaussians": gaussians.num}
     with atomic_path(work / GEOMETRY_REPORT) as tmp:
         tmp.write_text(json.dumps(scores, indent=1))
+    if r.warning(LOW_PSNR_DB):
+        log.warning("%s", r.warning(LOW_PSNR_DB))
     if r.psnr < LOW_PSNR_DB:
         log.warning(
             "held-out PSNR %.1f dB is below %.0f dB: the geometry is poor, and the feature field will be too "

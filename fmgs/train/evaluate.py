@@ -16,6 +16,10 @@ from fmgs.io.atomic import atomic_path
 from fmgs.metrics import psnr, ssim
 from fmgs.render.rgb import render_rgb
 
+LOW_VIEW_PSNR_DB = 20.0
+"""A held-out view below this PSNR is marked: the geometry fails from there (floaters in front of the camera,
+a backdrop it explains with Gaussians, a side no training view saw), whatever the mean says."""
+
 
 @dataclass
 class EvalResult:
@@ -26,11 +30,48 @@ class EvalResult:
     per_view: list[dict]
     """name, psnr, ssim of each view."""
 
-    def table(self) -> str:
+    @property
+    def worst(self) -> dict:
+        """The held-out view of lowest PSNR (name, psnr, ssim)."""
+        return min(self.per_view, key=lambda v: v["psnr"])
+
+    def below(self, threshold_db: float = LOW_VIEW_PSNR_DB) -> list[dict]:
+        """The held-out views under ``threshold_db``, worst first."""
+        return sorted((v for v in self.per_view if v["psnr"] < threshold_db), key=lambda v: v["psnr"])
+
+    def table(self, threshold_db: float = LOW_VIEW_PSNR_DB) -> str:
         rows = ["| view | PSNR dB | SSIM |", "|---|---:|---:|"]
-        rows += [f"| {v['name']} | {v['psnr']:.2f} | {v['ssim']:.4f} |" for v in self.per_view]
+        for v in self.per_view:
+            mark = f" **below {threshold_db:g} dB**" if v["psnr"] < threshold_db else ""
+            rows.append(f"| {v['name']}{mark} | {v['psnr']:.2f} | {v['ssim']:.4f} |")
         rows.append(f"| **mean** | **{self.psnr:.2f}** | **{self.ssim:.4f}** |")
+        w = self.worst
+        rows.append(f"| **worst** ({w['name']}) | **{w['psnr']:.2f}** | **{w['ssim']:.4f}** |")
         return "\n".join(rows)
+
+    def summary(self, threshold_db: float = LOW_VIEW_PSNR_DB) -> dict:
+        """The scores as JSON: means, every view, the worst view and the views below ``threshold_db``."""
+        return {
+            "psnr": self.psnr,
+            "ssim": self.ssim,
+            "per_view": self.per_view,
+            "worst": self.worst,
+            "threshold_db": threshold_db,
+            "below": [v["name"] for v in self.below(threshold_db)],
+        }
+
+    def warning(self, threshold_db: float = LOW_VIEW_PSNR_DB) -> str | None:
+        """A sentence naming each held-out view below ``threshold_db`` (None when there is none)."""
+        low = self.below(threshold_db)
+        if not low:
+            return None
+        named = ", ".join(f"{v['name']} ({v['psnr']:.1f} dB)" for v in low)
+        return (
+            f"{len(low)} of {len(self.per_view)} held-out views are below {threshold_db:g} dB "
+            f"(mean {self.psnr:.1f} dB): {named}. Queries seen from there will miss: look at those views "
+            "(eval-gs --out writes side-by-side renders) for floaters in front of the camera, a backdrop the "
+            "dataset does not declare (transforms.json 'background'), or sides no training view saw."
+        )
 
 
 def evaluate(
@@ -71,9 +112,7 @@ def evaluate(
     )
     if out_dir is not None:
         with atomic_path(Path(out_dir) / "eval.json") as tmp:
-            tmp.write_text(
-                json.dumps({"psnr": res.psnr, "ssim": res.ssim, "scale": scale, "views": rows}, indent=1)
-            )
+            tmp.write_text(json.dumps({**res.summary(), "scale": scale, "views": rows}, indent=1))
         with atomic_path(Path(out_dir) / "eval.md") as tmp:
             tmp.write_text(res.table() + "\n")
     return res

@@ -82,6 +82,14 @@ def test_rebuild_skips_complete_stages(built, capsys):
     assert (
         f"held-out PSNR {scores['psnr']:.2f} dB" in out and scores["views"] >= 1 and 0 < scores["ssim"] <= 1
     )
+    # Every held-out view's scores, the worst named on the terminal, and the views under the threshold.
+    per_view = scores["per_view"]
+    mean = sum(v["psnr"] for v in per_view) / len(per_view)
+    assert len(per_view) == scores["views"] and abs(mean - scores["psnr"]) < 1e-9
+    worst = min(per_view, key=lambda v: v["psnr"])
+    assert scores["worst"] == worst and f"worst {worst['name']} {worst['psnr']:.2f} dB" in out
+    low = [v["name"] for v in sorted(per_view, key=lambda v: v["psnr"]) if v["psnr"] < scores["threshold_db"]]
+    assert scores["below"] == low
     assert (tmp / "models" / ".work" / "toy" / "field" / "field_train.json").stat().st_mtime_ns == stamp
     again = json.loads((tmp / "models" / ".work" / "toy" / "features" / "manifest.json").read_text())
     assert again == manifest

@@ -114,3 +114,20 @@ def test_cluttered_preset_varies_with_the_seed_and_touches(tmp_path):
         generate(tmp_path / "x", SynthConfig(views=1, preset="messy"))
     with pytest.raises(ValueError, match=r"objects must be in 1\.\.8"):
         generate(tmp_path / "y", SynthConfig(views=1, objects=10))
+
+
+def test_grazing_rig_and_undeclared_backdrop(tmp_path):
+    cfg = SynthConfig(
+        views=6, width=48, height=36, objects=3, points=500, rig="grazing", declare_background=False
+    )
+    generate(tmp_path, cfg)
+    meta = json.loads((tmp_path / "transforms.json").read_text())
+    assert "background" not in meta  # a trainer must find the backdrop on its own
+    heights = [f["transform_matrix"][2][3] for f in meta["frames"]]
+    assert sorted({round(h, 6) for h in heights}) == [0.3, 0.9, 1.6]  # every third camera on the low ring
+    labels = [np.asarray(Image.open(tmp_path / f["label_path"])) for f in meta["frames"]]
+    low = [lab for h, lab in zip(heights, labels, strict=True) if h < 0.5]
+    # From the low ring the backdrop (label 0) fills much of the upper half of the image.
+    assert all((lab[: lab.shape[0] // 2] == 0).mean() > 0.3 for lab in low)
+    with pytest.raises(ValueError, match="rig"):
+        generate(tmp_path / "bad", SynthConfig(views=2, width=8, height=6, rig="orbit"))

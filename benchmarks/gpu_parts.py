@@ -602,7 +602,7 @@ def part_gs_train(work: Path, quick: bool) -> dict:
     from fmgs.data.dataset import load_dataset
     from fmgs.io.ply import read_ply
     from fmgs.train.evaluate import evaluate
-    from fmgs.train.gaussians import GSTrainConfig, dataset_background, train_gaussians
+    from fmgs.train.gaussians import GSTrainConfig, train_gaussians
 
     ds = load_dataset(DATA / "snowmiku_small")
     budget = float(os.environ.get("FMGS_PART_LIMIT_S", "480")) - 90  # room for the probe and the evaluation
@@ -631,7 +631,7 @@ def part_gs_train(work: Path, quick: bool) -> dict:
     }
     g = read_ply(work / "gs" / "point_cloud.ply").to(DEVICE)
     t0 = time.perf_counter()
-    ev = evaluate(g, ds, background=dataset_background(ds))
+    ev = evaluate(g, ds, background=r.background)
     res["heldout_psnr_db"] = ev.psnr
     res["heldout_ssim"] = ev.ssim
     res["eval_s"] = time.perf_counter() - t0

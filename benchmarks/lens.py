@@ -33,7 +33,7 @@ def main(argv: list[str] | None = None) -> int:
     from fmgs.synth import SynthConfig, generate
     from fmgs.train.config import GSTrainConfig
     from fmgs.train.evaluate import evaluate
-    from fmgs.train.gaussians import dataset_background, train_gaussians
+    from fmgs.train.gaussians import train_gaussians
 
     w, h = (int(v) for v in args.size.split("x"))
     work = Path(tempfile.mkdtemp(prefix="fmgs-lens-"))
@@ -47,7 +47,7 @@ def main(argv: list[str] | None = None) -> int:
             t_load = time.perf_counter() - t0
             cfg = GSTrainConfig.reduced(args.steps)
             res = train_gaussians(ds, work / f"{data.name}_run", cfg, progress=False, resume=False)
-            ev = evaluate(res.gaussians, ds, background=dataset_background(ds))
+            ev = evaluate(res.gaussians, ds, background=res.background)
             cam = ds.frames[0].camera
             rows[tag] = {
                 "lens k1,k2,p1,p2": list(dist),

@@ -179,12 +179,23 @@ def cmd_train_gs(args: argparse.Namespace) -> int:
 def cmd_eval_gs(args: argparse.Namespace) -> int:
     """PSNR and SSIM of a 3DGS scene on the dataset's held-out views."""
     from fmgs.data.dataset import load_dataset
+    from fmgs.errors import ValidationError
     from fmgs.train.evaluate import evaluate
-    from fmgs.train.gaussians import dataset_background
+    from fmgs.train.gaussians import dataset_background, trained_background
 
     ds = load_dataset(args.data, undistort_dir=args.undistort_dir)
     g = _load_scene(Path(args.scene))
-    res = evaluate(g, ds, args.out, scale=args.scale, background=dataset_background(ds), progress=True)
+    if args.background == "auto":  # what the scene was trained with (its train.json), else the dataset's
+        bg = trained_background(Path(args.scene).parent, ds) if Path(args.scene).is_file() else None
+        bg = bg or dataset_background(ds)
+    else:
+        try:
+            bg = tuple(float(v) for v in args.background.split(","))
+        except ValueError:
+            bg = ()
+        if len(bg) != 3:
+            raise ValidationError("--background", f"expected auto or R,G,B in [0,1], got {args.background!r}")
+    res = evaluate(g, ds, args.out, scale=args.scale, background=bg, progress=True)
     print(res.table())
     if res.warning():
         print(f"warning: {res.warning()}")
@@ -495,6 +506,13 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("scene", help="trained .ply, .splat or .safetensors")
     e.add_argument("--out", help="folder for eval.json, eval.md and side-by-side renders")
     e.add_argument("--scale", type=float, default=1.0)
+    e.add_argument(
+        "--background",
+        default="auto",
+        metavar="auto|R,G,B",
+        help="colour behind the Gaussians (default auto: the one the scene trained with, from train.json "
+        "beside it, else the dataset's declared one, else black)",
+    )
     _undistort_flag(e)
     e.set_defaults(func=cmd_eval_gs)
     fe = sub.add_parser("features", help="extract feature targets of a posed dataset into a cache")

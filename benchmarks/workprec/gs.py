@@ -76,14 +76,14 @@ def section(sz: GSSizes, scene: SceneSizes, work: Path) -> dict:
     from fmgs.data.dataset import load_dataset
     from fmgs.io.ply import read_ply
     from fmgs.train.evaluate import evaluate
-    from fmgs.train.gaussians import dataset_background
+    from fmgs.train.gaussians import trained_background
 
     data = synth_scene(work, scene)
     ds = load_dataset(data)
     points = []
     for steps in sz.steps:
         fit = gs_fit(work, data, scene, steps)
-        ev = evaluate(read_ply(fit.ply), ds, background=dataset_background(ds))
+        ev = evaluate(read_ply(fit.ply), ds, background=trained_background(fit.ply.parent, ds))
         points.append(
             Point(
                 "training steps",

@@ -120,18 +120,17 @@ GEOMETRY_REPORT = "geometry.json"
 """The geometry's held-out scores, written in the build's work folder."""
 
 
-def _report_geometry(gaussians, ds, cfg: BuildConfig, work: Path) -> None:
+def _report_geometry(gaussians, ds, cfg: BuildConfig, work: Path, background) -> None:
     """Print the geometry's held-out PSNR/SSIM (every HOLDOUT_EVERY-th view; the mean and the worst view)
     and store them in WORK/geometry.json with every view's; warn naming each view below LOW_PSNR_DB, and
     when the mean is."""
     from fmgs.train.evaluate import evaluate
-    from fmgs.train.gaussians import dataset_background
 
     _, test = ds.split(cfg.gs.holdout_every)
     if not test:
         _stage(2, "geometry", "no held-out views to score")
         return
-    r = evaluate(gaussians, ds, None, cfg.gs.image_scale, dataset_background(ds), cfg.gs.holdout_every)
+    r = evaluate(gaussians, ds, None, cfg.gs.image_scale, background, cfg.gs.holdout_every)
     n = f"{gaussians.num:,} Gaussians"
     w = r.worst
     _stage(
@@ -211,7 +210,11 @@ def build_scene(source: str | Path, cfg: BuildConfig, progress: bool = True) -> 
             # A finished run with other settings starts over; an interrupted one (no train.json) resumes.
             train_gaussians(ds, work / "gs", gcfg, progress=progress, resume=not record)
     gaussians = read_ply(ply)
-    _report_geometry(gaussians, ds, cfg, work)
+    from fmgs.train.gaussians import dataset_background, trained_background
+
+    # A given .ply is scored on the dataset's background; our own run on the one it trained with.
+    background = dataset_background(ds) if cfg.ply else trained_background(ply.parent, ds)
+    _report_geometry(gaussians, ds, cfg, work, background)
 
     cache_dir = work / "features"
     _stage(3, "features", f"{cfg.targets.kind} targets -> {cache_dir}")

@@ -99,7 +99,14 @@ class GSTrainConfig:
     """Tile edge for the reference backend: small tiles waste less dense work per Gaussian (measured on
     snowmiku at 124x93: 0.80 s per step with 16, 0.44 with 8, 0.31 with 4)."""
     background: tuple[float, float, float] | None = None
-    """Background colour; None uses the dataset's (scene.json) or black."""
+    """Background colour; None uses the one the dataset declares (transforms.json "background"), else
+    learns one (``learn_background``) or uses black."""
+    learn_background: bool = True
+    """When no background colour is given or declared, learn one with the scene (three values, started from
+    the median of the training images' border pixels), so a constant backdrop (sky, studio wall) is not
+    explained by floaters in front of the cameras; train.json records it. False: black."""
+    lr_background: float = 0.01
+    """Adam learning rate of the learned background colour (its logits)."""
     holdout_every: int = HOLDOUT_EVERY
     """Every n-th frame is held out (not trained on)."""
     checkpoint_every: int = 0

@@ -40,6 +40,10 @@ class TrainResult:
     seconds: float
     final_loss: float
     history: list[dict]
+    background: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    """The background colour the scene was trained with (given, declared or learned)."""
+    background_source: str = "black"
+    """Where it came from: "config", "declared" (transforms.json), "learned" or "black"."""
 
 
 def scene_extent(ds: PosedDataset, train: list[int]) -> float:
@@ -184,11 +188,13 @@ def _train(
     extent = scene_extent(ds, train)
     images = [ds.image(i, cfg.image_scale) for i in train]
     images = [(im.to(dev), cam) for im, cam in images]
-    bg = torch.tensor(
-        cfg.background if cfg.background is not None else dataset_background(ds),
-        dtype=torch.float32,
-        device=dev,
-    )
+    bg_source, bg_value = _background_choice(ds, cfg)
+    bg_logit = bg_opt = None
+    if bg_source == "learned":  # three logits, their own Adam: densification never touches them
+        start_colour = border_colour([im for im, _ in images]).clamp(0.02, 0.98)
+        bg_logit = torch.nn.Parameter(torch.logit(start_colour).to(dev))
+        bg_opt = torch.optim.Adam([bg_logit], lr=cfg.lr_background)
+    bg = torch.tensor(bg_value, dtype=torch.float32, device=dev)
     backend = cfg.backend
     if backend == "auto":
         backend = "cuda" if dev.type == "cuda" else "cpu"
@@ -197,6 +203,9 @@ def _train(
     start = 0
     if resume and ckpt.is_file():
         raw, opt_state, state, start = load_checkpoint(ckpt)
+        if bg_logit is not None and "background" in raw:  # the colour learned so far (its moments restart)
+            bg_logit.data = raw.pop("background").to(dev)
+        raw.pop("background", None)
     else:
         raw = init_params(ds, cfg, g)
         state, opt_state = DensifyState.empty(raw["means"].shape[0]), None
@@ -229,6 +238,8 @@ def _train(
         degree = min(cfg.sh_degree, step // cfg.sh_every)
         sh = torch.cat([params["sh_dc"], params["sh_rest"]], 1)
         rgb = sh_to_rgb(sh, params["means"], cam.center.to(dev), degree)
+        if bg_logit is not None:
+            bg = torch.sigmoid(bg_logit)
         out = rasterize(
             params["means"],
             params["quats"],
@@ -249,6 +260,9 @@ def _train(
                 accumulate(state, out.means2d.grad, out.radii, out.visible, cam.width, cam.height)
             opt.step()
             opt.zero_grad(set_to_none=True)
+            if bg_opt is not None:
+                bg_opt.step()
+                bg_opt.zero_grad(set_to_none=True)
             if d.refine_start <= step < d.refine_stop and step % d.refine_every == 0 and step > 0:
                 new, keep = refine({k: p.data for k, p in params.items()}, state, d, step, extent, g)
                 params = _swap_params(opt, new, keep)
@@ -261,10 +275,12 @@ def _train(
             bar.set_postfix(loss=f"{loss_val:.4f}", n=params["means"].shape[0], refresh=False)
             bar.update(1)
         if cfg.checkpoint_every and (step + 1) % cfg.checkpoint_every == 0 and step + 1 < cfg.steps:
-            save_checkpoint(ckpt, params, opt, state, step + 1, cfg)
+            save_checkpoint(ckpt, params, opt, state, step + 1, cfg, bg_logit)
     if bar is not None:
         bar.close()
-    save_checkpoint(ckpt, params, opt, state, cfg.steps, cfg)
+    save_checkpoint(ckpt, params, opt, state, cfg.steps, cfg, bg_logit)
+    if bg_logit is not None:
+        bg_value = tuple(float(x) for x in torch.sigmoid(bg_logit.detach()).cpu())
     gs = to_gaussian_set(params)
     write_ply(gs, out_dir / "point_cloud.ply")
     secs = time.perf_counter() - t0
@@ -279,13 +295,15 @@ def _train(
                     "threads": threads,
                     "gaussians": gs.num,
                     "extent": extent,
+                    "background": list(bg_value),
+                    "background_source": bg_source,
                     "config": config_record(cfg),
                     "densify_history": state.history,
                 },
                 indent=1,
             )
         )
-    return TrainResult(gs, cfg.steps, secs, loss_val, state.history)
+    return TrainResult(gs, cfg.steps, secs, loss_val, state.history, bg_value, bg_source)
 
 
 def to_gaussian_set(params: dict[str, torch.Tensor]) -> GaussianSet:
@@ -293,6 +311,42 @@ def to_gaussian_set(params: dict[str, torch.Tensor]) -> GaussianSet:
     return GaussianSet(
         p["means"], p["quats"], p["log_scales"], p["opacity_logits"], torch.cat([p["sh_dc"], p["sh_rest"]], 1)
     )
+
+
+def _background_choice(ds: PosedDataset, cfg: GSTrainConfig) -> tuple[str, tuple[float, float, float]]:
+    """(source, colour) of the background to train with: the config's, the dataset's declared one, a
+    learned one (its colour here is a placeholder, set from the images by the caller), or black."""
+    if cfg.background is not None:
+        return "config", tuple(cfg.background)
+    declared = declared_background(ds)
+    if declared is not None:
+        return "declared", declared
+    return ("learned", (0.0, 0.0, 0.0)) if cfg.learn_background else ("black", (0.0, 0.0, 0.0))
+
+
+def border_colour(images: list[torch.Tensor], levels: int = 16) -> torch.Tensor:
+    """[3] the commonest colour of the images' border pixels (one pixel wide; images [H,W,3] in [0,1]):
+    the mean of the pixels in the most populated cell of a levels^3 colour grid. Where a constant backdrop
+    shows (sky, a studio wall) it fills more of the border than any one surface does, and this is its colour;
+    a median would mix it with the floor's."""
+    edges = []
+    for im in images:
+        edges += [im[0], im[-1], im[:, 0], im[:, -1]]
+    px = torch.cat(edges).float().cpu().clamp(0, 1)
+    cell = (px * (levels - 1e-6)).long()
+    key = (cell[:, 0] * levels + cell[:, 1]) * levels + cell[:, 2]
+    return px[key == torch.bincount(key).argmax()].mean(0)
+
+
+def trained_background(run_dir: str | Path, ds: PosedDataset) -> tuple[float, float, float]:
+    """The background colour a 3DGS run in ``run_dir`` trained with (its train.json), else the dataset's
+    (declared, or black): what its renders should be compared with."""
+    meta = Path(run_dir) / "train.json"
+    if meta.is_file():
+        bg = json.loads(meta.read_text()).get("background")
+        if bg is not None:
+            return tuple(float(x) for x in bg)
+    return dataset_background(ds)
 
 
 def declared_background(ds: PosedDataset) -> tuple[float, float, float] | None:
@@ -318,11 +372,16 @@ def config_record(cfg: GSTrainConfig) -> dict:
     return d
 
 
-def save_checkpoint(path: Path, params, opt, state: DensifyState, step: int, cfg: GSTrainConfig) -> None:
-    """Parameters, Adam moments and densification statistics as safetensors; counters as JSON metadata."""
+def save_checkpoint(
+    path: Path, params, opt, state: DensifyState, step: int, cfg: GSTrainConfig, background=None
+) -> None:
+    """Parameters, Adam moments and densification statistics as safetensors; counters as JSON metadata.
+    ``background``: the learned background's logits [3], when one is learned."""
     from safetensors.torch import save_file
 
     t = {f"param/{k}": v.detach().cpu().contiguous() for k, v in params.items()}
+    if background is not None:
+        t["param/background"] = background.detach().cpu().contiguous()
     steps = {}
     for group in opt.param_groups:
         st = opt.state.get(group["params"][0], {})
@@ -347,7 +406,8 @@ def save_checkpoint(path: Path, params, opt, state: DensifyState, step: int, cfg
 
 
 def load_checkpoint(path: Path):
-    """(params, adam state by group name, DensifyState, step) from save_checkpoint's file."""
+    """(params, adam state by group name, DensifyState, step) from save_checkpoint's file; params hold
+    "background" too when the run learns one."""
     from safetensors import safe_open
 
     with safe_open(str(path), framework="pt") as f:
@@ -356,6 +416,8 @@ def load_checkpoint(path: Path):
             raise ValueError(f"{path}: not an fmgs 3DGS checkpoint")
         t = {k: f.get_tensor(k) for k in f.keys()}
     params = {k: t[f"param/{k}"] for k in PARAM_NAMES}
+    if "param/background" in t:  # a learned background's logits
+        params["background"] = t["param/background"]
     steps = json.loads(meta["adam_steps"])
     opt_state = {}
     for k in PARAM_NAMES:

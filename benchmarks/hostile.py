@@ -201,8 +201,11 @@ def slot_releases(models: Path, cam: pb.Camera, texts: tuple[str, ...]) -> dict[
 def peak_rss(models: Path, cam: pb.Camera, texts: tuple[str, ...]) -> dict[str, dict]:
     """Peak RSS above the warmed-up baseline for the worst request of each kind, each in a fresh server
     (no heap left over from an earlier request), with the estimate the working-memory budget reserves."""
+    from fmgs.scene.package import load_scene
+
     out = {}
     big = camera(cam, MAX_W, MAX_H)
+    gaussians = load_scene(models / "demo").gaussians.num  # a render's estimate counts them
     pts = np.random.default_rng(2).uniform(-1, 1, size=(1_000_000, 3)).astype(np.float32)
     many = [f"{t} {i}" for i in range(11) for t in texts][:64]
     classes = [f"{x} {i}" for i in range(3) for x in texts][:16]
@@ -212,7 +215,7 @@ def peak_rss(models: Path, cam: pb.Camera, texts: tuple[str, ...]) -> dict[str, 
             lambda s: list(
                 s.Render(pb.RenderRequest(scene="demo", camera=big, text="red cube", outputs=ALL_OUTPUTS))
             ),
-            budget.render_bytes(MAX_W, MAX_H, outputs, False),
+            budget.render_bytes(MAX_W, MAX_H, outputs, False, gaussians),
         ),
         f"Render {MAX_W}x{MAX_H}, 4 outputs, PNG": (
             lambda s: list(
@@ -226,7 +229,7 @@ def peak_rss(models: Path, cam: pb.Camera, texts: tuple[str, ...]) -> dict[str, 
                     )
                 )
             ),
-            budget.render_bytes(MAX_W, MAX_H, outputs, True),
+            budget.render_bytes(MAX_W, MAX_H, outputs, True, gaussians),
         ),
         "PointQuery 1M points x 8 texts (61 MiB answer)": (
             lambda s: s.PointQuery(

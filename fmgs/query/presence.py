@@ -1,6 +1,6 @@
 """Is the queried thing in this scene? A presence score from the scene's best Gaussians for the query.
 
-Relevancy contrasts a query with four generic phrases, so the most similar thing in any scene scores
+Relevancy contrasts a query with four generic phrases, so the most similar thing in a scene often scores
 above 0.5 ("laptop" finds a mug at 0.53). Presence contrasts it with named things instead: at each of
 the query's best Gaussians (the first ``PresenceConfig.rows`` of its ranking), the query must beat every
 negative it is not a paraphrase of:

@@ -10,6 +10,7 @@ import grpc
 import numpy as np
 import pytest
 
+from fmgs.scene.package import load_scene
 from fmgs_server import budget
 from fmgs_server.budget import WorkBudget
 from fmgs_server.config import ServerConfig
@@ -86,7 +87,8 @@ def test_a_stalled_reader_holds_its_memory_and_others_are_shed(tmp_path):
     cam = pb.Camera(
         viewmat=np.eye(4).ravel().tolist(), fx=2000, fy=2000, cx=2000, cy=1000, width=4000, height=2000
     )
-    one = budget.render_bytes(4000, 2000, ("relevancy",), False)
+    gaussians = load_scene(root / "s").gaussians.num  # a render also counts its scene's Gaussians
+    one = budget.render_bytes(4000, 2000, ("relevancy",), False, gaussians)
     cfg = ServerConfig(models=root, port=0, work_memory_bytes=int(1.05 * one), queue_timeout_s=0.2)
     srv = start_server(cfg, encoder_factory=lambda i: FakeEncoder())
     try:

@@ -107,15 +107,23 @@ def score_presence(engine, encoder, label_names: list[str]) -> list[dict]:
 
 
 def build_scene(
-    out: Path, seed: int, views: int, size: str, gs_steps: int, field_steps: int | None, grad: float | None
+    out: Path,
+    seed: int,
+    views: int,
+    size: str,
+    gs_steps: int,
+    field_steps: int | None,
+    grad: float | None,
+    synth_flags: tuple[str, ...] = (),
 ) -> Path:
-    """Generate and build one scene through the command line; returns the data folder."""
+    """Generate and build one scene through the command line (``synth_flags``: more ``fmgs synth``
+    flags, e.g. the camera rig); returns the data folder."""
     from fmgs.cli import main as fmgs
 
     data = out / f"scene-{seed}"
     if not (data / "scene.json").is_file():
         cmd = ["synth", "--out", str(data), "--preset", "cluttered", "--objects", "10", "--seed", str(seed)]
-        assert fmgs([*cmd, "--views", str(views), "--size", size]) == 0
+        assert fmgs([*cmd, "--views", str(views), "--size", size, *synth_flags]) == 0
     build = ["build", str(data), "--name", f"s{seed}", "--models", str(out / "models"), "--targets", "labels"]
     build += ["--gs-steps", str(gs_steps)]
     if grad is not None:
@@ -395,6 +403,14 @@ def main() -> int:
         type=int,
         help="also score each scene's field packaged with this many embedding neighbours (1: the paper)",
     )
+    ap.add_argument(
+        "--rig", default="ring", choices=["ring", "grazing"], help="fmgs synth's camera rig (default ring)"
+    )
+    ap.add_argument(
+        "--undeclared-background",
+        action="store_true",
+        help="generate the scenes without declaring their backdrop colour (the trainer learns it)",
+    )
     ap.add_argument("--quick", action="store_true", help="CI size: one 64x48 scene, short stages")
     ap.add_argument("--report", action="store_true", help="also write benchmarks/results/FIELD.md")
     ap.add_argument("--from-json", help="only write the report from this unseen.json (its recorded command)")
@@ -426,8 +442,18 @@ def main() -> int:
         if args.evaluate_only:
             data = out / f"scene-{seed}"
         else:
+            synth_flags = ("--rig", args.rig) + (
+                ("--undeclared-background",) if args.undeclared_background else ()
+            )
             data = build_scene(
-                out, seed, args.views, args.size, args.gs_steps, args.field_steps, args.grad_threshold
+                out,
+                seed,
+                args.views,
+                args.size,
+                args.gs_steps,
+                args.field_steps,
+                args.grad_threshold,
+                synth_flags,
             )
         s = evaluate_scene(out, seed, data, args.ablate_neighbours)
         if args.evaluate_only:

@@ -103,7 +103,7 @@ class GSTrainConfig:
     learns one (``learn_background``) or uses black."""
     learn_background: bool = True
     """When no background colour is given or declared, learn one with the scene (three values, started from
-    the median of the training images' border pixels), so a constant backdrop (sky, studio wall) is not
+    the commonest colour of the training images' borders), so a constant backdrop (sky, studio wall) is not
     explained by floaters in front of the cameras; train.json records it. False: black."""
     lr_background: float = 0.01
     """Adam learning rate of the learned background colour (its logits)."""

@@ -98,13 +98,13 @@ def report(res: dict, info: dict, command: str) -> str:
         mark = " *" if v["grazing"] else ""
         cells = " | ".join(f"{r['per_view'][i]['psnr']:.2f}" for r in runs.values())
         L.append(f"| {v['name']}{mark} | {cells} |")
-    worst_gap = d["worst"]["psnr"] - le["worst"]["psnr"]
+    gap = le["worst"]["psnr"] - d["worst"]["psnr"]  # positive: the learned run's worst view is better
     count = le["gaussians"] / d["gaussians"] - 1
     L += [
         "",
-        f"Targets (issue 39): the learned run's worst held-out view within 1 dB of the declared run's: "
-        f"{worst_gap:+.2f} dB ({'met' if worst_gap <= 1 else 'not met'}); Gaussian count within 20%: "
-        f"{100 * count:+.1f}% ({'met' if abs(count) <= 0.2 else 'not met'}). Not measured here: textured "
+        "Targets (issue 39): the learned run's worst held-out view at most 1 dB below the declared run's: "
+        f"learned minus declared {gap:+.2f} dB ({'met' if gap >= -1 else 'not met'}); Gaussian count within "
+        f"20%: {100 * count:+.1f}% ({'met' if abs(count) <= 0.2 else 'not met'}). Not measured here: textured "
         "surroundings (a backdrop that is not one colour); `fmgs synth` renders only a constant one.",
         "",
     ]

@@ -104,8 +104,9 @@ def report(res: dict, info: dict, command: str) -> str:
         "",
         "Targets (issue 39): the learned run's worst held-out view at most 1 dB below the declared run's: "
         f"learned minus declared {gap:+.2f} dB ({'met' if gap >= -1 else 'not met'}); Gaussian count within "
-        f"20%: {100 * count:+.1f}% ({'met' if abs(count) <= 0.2 else 'not met'}). Not measured here: textured "
-        "surroundings (a backdrop that is not one colour); `fmgs synth` renders only a constant one.",
+        f"20%: {100 * count:+.1f}% ({'met' if abs(count) <= 0.2 else 'not met'}). Not measured here: "
+        "textured surroundings (a backdrop that is not one colour); `fmgs synth` renders only a constant "
+        "one.",
         "",
     ]
     return "\n".join(L)

@@ -107,18 +107,25 @@ def _render_camera(args: argparse.Namespace):
     raise ValidationError("--frame", f"no frame named {frame!r} in {src} (first: {names[:3]})")
 
 
+def _numbers(flag: str, text: str, count: int, expected: str) -> tuple[float, ...]:
+    """``count`` comma-separated numbers from a flag's text; ValidationError naming the flag otherwise."""
+    from fmgs.errors import ValidationError
+
+    try:
+        values = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        values = ()
+    if len(values) != count:
+        raise ValidationError(flag, f"expected {expected}, got {text!r}")
+    return values
+
+
 def cmd_synth(args: argparse.Namespace) -> int:
     """Render a synthetic labelled scene (Open3D ray casting) as a transforms.json dataset."""
-    from fmgs.errors import ValidationError
     from fmgs.synth import SynthConfig, generate
 
     w, h = (int(v) for v in args.size.lower().split("x"))
-    try:
-        dist = tuple(float(v) for v in args.distortion.split(","))
-    except ValueError:
-        dist = ()
-    if len(dist) != 4:
-        raise ValidationError("--distortion", f"expected four numbers k1,k2,p1,p2, got {args.distortion!r}")
+    dist = _numbers("--distortion", args.distortion, 4, "four numbers k1,k2,p1,p2")
     cfg = SynthConfig(
         views=args.views,
         width=w,
@@ -179,22 +186,16 @@ def cmd_train_gs(args: argparse.Namespace) -> int:
 def cmd_eval_gs(args: argparse.Namespace) -> int:
     """PSNR and SSIM of a 3DGS scene on the dataset's held-out views."""
     from fmgs.data.dataset import load_dataset
-    from fmgs.errors import ValidationError
     from fmgs.train.evaluate import evaluate
     from fmgs.train.gaussians import dataset_background, trained_background
 
     ds = load_dataset(args.data, undistort_dir=args.undistort_dir)
     g = _load_scene(Path(args.scene))
     if args.background == "auto":  # what the scene was trained with (its train.json), else the dataset's
-        bg = trained_background(Path(args.scene).parent, ds) if Path(args.scene).is_file() else None
-        bg = bg or dataset_background(ds)
+        scene = Path(args.scene)
+        bg = trained_background(scene.parent, ds) if scene.is_file() else dataset_background(ds)
     else:
-        try:
-            bg = tuple(float(v) for v in args.background.split(","))
-        except ValueError:
-            bg = ()
-        if len(bg) != 3:
-            raise ValidationError("--background", f"expected auto or R,G,B in [0,1], got {args.background!r}")
+        bg = _numbers("--background", args.background, 3, "auto or R,G,B in [0,1]")
     res = evaluate(g, ds, args.out, scale=args.scale, background=bg, progress=True)
     print(res.table())
     if res.warning():

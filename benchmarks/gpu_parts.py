@@ -195,43 +195,11 @@ def part_tests(work: Path, quick: bool) -> dict:
 # ---------------------------------------------------------------- pose queries, 1M Gaussians
 
 
-def _device_agreement(package: Path, cpu, emb: torch.Tensor, cam) -> dict:
-    """Per query set (benchmarks/query_sets.py): max |relevancy difference| between the CPU and CUDA
-    engines' images of the same package and camera, and of each against a float64 dot-then-render of the
-    stored embeddings (float64 channels blended in float64 by the cpu backend). Target: all <= 1e-4."""
-    from benchmarks.query_sets import query_sets
-    from fmgs.query.engine import EngineConfig, SceneEngine
-    from fmgs.query.pose import render_pose
-    from fmgs.query.relevancy import TEMPERATURE, relevancy
-    from fmgs.render import rasterize
-
-    stored = cpu.index.half  # the package's float16 embeddings, as the engines read them
-    f16 = torch.from_numpy(stored.view(np.float16)) if stored is not None else emb.half()
-    gpu = SceneEngine.open(package, EngineConfig(device=DEVICE))
-    geom = [t.double().cpu() for t in cpu.geometry]
-    out = {}
-    for name, qs in query_sets(emb, torch.zeros(0, dtype=torch.int64), 2).items():
-        if name == "ties":
-            continue
-        worst = {"cpu_vs_cuda": 0.0, "cpu_vs_f64": 0.0, "cuda_vs_f64": 0.0}
-        for q in qs:
-            u = cpu.unit(q[None])[0].double()
-            chans = torch.cat([(f16.double() @ u)[:, None], cpu.index.canonical.double()], 1)
-            img = rasterize(*geom, chans, cam, backend="cpu").image
-            ref = relevancy(img[..., 0], img[..., 1:], TEMPERATURE)
-            a = render_pose(cpu, cam, q).relevancy.double()
-            b = render_pose(gpu, cam, q).relevancy.double().cpu()
-            for key, d in (("cpu_vs_cuda", a - b), ("cpu_vs_f64", a - ref), ("cuda_vs_f64", b - ref)):
-                worst[key] = max(worst[key], float(d.abs().max()))
-        out[name] = worst
-    del gpu
-    return out
-
-
 def part_pose(work: Path, quick: bool) -> dict:
     """Relevancy images 480x270 of a 1M-Gaussian scene: engine (CUDA and CPU) and gRPC on loopback."""
     import grpc
 
+    from benchmarks.gpu_agreement import device_agreement
     from fmgs.query.engine import EngineConfig, SceneEngine
     from fmgs.query.pose import render_pose
     from fmgs_server.config import ServerConfig
@@ -269,7 +237,7 @@ def part_pose(work: Path, quick: bool) -> dict:
         (render_pose(cpu, cam, queries[5]).relevancy - gpu_img).abs().max()
     )
     res["speedup_cuda_vs_cpu"] = res["engine_cpu_ms"] / res["engine_cuda_cached_ms"]
-    res["agreement"] = _device_agreement(models / "pose", cpu, emb, cam)
+    res["agreement"] = device_agreement(models / "pose", cpu, emb, cam, DEVICE)
     del cpu
 
     enc = TableEncoder(queries, canon)

@@ -136,6 +136,7 @@ def cmd_synth(args: argparse.Namespace) -> int:
         distortion=dist,
         preset=args.preset,
         rig=args.rig,
+        backdrop=args.backdrop,
         declare_background=not args.undeclared_background,
     )
     t0 = time.perf_counter()
@@ -187,6 +188,7 @@ def cmd_eval_gs(args: argparse.Namespace) -> int:
     """PSNR and SSIM of a 3DGS scene on the dataset's held-out views."""
     from fmgs.data.dataset import load_dataset
     from fmgs.train.evaluate import evaluate
+    from fmgs.train.floaters import floater_mask
     from fmgs.train.gaussians import dataset_background, trained_background
 
     ds = load_dataset(args.data, undistort_dir=args.undistort_dir)
@@ -198,6 +200,7 @@ def cmd_eval_gs(args: argparse.Namespace) -> int:
         bg = _numbers("--background", args.background, 3, "auto or R,G,B in [0,1]")
     res = evaluate(g, ds, args.out, scale=args.scale, background=bg, progress=True)
     print(res.table())
+    print(floater_mask(g, ds)[1].line())
     if res.warning():
         print(f"warning: {res.warning()}")
     if args.out:
@@ -477,6 +480,13 @@ def build_parser() -> argparse.ArgumentParser:
         choices=["ring", "grazing"],
         help="ring (default): cameras on one ring at two heights; grazing: every third camera on a low "
         "ring looking across the floor, where the backdrop fills the upper image",
+    )
+    sy.add_argument(
+        "--backdrop",
+        default="constant",
+        choices=["constant", "walls"],
+        help="constant (default): one colour behind the scene; walls: a textured round wall around the floor "
+        "(labelled background, sampled into the sparse points) with the constant colour above it",
     )
     sy.add_argument(
         "--undeclared-background",

@@ -43,6 +43,12 @@ RIGS = ("ring", "grazing")
 of those images, as outdoor captures with sky and turntables on a backdrop do)."""
 GRAZING_HEIGHT = 0.3
 """Camera height of the grazing ring (scene units; the objects stand on the floor at z = 0)."""
+BACKDROPS = ("constant", "walls")
+"""constant: every ray that misses the scene sees BACKGROUND. walls: a textured round wall (WALL_RADIUS,
+WALL_HEIGHT) encloses the floor, as a room or a street does, with BACKGROUND above it; its pixels are
+labelled background (0) and its surface is sampled into points3D.ply, as structure from motion would."""
+WALL_RADIUS = 6.0
+WALL_HEIGHT = 2.5
 PRESETS = ("basic", "cluttered")
 """basic: the first ``objects`` of OBJECTS, spread apart on a checkered floor. cluttered: a seeded
 choice of ``objects`` from all of OBJECTS, about half placed touching another, on a striped floor."""
@@ -83,6 +89,8 @@ class SynthConfig:
     """Scene kind (PRESETS): "basic" or "cluttered" (thin, small and touching objects, more classes)."""
     rig: str = "ring"
     """Camera placement (RIGS): "ring" (two heights) or "grazing" (adds a low ring that sees the backdrop)."""
+    backdrop: str = "constant"
+    """What lies behind the scene (BACKDROPS): "constant" (one colour) or "walls" (textured surroundings)."""
     declare_background: bool = True
     """Write the constant backdrop colour into transforms.json ("background"); False leaves it undeclared,
     as most captures do, so a trainer must cope with it on its own."""
@@ -165,6 +173,34 @@ def _meshes(cfg: SynthConfig):
     return out
 
 
+def _wall():
+    """An open (capless) round wall of WALL_RADIUS and WALL_HEIGHT standing on z = 0."""
+    import open3d as o3d
+
+    n = 96
+    a = 2 * np.pi * np.arange(n) / n
+    ring = np.stack([WALL_RADIUS * np.cos(a), WALL_RADIUS * np.sin(a), np.zeros(n)], 1)
+    top = ring + np.array([0.0, 0.0, WALL_HEIGHT])
+    i = np.arange(n)
+    j = (i + 1) % n
+    tris = np.concatenate([np.stack([i, j, n + i], 1), np.stack([j, n + j, n + i], 1)])
+    mesh = o3d.geometry.TriangleMesh(
+        o3d.utility.Vector3dVector(np.concatenate([ring, top])), o3d.utility.Vector3iVector(tris)
+    )
+    mesh.compute_triangle_normals()
+    return mesh
+
+
+def _wall_albedo(points: np.ndarray, cell: float) -> np.ndarray:
+    """The wall's texture: hues that drift around it, horizontal courses and a checker, so that no one
+    colour (a learned background) can explain it."""
+    a = np.arctan2(points[..., 1], points[..., 0])
+    hue = 0.5 + 0.3 * np.stack([np.sin(3 * a), np.sin(3 * a + 2.1), np.sin(3 * a + 4.2)], -1)
+    courses = np.where(np.sin(points[..., 2] * 2 * np.pi / 0.5) > 0, 1.0, 0.75)
+    cells = np.floor(points / (3 * cell)).astype(np.int64).sum(-1) % 2
+    return hue * (courses * np.where(cells == 0, 1.0, 0.8))[..., None]
+
+
 def _lying(mesh):
     """A mesh built along +z laid down along +x."""
     mesh.rotate(mesh.get_rotation_matrix_from_xyz((0.0, np.pi / 2, 0.0)), center=(0, 0, 0))
@@ -224,12 +260,18 @@ def generate(out: str | Path, cfg: SynthConfig = SynthConfig()) -> Path:
     out = Path(out)
     for sub in ("images", "labels", "depth"):
         (out / sub).mkdir(parents=True, exist_ok=True)
+    if cfg.backdrop not in BACKDROPS:
+        raise ValueError(f"backdrop must be one of {BACKDROPS}, got {cfg.backdrop!r}")
     items = _meshes(cfg)
     scene = o3d.t.geometry.RaycastingScene()
     geom_label = {}
     for label, (_, _, mesh) in enumerate(items, start=1):
         gid = scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(mesh))
         geom_label[gid] = label
+    wall_gid = None
+    if cfg.backdrop == "walls":
+        wall_gid = scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(_wall()))
+        geom_label[wall_gid] = 0  # surroundings, not a class
     names = ["background"] + [n for n, _, _ in items]
     colours = np.array([BACKGROUND] + [c for _, c, _ in items])
     lut = np.zeros(max(geom_label) + 2, dtype=np.int64)
@@ -265,7 +307,11 @@ def generate(out: str | Path, cfg: SynthConfig = SynthConfig()) -> Path:
         depth = np.where(miss, 0.0, t)  # z-depth, because the camera-frame ray has z = 1
         pts = eye + dirs * np.where(miss, 0.0, t)[..., None]
         normals = hit["primitive_normals"].numpy().astype(np.float64)
-        rgb = _shade(_albedo(label, pts, colours, cfg.checker, cfg.preset == "cluttered"), normals)
+        albedo = _albedo(label, pts, colours, cfg.checker, cfg.preset == "cluttered")
+        if wall_gid is not None:
+            on_wall = ~miss & (gid == wall_gid)
+            albedo[on_wall] = _wall_albedo(pts[on_wall], cfg.checker)
+        rgb = _shade(albedo, normals)
         rgb[miss] = BACKGROUND
         rgb = rgb.reshape(H, S, W, S, 3).mean((1, 3))  # box filter down to the image
         label = label[mid::S, mid::S]
@@ -291,6 +337,10 @@ def generate(out: str | Path, cfg: SynthConfig = SynthConfig()) -> Path:
         views.append({"file_path": f"images/{name}", "boxes_2d": boxes})
 
     pts, cols = _surface_points(items, colours, cfg)
+    if cfg.backdrop == "walls":
+        wp, wn = _sample_surface(_wall(), cfg.points // 2, np.random.default_rng(cfg.seed + 1))
+        wc = (_shade(_wall_albedo(wp, cfg.checker), wn) * 255 + 0.5).astype(np.uint8)
+        pts, cols = np.concatenate([pts, wp]), np.concatenate([cols, wc])
     _write_points(out / "points3D.ply", pts, cols)
     meta = {
         "w": W,
@@ -338,21 +388,26 @@ def _surface_points(items, colours, cfg: SynthConfig) -> tuple[np.ndarray, np.nd
     areas = np.array([m.get_surface_area() for _, _, m in items])
     counts = np.maximum(50, (cfg.points * areas / areas.sum()).astype(int))
     for label, ((_, _, mesh), n) in enumerate(zip(items, counts, strict=True), start=1):
-        v = np.asarray(mesh.vertices)
-        tri = np.asarray(mesh.triangles)
-        a, b, c = v[tri[:, 0]], v[tri[:, 1]], v[tri[:, 2]]
-        cross = np.cross(b - a, c - a)
-        area = np.linalg.norm(cross, axis=1)
-        pick = rng.choice(len(tri), size=int(n), p=area / area.sum())
-        u, w = rng.uniform(size=(2, int(n)))
-        flip = u + w > 1  # fold the square onto the triangle: uniform barycentric coordinates
-        u, w = np.where(flip, 1 - u, u), np.where(flip, 1 - w, w)
-        p = a[pick] + u[:, None] * (b - a)[pick] + w[:, None] * (c - a)[pick]
-        nrm = cross[pick] / np.maximum(area[pick], 1e-300)[:, None]
+        p, nrm = _sample_surface(mesh, int(n), rng)
         lab = np.full(len(p), label)
         pts.append(p)
         cols.append(_shade(_albedo(lab, p, colours, cfg.checker, cfg.preset == "cluttered"), nrm))
     return np.concatenate(pts), (np.concatenate(cols) * 255 + 0.5).astype(np.uint8)
+
+
+def _sample_surface(mesh, n: int, rng) -> tuple[np.ndarray, np.ndarray]:
+    """n area-uniform points [n,3] on a triangle mesh and their face normals [n,3]."""
+    v = np.asarray(mesh.vertices)
+    tri = np.asarray(mesh.triangles)
+    a, b, c = v[tri[:, 0]], v[tri[:, 1]], v[tri[:, 2]]
+    cross = np.cross(b - a, c - a)
+    area = np.linalg.norm(cross, axis=1)
+    pick = rng.choice(len(tri), size=n, p=area / area.sum())
+    u, w = rng.uniform(size=(2, n))
+    flip = u + w > 1  # fold the square onto the triangle: uniform barycentric coordinates
+    u, w = np.where(flip, 1 - u, u), np.where(flip, 1 - w, w)
+    p = a[pick] + u[:, None] * (b - a)[pick] + w[:, None] * (c - a)[pick]
+    return p, cross[pick] / np.maximum(area[pick], 1e-300)[:, None]
 
 
 def _write_points(path: Path, pts: np.ndarray, cols: np.ndarray) -> None:

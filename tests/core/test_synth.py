@@ -3,14 +3,16 @@
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
 import torch
 from PIL import Image
+from plyfile import PlyData
 
 from fmgs.data.dataset import load_dataset
-from fmgs.synth import SynthConfig, generate
+from fmgs.synth import BACKGROUND, WALL_HEIGHT, WALL_RADIUS, SynthConfig, generate
 
 
 @pytest.fixture(scope="module")
@@ -131,3 +133,27 @@ def test_grazing_rig_and_undeclared_backdrop(tmp_path):
     assert all((lab[: lab.shape[0] // 2] == 0).mean() > 0.3 for lab in low)
     with pytest.raises(ValueError, match="rig"):
         generate(tmp_path / "bad", SynthConfig(views=2, width=8, height=6, rig="orbit"))
+
+
+def test_walls_backdrop_is_textured_geometry_labelled_background(tmp_path):
+    cfg = SynthConfig(views=6, width=48, height=36, objects=3, points=600, rig="grazing", backdrop="walls")
+    generate(tmp_path / "walls", cfg)
+    generate(tmp_path / "plain", replace(cfg, backdrop="constant"))
+    meta = json.loads((tmp_path / "walls" / "transforms.json").read_text())
+    assert meta["background"] == list(BACKGROUND)  # the sky above the wall stays declared
+    sky = np.round(np.asarray(BACKGROUND) * 255).astype(int)
+    for f in meta["frames"]:
+        lab = np.asarray(Image.open(tmp_path / "walls" / f["label_path"]))
+        plain = np.asarray(Image.open(tmp_path / "plain" / f["label_path"]))
+        rgb = np.asarray(Image.open(tmp_path / "walls" / f["file_path"])).astype(int)
+        assert np.array_equal(lab, plain)  # the wall is background: no label moves
+        back = rgb[lab == 0]
+        off_sky = np.abs(back - sky).max(1) > 8
+        # Much of what lies behind the scene is now the wall, and it is not one colour.
+        assert off_sky.mean() > 0.3 and back[off_sky].std(0).max() > 20
+    pts = PlyData.read(str(tmp_path / "walls" / "points3D.ply"))["vertex"]
+    r = np.hypot(pts["x"], pts["y"])
+    on_wall = r > WALL_RADIUS - 0.01  # a 96-gon; the floor's corners reach 5.66
+    assert on_wall.sum() == cfg.points // 2 and pts["z"][on_wall].max() <= WALL_HEIGHT + 1e-6
+    with pytest.raises(ValueError, match="backdrop"):
+        generate(tmp_path / "bad", replace(cfg, backdrop="dome"))

@@ -122,9 +122,10 @@ GEOMETRY_REPORT = "geometry.json"
 
 def _report_geometry(gaussians, ds, cfg: BuildConfig, work: Path, background) -> None:
     """Print the geometry's held-out PSNR/SSIM (every HOLDOUT_EVERY-th view; the mean and the worst view)
-    and store them in WORK/geometry.json with every view's; warn naming each view below LOW_PSNR_DB, and
-    when the mean is."""
+    and the floaters it leaves (fmgs.train.floaters), and store them in WORK/geometry.json with every view's;
+    warn naming each view below LOW_PSNR_DB, and when the mean is."""
     from fmgs.train.evaluate import evaluate
+    from fmgs.train.floaters import floater_mask
 
     _, test = ds.split(cfg.gs.holdout_every)
     if not test:
@@ -138,7 +139,11 @@ def _report_geometry(gaussians, ds, cfg: BuildConfig, work: Path, background) ->
         f"{n}; held-out PSNR {r.psnr:.2f} dB, SSIM {r.ssim:.3f} ({len(test)} views; worst {w['name']} "
         f"{w['psnr']:.2f} dB)",
     )  # fmt: skip
+    train, _ = ds.split(cfg.gs.holdout_every)
+    _, floaters = floater_mask(gaussians, ds, train)
+    _stage(2, "geometry", floaters.line())
     scores = {**r.summary(LOW_PSNR_DB), "views": len(test), "gaussians": gaussians.num}
+    scores["floaters"] = floaters.summary()
     with atomic_path(work / GEOMETRY_REPORT) as tmp:
         tmp.write_text(json.dumps(scores, indent=1))
     if r.warning(LOW_PSNR_DB):

@@ -90,6 +90,11 @@ def test_rebuild_skips_complete_stages(built, capsys):
     assert scores["worst"] == worst and f"worst {worst['name']} {worst['psnr']:.2f} dB" in out
     low = [v["name"] for v in sorted(per_view, key=lambda v: v["psnr"]) if v["psnr"] < scores["threshold_db"]]
     assert scores["below"] == low
+    # What the fit left in front of the training cameras, counted against the scene's sparse points.
+    fl = scores["floaters"]
+    assert fl["total"] == scores["gaussians"] and fl["cameras_checked"] >= 1
+    assert 0 <= fl["count"] <= fl["total"] and 0 <= fl["beyond"] <= fl["total"]
+    assert f"floaters: {fl['count']:,} of {fl['total']:,} Gaussians" in out
     assert (tmp / "models" / ".work" / "toy" / "field" / "field_train.json").stat().st_mtime_ns == stamp
     again = json.loads((tmp / "models" / ".work" / "toy" / "features" / "manifest.json").read_text())
     assert again == manifest

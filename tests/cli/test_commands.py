@@ -82,7 +82,9 @@ def test_train_and_eval_commands_apply_their_flags(tmp_path, capsys):
         main(["eval-gs", str(tmp_path / "data"), str(out / "point_cloud.ply"), "--out", str(tmp_path / "ev")])
         == 0
     )
-    assert "mean" in capsys.readouterr().out and (tmp_path / "ev" / "eval.json").is_file()
+    printed = capsys.readouterr().out
+    assert "mean" in printed and (tmp_path / "ev" / "eval.json").is_file()
+    assert " Gaussians (" in printed and "lie beyond the sparse points" in printed  # the floaters line
 
 
 def _scene_file(tmp_path, n: int = 200, seed: int = 1, spread: float = 0.4, scale: float = 0.06):

@@ -107,6 +107,9 @@ class GSTrainConfig:
     explained by floaters in front of the cameras; train.json records it. False: black."""
     lr_background: float = 0.01
     """Adam learning rate of the learned background colour (its logits)."""
+    background_transmittance: float = 0.9
+    """The learned colour is fitted only to pixels the Gaussians leave at least this transparent (where the
+    background is what the image shows); 0 fits it to every pixel, weighted by transmittance."""
     holdout_every: int = HOLDOUT_EVERY
     """Every n-th frame is held out (not trained on)."""
     checkpoint_every: int = 0

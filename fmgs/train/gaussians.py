@@ -239,7 +239,7 @@ def _train(
         sh = torch.cat([params["sh_dc"], params["sh_rest"]], 1)
         rgb = sh_to_rgb(sh, params["means"], cam.center.to(dev), degree)
         if bg_logit is not None:
-            bg = torch.sigmoid(bg_logit)
+            bg = torch.sigmoid(bg_logit).detach()  # its gradient is taken below, from background pixels only
         out = rasterize(
             params["means"],
             params["quats"],
@@ -252,9 +252,15 @@ def _train(
             backend=backend,
         )
         out.means2d.retain_grad()
+        if bg_logit is not None:
+            out.image.retain_grad()
         l1 = (out.image - img).abs().mean()
         loss = (1 - cfg.ssim_weight) * l1 + cfg.ssim_weight * (1 - ssim(out.image, img))
         loss.backward()
+        if bg_logit is not None:
+            bg_logit.grad = background_grad(
+                out.image.grad, out.alpha.detach(), bg_logit, cfg.background_transmittance
+            )
         with torch.no_grad():
             if step < d.refine_stop and out.means2d.grad is not None:
                 accumulate(state, out.means2d.grad, out.radii, out.visible, cam.width, cam.height)
@@ -322,6 +328,21 @@ def _background_choice(ds: PosedDataset, cfg: GSTrainConfig) -> tuple[str, tuple
     if declared is not None:
         return "declared", declared
     return ("learned", (0.0, 0.0, 0.0)) if cfg.learn_background else ("black", (0.0, 0.0, 0.0))
+
+
+def background_grad(
+    image_grad: torch.Tensor, alpha: torch.Tensor, bg_logit: torch.Tensor, min_transmittance: float
+) -> torch.Tensor:
+    """[3] gradient of the loss for the background's logits, from the pixels the Gaussians leave at least
+    ``min_transmittance`` transparent. The rasteriser's own gradient sums transmittance x dL/dpixel over every
+    pixel: under an L1 loss each half-covered pixel of a wall or floor pulls as hard as a sky pixel, scaled
+    only by its transmittance, and thousands of them dragged a learned sky off its colour while textured
+    surroundings were still half built (BACKGROUND.md). ``image_grad`` [H,W,3] dL/dpixel, ``alpha`` [H,W]."""
+    t = (1 - alpha).clamp(0, 1)
+    w = torch.where(t >= min_transmittance, t, torch.zeros_like(t)) if min_transmittance > 0 else t
+    g = (w[..., None] * image_grad).sum((0, 1))
+    s = torch.sigmoid(bg_logit.detach())
+    return g * s * (1 - s)  # d sigmoid / d logit
 
 
 def border_colour(images: list[torch.Tensor], levels: int = 16) -> torch.Tensor:

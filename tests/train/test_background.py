@@ -78,3 +78,30 @@ def test_the_learned_colour_survives_a_checkpoint(tmp_path):
     save_checkpoint(ckpt, params, opt, DensifyState.empty(4), 7, GSTrainConfig(), logits)
     raw, _, _, step = load_checkpoint(ckpt)
     assert step == 7 and torch.equal(raw["background"], logits)
+
+
+@pytest.mark.parametrize("backend", ["reference", "cpu"])
+def test_the_background_gradient_is_the_rasterisers_restricted_to_background_pixels(backend):
+    from fmgs.render import rasterize
+    from fmgs.train.gaussians import background_grad
+    from tests.helpers.scenes import random_scene
+
+    sc = random_scene(3, 40, 3, 24, 18, 20.0)
+    logit = torch.tensor([0.3, -0.4, 1.1], requires_grad=True)
+    target = torch.rand(18, 24, 3, generator=torch.Generator().manual_seed(0))
+    means, *rest = sc.args()
+    means.requires_grad_(True)  # as in training: the image depends on parameters
+    out = rasterize(means, *rest, background=torch.sigmoid(logit), backend=backend)
+    out.image.retain_grad()
+    (out.image - target).abs().mean().backward()
+    # Threshold 0: the same gradient autograd takes through the rasteriser's compositing.
+    ours = background_grad(out.image.grad, out.alpha.detach(), logit, 0.0)
+    torch.testing.assert_close(ours, logit.grad, rtol=1e-5, atol=1e-7)
+    # A threshold keeps only the pixels at least that transparent.
+    t = 1 - out.alpha.detach()
+    assert 0.05 < float((t >= 0.9).float().mean()) < 0.95  # the scene leaves both kinds
+    s = torch.sigmoid(logit.detach())
+    keep = torch.where(t >= 0.9, t, 0.0)
+    expected = (keep[..., None] * out.image.grad).sum((0, 1)) * s * (1 - s)
+    torch.testing.assert_close(background_grad(out.image.grad, out.alpha.detach(), logit, 0.9), expected)
+    assert not torch.allclose(expected, logit.grad)

@@ -172,6 +172,7 @@ def _quality(engine, ds, enc, test: list[int], data: Path, names: list[str]) -> 
         "miou": q.miou,
         "class_iou": q.per_class_iou,
         "failures": q.failures,
+        "per_view_2d": q.per_view_2d,
         "presence": score_presence(engine, enc, names),
     }
 
@@ -203,6 +204,7 @@ def evaluate_scene(out: Path, seed: int, data: Path, ablate: int | None = None) 
         "objects": names[2:],
         "views_test": len(test),
         "psnr": gs_eval.get("psnr"),
+        "geometry": {k: gs_eval.get(k) for k in ("worst", "below", "floaters", "per_view")},
         **_quality(engine, ds, enc, test, data, names),
         "embedding_neighbours": neighbours_of(package),
         "variant": variant,
@@ -294,6 +296,37 @@ def neighbours_section(scenes: list[dict]) -> list[str]:
     return lines
 
 
+def views_section(scenes: list[dict]) -> list[str]:
+    """Each held-out view's geometry (PSNR) and 2D localisation: a mean can hide one view where the geometry
+    fails and every query misses. Empty for runs that predate per-view scores."""
+    if not all(s.get("per_view_2d") and (s.get("geometry") or {}).get("per_view") for s in scenes):
+        return []
+    lines = [
+        "",
+        "Per held-out view: the geometry's PSNR and the 2D queries that reached their object's box "
+        "(`geometry.json`; floaters: Gaussians nearer a training camera than its sparse points, "
+        "fmgs.train.floaters):",
+        "",
+        "| seed | view | PSNR dB | 2D hits |",
+        "|---:|---|---:|---:|",
+    ]
+    for s in scenes:
+        psnr = {v["name"]: v["psnr"] for v in s["geometry"]["per_view"]}
+        for name, (hit, n) in s["per_view_2d"].items():
+            lines.append(f"| {s['seed']} | {name} | {psnr.get(name, float('nan')):.2f} | {hit}/{n} |")
+    lines.append("")
+    for s in scenes:
+        g = s["geometry"]
+        fl = g.get("floaters") or {}
+        below = ", ".join(g["below"]) or "none"
+        lines.append(
+            f"- seed {s['seed']}: worst view {g['worst']['name']} {g['worst']['psnr']:.2f} dB; below 20 dB: "
+            f"{below}; floaters {fl.get('count', 0):,} of {fl.get('total', 0):,}, beyond the sparse points "
+            f"{fl.get('beyond', 0):,}"
+        )
+    return lines
+
+
 def report(scenes: list[dict], info: dict, cmd: str) -> str:
     import numpy as np
 
@@ -350,6 +383,7 @@ def report(scenes: list[dict], info: dict, cmd: str) -> str:
         ious = ", ".join(f"{k} {v:.2f}" for k, v in sorted(s["class_iou"].items(), key=lambda kv: -kv[1]))
         lines.append(f"- seed {s['seed']}: {ious}")
     lines += neighbours_section(scenes)
+    lines += views_section(scenes)
     rows = [r for s in scenes for r in s["presence"]]
     rates = presence_rates(rows)
     lines += [
@@ -407,6 +441,12 @@ def main() -> int:
         "--rig", default="ring", choices=["ring", "grazing"], help="fmgs synth's camera rig (default ring)"
     )
     ap.add_argument(
+        "--backdrop",
+        default="constant",
+        choices=["constant", "walls"],
+        help="fmgs synth's backdrop: one colour (default) or textured walls with the colour above them",
+    )
+    ap.add_argument(
         "--undeclared-background",
         action="store_true",
         help="generate the scenes without declaring their backdrop colour (the trainer learns it)",
@@ -442,7 +482,7 @@ def main() -> int:
         if args.evaluate_only:
             data = out / f"scene-{seed}"
         else:
-            synth_flags = ("--rig", args.rig) + (
+            synth_flags = ("--rig", args.rig, "--backdrop", args.backdrop) + (
                 ("--undeclared-background",) if args.undeclared_background else ()
             )
             data = build_scene(

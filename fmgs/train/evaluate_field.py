@@ -46,6 +46,8 @@ class FieldQuality:
     """IoU per class name."""
     failures: list[str] = field(default_factory=list)
     """Which queries failed, for reading the report."""
+    per_view_2d: dict[str, list[int]] = field(default_factory=dict)
+    """View name -> [2D hits, 2D queries] in that view (a mean can hide one view where every query fails)."""
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -66,6 +68,7 @@ def evaluate_field(
     emb = encoder.encode_text(names).float()  # [K,D]
     classes = list(range(1, len(names)))  # label 0 is background (no geometry)
     failures: list[str] = []
+    per_view: dict[str, list[int]] = {}
 
     hit2d = n2d = 0
     inter = np.zeros(len(names))
@@ -73,11 +76,14 @@ def evaluate_field(
     for i in views:
         fr = ds.frames[i]
         cam = fr.camera
+        here = per_view.setdefault(fr.name, [0, 0])
         for name, (x0, y0, x1, y1) in boxes.get(fr.name, {}).items():
             x, y, _ = render_pose(engine, cam, emb[names.index(name)]).argmax
             ok = x0 <= x <= x1 and y0 <= y <= y1
             hit2d += ok
             n2d += 1
+            here[0] += int(ok)
+            here[1] += 1
             if not ok:
                 failures.append(f"2d {fr.name} {name!r}: peak at ({x},{y}) outside {[x0, y0, x1, y1]}")
         label_path = ds.root / "labels" / Path(fr.name).name
@@ -116,4 +122,5 @@ def evaluate_field(
         queries_2d=n2d,
         per_class_iou=ious,
         failures=failures,
+        per_view_2d=per_view,
     )

@@ -191,6 +191,7 @@ def _real_section(real: dict) -> list[str]:
         f"`{real['command']}`.",
         "",
         *_main_table(real["runs"]),
+        *(["", real["note"]] if real.get("note") else []),
         *_floater_table(real["runs"]),
         "",
     ]

@@ -422,6 +422,8 @@ def report(scenes: list[dict], info: dict, cmd: str) -> str:
 
 
 def main() -> int:
+    from fmgs.synth import BACKDROPS, RIGS
+
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--out", required=True)
     ap.add_argument("--seeds", default="104,105,106")
@@ -437,13 +439,11 @@ def main() -> int:
         type=int,
         help="also score each scene's field packaged with this many embedding neighbours (1: the paper)",
     )
-    ap.add_argument(
-        "--rig", default="ring", choices=["ring", "grazing"], help="fmgs synth's camera rig (default ring)"
-    )
+    ap.add_argument("--rig", default="ring", choices=RIGS, help="fmgs synth's camera rig (default ring)")
     ap.add_argument(
         "--backdrop",
         default="constant",
-        choices=["constant", "walls"],
+        choices=BACKDROPS,
         help="fmgs synth's backdrop: one colour (default) or textured walls with the colour above them",
     )
     ap.add_argument(

@@ -428,6 +428,7 @@ def build_parser() -> argparse.ArgumentParser:
     from fmgs import flags
     from fmgs.build.config import BuildConfig, TargetSpec
     from fmgs.sfm.config import SfMConfig
+    from fmgs.synth import BACKDROPS, PRESETS, RIGS
     from fmgs.train.config import FieldTrainConfig, GSTrainConfig
 
     i = sub.add_parser("info", help="validate a scene (.ply, .splat or .safetensors) and print a summary")
@@ -463,7 +464,7 @@ def build_parser() -> argparse.ArgumentParser:
     sy.add_argument(
         "--preset",
         default="basic",
-        choices=["basic", "cluttered"],
+        choices=PRESETS,
         help="basic: the first objects, spread apart; cluttered: a seeded choice of up to 13 objects "
         "(thin, small, flat), about half touching another, on a striped floor",
     )
@@ -477,14 +478,14 @@ def build_parser() -> argparse.ArgumentParser:
     sy.add_argument(
         "--rig",
         default="ring",
-        choices=["ring", "grazing"],
+        choices=RIGS,
         help="ring (default): cameras on one ring at two heights; grazing: every third camera on a low "
         "ring looking across the floor, where the backdrop fills the upper image",
     )
     sy.add_argument(
         "--backdrop",
         default="constant",
-        choices=["constant", "walls"],
+        choices=BACKDROPS,
         help="constant (default): one colour behind the scene; walls: a textured round wall around the floor "
         "(labelled background, sampled into the sparse points) with the constant colour above it",
     )

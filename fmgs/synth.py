@@ -268,9 +268,10 @@ def generate(out: str | Path, cfg: SynthConfig = SynthConfig()) -> Path:
     for label, (_, _, mesh) in enumerate(items, start=1):
         gid = scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(mesh))
         geom_label[gid] = label
+    wall = _wall() if cfg.backdrop == "walls" else None
     wall_gid = None
-    if cfg.backdrop == "walls":
-        wall_gid = scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(_wall()))
+    if wall is not None:
+        wall_gid = scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(wall))
         geom_label[wall_gid] = 0  # surroundings, not a class
     names = ["background"] + [n for n, _, _ in items]
     colours = np.array([BACKGROUND] + [c for _, c, _ in items])
@@ -337,8 +338,8 @@ def generate(out: str | Path, cfg: SynthConfig = SynthConfig()) -> Path:
         views.append({"file_path": f"images/{name}", "boxes_2d": boxes})
 
     pts, cols = _surface_points(items, colours, cfg)
-    if cfg.backdrop == "walls":
-        wp, wn = _sample_surface(_wall(), cfg.points // 2, np.random.default_rng(cfg.seed + 1))
+    if wall is not None:
+        wp, wn = _sample_surface(wall, cfg.points // 2, np.random.default_rng(cfg.seed + 1))
         wc = (_shade(_wall_albedo(wp, cfg.checker), wn) * 255 + 0.5).astype(np.uint8)
         pts, cols = np.concatenate([pts, wp]), np.concatenate([cols, wc])
     _write_points(out / "points3D.ply", pts, cols)

@@ -127,7 +127,7 @@ def _report_geometry(gaussians, ds, cfg: BuildConfig, work: Path, background) ->
     from fmgs.train.evaluate import evaluate
     from fmgs.train.floaters import floater_mask
 
-    _, test = ds.split(cfg.gs.holdout_every)
+    train, test = ds.split(cfg.gs.holdout_every)
     if not test:
         _stage(2, "geometry", "no held-out views to score")
         return
@@ -139,7 +139,6 @@ def _report_geometry(gaussians, ds, cfg: BuildConfig, work: Path, background) ->
         f"{n}; held-out PSNR {r.psnr:.2f} dB, SSIM {r.ssim:.3f} ({len(test)} views; worst {w['name']} "
         f"{w['psnr']:.2f} dB)",
     )  # fmt: skip
-    train, _ = ds.split(cfg.gs.holdout_every)
     _, floaters = floater_mask(gaussians, ds, train)
     _stage(2, "geometry", floaters.line())
     scores = {**r.summary(LOW_PSNR_DB), "views": len(test), "gaussians": gaussians.num}

@@ -339,7 +339,7 @@ def background_grad(
     only by its transmittance, and thousands of them dragged a learned sky off its colour while textured
     surroundings were still half built (BACKGROUND.md). ``image_grad`` [H,W,3] dL/dpixel, ``alpha`` [H,W]."""
     t = (1 - alpha).clamp(0, 1)
-    w = torch.where(t >= min_transmittance, t, torch.zeros_like(t)) if min_transmittance > 0 else t
+    w = torch.where(t >= min_transmittance, t, torch.zeros_like(t))  # threshold 0 keeps every pixel
     g = (w[..., None] * image_grad).sum((0, 1))
     s = torch.sigmoid(bg_logit.detach())
     return g * s * (1 - s)  # d sigmoid / d logit

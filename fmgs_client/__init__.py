@@ -8,6 +8,7 @@ with FmgsClient("127.0.0.1:50051") as c:
 """
 
 from fmgs_client.client import FmgsClient, FmgsError
+from fmgs_client.retry import RetryPolicy
 from fmgs_client.types import (
     Box,
     CameraSpec,
@@ -33,6 +34,7 @@ __all__ = [
     "PointResult",
     "Presence",
     "RenderResult",
+    "RetryPolicy",
     "SceneInfo",
     "SegmentResult",
     "TextAnswer",

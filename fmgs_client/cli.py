@@ -17,6 +17,7 @@ import numpy as np
 
 from fmgs_client.client import DEFAULT_ADDRESS, FmgsClient, FmgsError
 from fmgs_client.ply import write_ply
+from fmgs_client.retry import MAX_ATTEMPTS, RetryPolicy
 from fmgs_client.types import CameraSpec, SceneInfo, TextAnswer
 from fmgs_wire.images import colorize, depth_to_uint16, label_colors, relevancy_png, to_uint8, write_png
 from fmgs_wire.tokens import read_token_file
@@ -325,6 +326,13 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--client-cert", type=Path, help="client certificate (PEM) for mutual TLS")
     ap.add_argument("--client-key", type=Path, help="client private key (PEM) for mutual TLS")
     ap.add_argument("--timeout", type=float, default=30.0, help="seconds per call (default 30)")
+    ap.add_argument(
+        "--attempts",
+        type=int,
+        default=RetryPolicy.attempts,
+        help=f"tries of a read that fails with UNAVAILABLE, by gRPC's retry policy (1: none; at most "
+        f"{MAX_ATTEMPTS}; default {RetryPolicy.attempts})",
+    )
     sub = ap.add_subparsers(dest="command", required=True)
 
     p = sub.add_parser("list", help="list the server's scenes")
@@ -386,6 +394,7 @@ def _client(args: argparse.Namespace) -> FmgsClient:
         client_cert=args.client_cert,
         client_key=args.client_key,
         timeout=args.timeout if args.timeout > 0 else None,
+        retry=RetryPolicy(attempts=args.attempts),
     )
 
 

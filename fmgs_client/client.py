@@ -7,7 +7,9 @@ tested with hand-built messages and reused by other transports.
 
 from __future__ import annotations
 
+import random
 import threading
+import time
 from collections.abc import Callable, Collection, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -17,6 +19,7 @@ import grpc
 import numpy as np
 from grpc_health.v1 import health_pb2, health_pb2_grpc
 
+from fmgs_client.retry import RetryPolicy, channel_options
 from fmgs_client.types import (
     CameraSpec,
     Instance,
@@ -353,8 +356,10 @@ class FmgsClient:
     ``address`` is ``host:port``. Without ``root_cert`` the channel is plaintext; with it, TLS (mutual
     TLS when ``client_cert`` and ``client_key`` are given too; each is PEM bytes, PEM text or a path).
     ``token`` is sent as ``authorization: Bearer <token>`` on every call. ``timeout`` is the deadline
-    of each call in seconds (None: none; pose streams have none unless given). Failed calls raise
-    :class:`FmgsError`. Use as a context manager or call :meth:`close`.
+    of each call in seconds (None: none; pose streams have none unless given). ``retry``: how reads
+    failing with UNAVAILABLE are tried again and how fast a restarted server is found (gRPC's own retry
+    policy and reconnect back-off, fmgs_client.retry). Failed calls raise :class:`FmgsError`. Use as a
+    context manager or call :meth:`close`.
     """
 
     def __init__(
@@ -366,6 +371,7 @@ class FmgsClient:
         client_key: str | bytes | Path | None = None,
         timeout: float | None = 30.0,
         max_message_bytes: int = 64 * MiB,
+        retry: RetryPolicy | None = None,
     ) -> None:
         if (client_cert is None) != (client_key is None):
             raise ValueError("client_cert and client_key go together")
@@ -373,9 +379,11 @@ class FmgsClient:
             raise ValueError("a client certificate needs TLS: give root_cert too")
         self.address = address
         self.timeout = timeout
+        self._retry = retry or RetryPolicy()
         options = [
             ("grpc.max_receive_message_length", max_message_bytes),
             ("grpc.max_send_message_length", max_message_bytes),
+            *channel_options(self._retry),
         ]
         if root_cert is None:
             self._channel = grpc.insecure_channel(address, options=options)
@@ -414,6 +422,32 @@ class FmgsClient:
             yield from call
         except grpc.RpcError as e:
             raise _error(e) from None
+
+    def _read_stream(self, start: Callable[[float | None], Any]) -> Iterator[Any]:
+        """The messages of a read's response stream, ``start(timeout)`` tried again while it fails with
+        UNAVAILABLE before its first message, with the retry policy's back-off, within one deadline.
+
+        This is what gRPC's retry policy does for unary reads; streams are retried here because grpcio's
+        own stream retries (1.85) can leave a call waiting past its deadline once the server's
+        connection drops (tests/client/test_retry.py)."""
+        policy = self._retry
+        deadline = None if self.timeout is None else time.monotonic() + self.timeout
+        backoff = policy.initial_backoff_s
+        for attempt in range(1, policy.attempts + 1):
+            left = None if deadline is None else max(deadline - time.monotonic(), 1e-3)
+            got = False
+            try:
+                for m in start(left):
+                    got = True
+                    yield m
+                return
+            except grpc.RpcError as e:
+                pause = random.uniform(0.0, backoff)  # gRPC's own jitter: uniform up to the back-off
+                late = deadline is not None and time.monotonic() + pause >= deadline
+                if got or e.code() != grpc.StatusCode.UNAVAILABLE or attempt == policy.attempts or late:
+                    raise _error(e) from None
+            time.sleep(pause)
+            backoff = min(backoff * policy.backoff_multiplier, policy.max_backoff_s)
 
     def _decode(self, fn: Callable[[], T]) -> T:
         try:
@@ -517,8 +551,8 @@ class FmgsClient:
             if emb.ndim != 2 or len(emb) != len(texts):
                 raise ValueError(f"embeddings: expected [{len(texts)},D], got {emb.shape}")
             req.embeddings.CopyFrom(to_tensor(emb))
-        call = self._stub.TextQuery(req, metadata=self._metadata, timeout=self.timeout)
-        return self._decode(lambda: assemble_text_answers(self._stream(call), texts, fields))
+        chunks = self._read_stream(lambda t: self._stub.TextQuery(req, metadata=self._metadata, timeout=t))
+        return self._decode(lambda: assemble_text_answers(chunks, texts, fields))
 
     def _render_request(
         self,
@@ -559,8 +593,8 @@ class FmgsClient:
         arrays, quantised (8-bit, depth in millimetres), and kept in ``RenderResult.png``.
         """
         req = self._render_request(scene, camera, text, outputs, encoding, canonical_phrases)
-        call = self._stub.Render(req, metadata=self._metadata, timeout=self.timeout)
-        return self._decode(lambda: assemble_render(self._stream(call)))
+        chunks = self._read_stream(lambda t: self._stub.Render(req, metadata=self._metadata, timeout=t))
+        return self._decode(lambda: assemble_render(chunks))
 
     def stream(
         self,
@@ -643,8 +677,8 @@ class FmgsClient:
         req = pb.SegmentRequest(scene=scene, class_names=names, per_gaussian=per_gaussian)
         if camera is not None:
             req.camera.CopyFrom(camera.to_proto())
-        call = self._stub.Segment(req, metadata=self._metadata, timeout=self.timeout)
-        return self._decode(lambda: assemble_segment(self._stream(call)))
+        chunks = self._read_stream(lambda t: self._stub.Segment(req, metadata=self._metadata, timeout=t))
+        return self._decode(lambda: assemble_segment(chunks))
 
 
 def _error(e: grpc.RpcError) -> FmgsError:

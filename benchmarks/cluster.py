@@ -306,6 +306,15 @@ def report(res: dict) -> str:
     return "\n".join(lines)
 
 
+def keep_faults_section(out: Path) -> None:
+    """CLUSTER.md carries the failures section of benchmarks.faults (from its CLUSTER_FAULTS.json)."""
+    from benchmarks.faults import section, write_section
+
+    faults = out / "CLUSTER_FAULTS.json"
+    if faults.exists():
+        write_section(out / "CLUSTER.md", section(json.loads(faults.read_text())))
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true")
@@ -317,6 +326,7 @@ def main() -> int:
         res = json.loads(Path(a.report_only).read_text())
         res["capacity"] = capacity(res)
         Path(a.out, "CLUSTER.md").write_text(report(res))
+        keep_faults_section(Path(a.out))
         Path(a.out, "CLUSTER.json").write_text(json.dumps(res, indent=1, default=str))
         return 0
     n = a.gaussians or (100_000 if a.quick else 1_000_000)
@@ -374,6 +384,7 @@ def main() -> int:
     out.mkdir(parents=True, exist_ok=True)
     (out / "CLUSTER.json").write_text(json.dumps(res, indent=1, default=str))
     (out / "CLUSTER.md").write_text(report(res))
+    keep_faults_section(out)
     print(report(res))
     return 0
 

@@ -17,6 +17,7 @@ Answers pass through the ingress as serialized bytes (``Raw``): no second parse.
 from __future__ import annotations
 
 import asyncio
+import logging
 
 import grpc
 from grpc_health.v1 import health_pb2
@@ -24,10 +25,13 @@ from ray import serve
 
 from fmgs_server.auth import TokenAuth, bearer_token, read_tokens
 from fmgs_server.cluster.config import ClusterConfig
+from fmgs_server.cluster.faults import failure_status, retryable
 from fmgs_server.cluster.host import HostCore, Status, missing
 from fmgs_server.config import ServerConfig
 from fmgs_server.sharded import sharded_scene
 from fmgs_wire.proto.fmgs.v1 import fmgs_pb2 as pb
+
+log = logging.getLogger("fmgs_server")
 
 SERVICE = "fmgs.v1.Fmgs"
 SERVICER_FUNCTIONS = [
@@ -43,6 +47,19 @@ RESPONSE_TYPES = {m.name: m.output_type.name for m in pb.DESCRIPTOR.services_by_
 class CallFailed(Exception):
     """Ends a streaming call whose code is already set on its context (Serve's proxy applies a code set
     by a stream only with a message or an exception)."""
+
+
+RETRY_PAUSE_S = 0.25
+"""Pause before a read's next try on another replica (times the try's number): the router drops a dead
+replica as soon as a call to it fails, the controller replaces it within seconds."""
+
+
+class Failed(Exception):
+    """A forwarded call that ended with ``status`` (already made safe to show a client)."""
+
+    def __init__(self, status: Status) -> None:
+        super().__init__(status.details)
+        self.status = status
 
 
 class Raw:
@@ -104,6 +121,10 @@ def build_app(cfg: ServerConfig, cc: ClusterConfig, encoder_factory=None):
             """fn(*args) in a worker thread once this replica holds the request's scene."""
             await self._hold()
             return await asyncio.to_thread(fn, *args)
+
+        async def ping(self) -> str:
+            """Health: this replica answers (its id)."""
+            return self.replica
 
         async def unary(self, method: str, request: bytes):
             return self.replica, await self._run(self.core.unary, method, request)
@@ -167,39 +188,78 @@ def build_app(cfg: ServerConfig, cc: ClusterConfig, encoder_factory=None):
             grpc_context.set_code(getattr(grpc.StatusCode, status.code))
             grpc_context.set_details(status.details)
 
+        async def _forward(self, method: str, call):
+            """``await call()`` (a call to the scene replicas), tried again on another replica while a
+            read's replica is lost (ClusterConfig.read_attempts); Failed with a status of ours else."""
+            for attempt in range(1, cc.read_attempts + 1):
+                try:
+                    return await call()
+                except asyncio.CancelledError:
+                    raise
+                except Exception as e:  # every failure becomes a status of ours
+                    status = _logged(method, attempt, e)
+                    if attempt == cc.read_attempts or not retryable(method, status):
+                        raise Failed(status) from None
+                await asyncio.sleep(RETRY_PAUSE_S * attempt)
+
         async def _unary(self, method: str, request, grpc_context, scene: str = ""):
             empty = getattr(pb, RESPONSE_TYPES[method])()
             if self._refused(method, request, grpc_context):
                 return empty
             h = self.host.options(multiplexed_model_id=scene) if scene else self.host
-            replica, out = await h.unary.remote(method, request.SerializeToString())
+            data = request.SerializeToString()
+            try:
+                replica, out = await self._forward(method, lambda: h.unary.remote(method, data))
+            except Failed as f:
+                self._fail(f.status, grpc_context)
+                return empty
             grpc_context.set_trailing_metadata([(REPLICA_KEY, replica)])
             if isinstance(out, Status):
                 self._fail(out, grpc_context)
                 return empty
             return Raw(out)
 
-        async def _stream(self, method: str, request, grpc_context):
-            if self._refused(method, request, grpc_context):
-                raise CallFailed(grpc_context.details())
+        def _open(self, method: str, request):
+            """The forwarded call's items (a Ray stream, or a list for sharded scenes)."""
             scene = request.scene
             # The repository path is readable on every node: no round trip to a replica to ask.
             sharded = method in ("TextQuery", "Render") and sharded_scene(cfg.models, scene)
             if sharded and method == "TextQuery":
-                items = await self._sharded_text(scene, request)
-            elif sharded:
-                items = await self._sharded_render(scene, request)
-            else:
-                h = self.host.options(multiplexed_model_id=scene, stream=True)
-                items = h.stream.remote(method, request.SerializeToString())
-            async for item in _aiter(items):
-                if isinstance(item, str):
-                    grpc_context.set_trailing_metadata([(REPLICA_KEY, item)])
-                    continue
-                if isinstance(item, Status):
-                    self._fail(item, grpc_context)
-                    raise CallFailed(item.details)
-                yield Raw(item)
+                return self._sharded_text(scene, request)
+            if sharded:
+                return self._sharded_render(scene, request)
+            h = self.host.options(multiplexed_model_id=scene, stream=True)
+            return h.stream.remote(method, request.SerializeToString())
+
+        async def _stream(self, method: str, request, grpc_context):
+            if self._refused(method, request, grpc_context):
+                raise CallFailed(grpc_context.details())
+            # A read is tried again on another replica if its replica is lost before the first message
+            # reached the client (after that the client holds part of an answer: it gets UNAVAILABLE).
+            for attempt in range(1, cc.read_attempts + 1):
+                sent = False
+                try:
+                    items = self._open(method, request)
+                    if asyncio.iscoroutine(items):
+                        items = await items
+                    async for item in _aiter(items):
+                        if isinstance(item, str):
+                            grpc_context.set_trailing_metadata([(REPLICA_KEY, item)])
+                            continue
+                        if isinstance(item, Status):
+                            self._fail(item, grpc_context)
+                            raise CallFailed(item.details)
+                        sent = True
+                        yield Raw(item)
+                    return
+                except (CallFailed, asyncio.CancelledError):
+                    raise
+                except Exception as e:  # every failure becomes a status of ours
+                    status = _logged(method, attempt, e)
+                    if sent or attempt == cc.read_attempts or not retryable(method, status):
+                        self._fail(status, grpc_context)
+                        raise CallFailed(status.details) from None
+                await asyncio.sleep(RETRY_PAUSE_S * attempt)
 
         async def _sharded_text(self, scene: str, request) -> list:
             at = self.host.options(multiplexed_model_id=scene)
@@ -302,15 +362,25 @@ def build_app(cfg: ServerConfig, cc: ClusterConfig, encoder_factory=None):
                 return None
             service = request.service
             if service in ("", SERVICE):
+                # SERVING only while a scene replica answers (the ingress alone answers nothing).
+                try:
+                    await asyncio.wait_for(
+                        self._forward("Check", lambda: self.host.ping.remote()), cc.health_timeout_s
+                    )
+                except (TimeoutError, Failed):
+                    return health_pb2.HealthCheckResponse.NOT_SERVING
                 return health_pb2.HealthCheckResponse.SERVING
             if not service.startswith(SERVICE + "/"):
                 grpc_context.set_code(grpc.StatusCode.NOT_FOUND)
                 grpc_context.set_details(f"unknown service {service[:80]!r}")
                 return None
             scene = service[len(SERVICE) + 1 :]
-            _, out = await self.host.options(multiplexed_model_id=scene).unary.remote(
-                "GetScene", pb.SceneRequest(scene=scene).SerializeToString()
-            )
+            h = self.host.options(multiplexed_model_id=scene)
+            data = pb.SceneRequest(scene=scene).SerializeToString()
+            try:
+                _, out = await self._forward("Check", lambda: h.unary.remote("GetScene", data))
+            except Failed:
+                return health_pb2.HealthCheckResponse.NOT_SERVING
             if isinstance(out, Status):
                 if out.code == "NOT_FOUND":
                     self._fail(missing(scene), grpc_context)
@@ -336,6 +406,13 @@ def build_app(cfg: ServerConfig, cc: ClusterConfig, encoder_factory=None):
             yield health_pb2.HealthCheckResponse(status=status)
 
     return FmgsIngress.bind(SceneHost.bind())
+
+
+def _logged(method: str, attempt: int, exc: Exception) -> Status:
+    """The client's status for a failed forwarded call; Ray's own text goes to the server log only."""
+    status = failure_status(exc)
+    log.warning("%s try %d: %s (%s: %s)", method, attempt, status.code, type(exc).__name__, exc)
+    return status
 
 
 async def _aiter(items):

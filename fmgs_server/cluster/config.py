@@ -30,6 +30,11 @@ class ClusterConfig:
     """GPUs per scene replica (with --device cuda)."""
     ingress_replicas: int = 1
     """Replicas of the ingress deployment (light: it routes, checks tokens, merges shard answers)."""
+    read_attempts: int = 3
+    """Tries of a read (queries, renders, scene info) whose scene replica is lost while answering; the
+    later tries go to another replica. Calls that change state are tried once."""
+    health_timeout_s: float = 5.0
+    """How long a health check waits for a scene replica to answer before it says NOT_SERVING."""
     request_timeout_s: float = 0.0
     """End-to-end cap per request at the proxy (0: none). Clients' deadlines are not forwarded by
     Ray Serve's proxy: the client still gives up at its deadline, the cluster stops at this cap."""
@@ -43,3 +48,5 @@ class ClusterConfig:
             raise ValueError("ray: scenes_per_replica >= 1 and ingress_replicas >= 1 required")
         if self.replica_cpus < 0 or self.replica_gpus < 0 or self.request_timeout_s < 0:
             raise ValueError("ray: replica_cpus, replica_gpus and request_timeout_s must be >= 0")
+        if self.read_attempts < 1 or self.health_timeout_s <= 0:
+            raise ValueError("ray: read_attempts >= 1 and health_timeout_s > 0 required")

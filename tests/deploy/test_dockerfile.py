@@ -56,15 +56,36 @@ def test_files_named_in_run_lines_exist():
     assert f"torch=={pin}" in runs
 
 
-def test_entrypoint_and_healthcheck_are_real_commands():
+def _args() -> dict[str, str]:
+    """The Dockerfile's ARG defaults (global and per stage)."""
+    out = {}
+    for op, rest in _instructions():
+        if op == "ARG":
+            name, _, default = rest.partition("=")
+            out.setdefault(name, default)
+    return out
+
+
+def test_entrypoint_and_healthcheck_are_real_commands(tmp_path):
     ins = dict(_instructions())
     scripts = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["scripts"]
     entry = json.loads(ins["ENTRYPOINT"])
     assert entry[0] in scripts and scripts[entry[0]] == "fmgs_server.cli:main"
     from fmgs_server.cli import build_parser, config_from_args
 
-    cfg = config_from_args(build_parser().parse_args(entry[1:]))
-    assert str(cfg.models) == "/models" and cfg.host == "0.0.0.0" and cfg.device == "cuda"
+    # The build writes the flavour's settings file the entrypoint reads (device = the flavour).
+    runs = " ".join(rest for op, rest in _instructions() if op == "RUN")
+    written = re.search(r"printf '([^']*)' \"\$FLAVOUR\" > (\S+)", runs)
+    assert written, "the build does not write the flavour's settings"
+    template, path = written.groups()
+    assert entry[entry.index("--config") + 1] == path
+    assert any(op == "COPY" and rest.split()[-1] == path for op, rest in _runtime_stage())
+    for flavour in ("cuda", "cpu"):
+        toml = tmp_path / f"{flavour}.toml"
+        toml.write_text(template.replace("%s", flavour).replace("\\n", "\n"))
+        argv = [str(toml) if a == path else a for a in entry[1:]]
+        cfg = config_from_args(build_parser().parse_args(argv))
+        assert str(cfg.models) == "/models" and cfg.host == "0.0.0.0" and cfg.device == flavour
     health = json.loads(ins["HEALTHCHECK"].split("CMD", 1)[1].strip())
     assert health[0] in scripts
     from fmgs_client.cli import build_parser as client_parser
@@ -76,7 +97,30 @@ def test_entrypoint_and_healthcheck_are_real_commands():
 
 def test_image_is_multi_stage_with_a_runtime_base():
     froms = [rest for op, rest in _instructions() if op == "FROM"]
-    assert len(froms) == 2 and "devel" in froms[0] and "runtime" in froms[1]
+    assert froms == ["${BUILD_BASE} AS build", "${RUNTIME_BASE}"]
+    args = _args()
+    # The CUDA bases stay the default; the CPU flavour passes Debian ones (scripts/image.sh).
+    assert "cuda" in args["BUILD_BASE"] and "devel" in args["BUILD_BASE"]
+    assert "cuda" in args["RUNTIME_BASE"] and "runtime" in args["RUNTIME_BASE"]
+    assert args["FLAVOUR"] == "cuda"
+
+
+def test_flavours_install_what_they_need():
+    runs = " ".join(rest for op, rest in _instructions() if op == "RUN")
+    # gsplat only for cuda, built from source (PyPI's wheel compiles with nvcc at run time, which the
+    # runtime stage lacks), and the build fails unless its compiled module imports.
+    cuda_only = r'if \[ "\$FLAVOUR" = cuda \]; then .*gsplat @ git\+\S+@v1\.5\.\d.*import gsplat\.csrc'
+    assert re.search(cuda_only, runs)
+    assert "cuda|cpu)" in runs, "an unknown FLAVOUR must stop the build"
+    # torch from a mounted wheel folder when given, else the flavour's index.
+    assert '--find-links "$TORCH_WHEELS" torch==' in runs and '--index-url "$TORCH_INDEX"' in runs
+    # Every pip step trusts the mounted CA bundle when one is given.
+    for step in (rest for op, rest in _instructions() if op == "RUN" and "pip install" in rest):
+        assert 'export PIP_CERT="$PIP_CERT_FILE"' in step.split("pip install", 1)[0], step[:80]
+    script = (ROOT / "scripts/image.sh").read_text()
+    for arg in ("FLAVOUR", "BUILD_BASE", "RUNTIME_BASE", "TORCH_WHEELS", "TORCH_INDEX", "PIP_CERT_FILE"):
+        assert f"--build-arg {arg}=" in script or f'--build-arg "{arg}=' in script, arg
+        assert arg in _args(), f"scripts/image.sh passes {arg}, which the Dockerfile does not declare"
 
 
 def _runtime_stage() -> list[tuple[str, str]]:

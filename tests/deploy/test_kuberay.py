@@ -239,7 +239,7 @@ def test_image_is_the_one_the_readme_builds():
     # scripts/image.sh tags fmgs:VERSION-FLAVOUR; the cluster runs the cuda flavour.
     assert "tag=${tag:-fmgs:$version-$flavour}" in (ROOT / "scripts/image.sh").read_text()
     version = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["version"]
-    assert tag == f"fmgs:{version}-cuda", f"deploy/README.md builds {tag}, scripts/image.sh fmgs:{version}-cuda"
+    assert tag == f"fmgs:{version}-cuda", f"deploy/README.md builds {tag}, image.sh fmgs:{version}-cuda"
     for group, c in _ray_containers().items():
         assert c["image"] == tag, f"{group} runs {c['image']}, the README builds {tag}"
     svc = _one("Service")["metadata"]["name"]

@@ -55,6 +55,10 @@ def _rayservice() -> dict:
     return docs[0]
 
 
+def _head(doc: dict) -> dict:
+    return doc["spec"]["rayClusterConfig"]["headGroupSpec"]["template"]["spec"]
+
+
 def _errors(validator, doc) -> list[str]:
     return [f"{'/'.join(map(str, e.absolute_path))}: {e.message}" for e in validator.iter_errors(doc)]
 
@@ -75,12 +79,7 @@ def test_the_rayservice_validates_against_the_crd_schema(validator):
     ("where", "change"),
     [
         ("a misspelt field", lambda d: d["spec"].update(serveConfig=d["spec"].pop("serveConfigV2"))),
-        (
-            "a misspelt container field",
-            lambda d: d["spec"]["rayClusterConfig"]["headGroupSpec"]["template"]["spec"]["containers"][0].update(
-                imagePolicy="Always"
-            ),
-        ),
+        ("a misspelt container field", lambda d: _head(d)["containers"][0].update(imagePolicy="Always")),
         (
             "replicas as a word",
             lambda d: d["spec"]["rayClusterConfig"]["workerGroupSpecs"][0].update(replicas="one"),

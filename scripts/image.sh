@@ -20,6 +20,7 @@
 # port 50051 on 127.0.0.1:FMGS_IMAGE_PORT (default 50051).
 set -euo pipefail
 cd "$(dirname "$0")/.."
+t_start=$(date +%s)
 
 flavour=cpu
 tag=""
@@ -86,6 +87,7 @@ debian_base() {
   echo "$local"
 }
 
+t_base=$(date +%s)
 args=(--build-arg "FLAVOUR=$flavour")
 vols=()
 if [ "$flavour" = cpu ]; then
@@ -116,6 +118,7 @@ if [ -n "$cert" ] && [ -f "$cert" ]; then
 fi
 
 # ---------------------------------------------------------------- build
+base_s=$(( $(date +%s) - t_base ))
 say "building $tag ($flavour, base: $base)"
 t0=$(date +%s)
 bah bud --format docker --layers "${vols[@]}" "${args[@]}" -t "$tag" -f Dockerfile . >&2
@@ -131,6 +134,11 @@ bah rm "$ctr" >/dev/null
 [ -z "$compilers" ] || { echo "image.sh: the runtime stage carries compilers: $compilers" >&2; exit 1; }
 user=$(bah inspect --type image --format '{{.Docker.Config.User}}' "$tag")
 [ "$user" = fmgs ] || { echo "image.sh: the image runs as '$user', not fmgs" >&2; exit 1; }
+# Where the size goes: the largest installed packages.
+ctr=$(bah from "$tag")
+largest=$(bah run "$ctr" -- sh -c 'du -sm /opt/venv/lib/python3.11/site-packages/* | sort -rn | head -6' \
+  | awk '{sub(".*/", "", $2); printf "%s%s %s MiB", sep, $2, $1; sep=", "}')
+bah rm "$ctr" >/dev/null
 
 checks="not run (--no-run)"
 if [ "$run" = 1 ]; then
@@ -149,8 +157,9 @@ if [ "$run" = 1 ]; then
   # Own network namespace, the gRPC port published on loopback only. Explicit ulimits: podman's defaults
   # for root raise them past what some hosts allow. No health timer (it needs systemd): the image's
   # HEALTHCHECK runs below with `podman healthcheck run`, as the timer would run it.
+  # (podman still logs that it found no systemd for health timers: kept in $out/podman.log.)
   pod run -d --name "$name" -p "127.0.0.1:$port:50051" --ulimit nofile=4096:4096 --ulimit nproc=4096:4096 \
-    --health-interval disable "$tag" >/dev/null
+    --health-interval disable "$tag" >/dev/null 2>"$out/podman.log" || { cat "$out/podman.log" >&2; exit 1; }
   trap 'pod logs "$name" > "$out/server.log" 2>&1 || true; pod rm -f "$name" >/dev/null 2>&1 || true' EXIT
   client() { "$cvenv/bin/fmgs-client" --address "127.0.0.1:$port" --timeout 60 "$@"; }
   t1=$(date +%s)
@@ -180,7 +189,8 @@ PY
   [ "$uid" = 10001 ] || { echo "image.sh: the server runs as uid $uid" >&2; exit 1; }
   proc_user=$(pod top "$name" user comm | awk 'NR > 1 && $2 ~ /fmgs-server|python/ {print $1; exit}')
   # The image's own health check (HEALTHCHECK CMD, run inside the container).
-  pod healthcheck run "$name" >&2 || { echo "image.sh: the image's health check failed" >&2; exit 1; }
+  pod healthcheck run "$name" >&2 2>>"$out/podman.log" \
+    || { cat "$out/podman.log" >&2; echo "image.sh: the image's health check failed" >&2; exit 1; }
   checks="health SERVING after ${ready_s}s, list, query, render, uid $uid (process user ${proc_user:-?}), HEALTHCHECK passed"
   say "checks: $checks"
 fi
@@ -197,12 +207,15 @@ buildah $(buildah --version | awk '{print $3}'), $driver storage, chroot isolati
 | tag | \`$tag\` |
 | flavour | $flavour |
 | base | \`$base\` |
-| build time (wall, this run) | $build_s s |
+| base image made (debootstrap) or found, this run | $base_s s |
+| build time (\`buildah bud\`, wall, this run) | $build_s s |
+| whole command (base, build, checks), this run | $(( $(date +%s) - t_start )) s |
 | image size | $(( size / 1024 / 1024 )) MiB |
+| largest Python packages in it | $largest |
 | compilers in the runtime stage | none |
 | user | $user |
 | checks from outside (thin client, no torch) | $checks |
 
-The build time includes every layer that was not cached from an earlier run.
+Times are for layers not cached by an earlier run (with every image removed first, a clean build).
 EOF
 say "report: $report"

@@ -9,7 +9,7 @@ import sys
 from pathlib import Path
 
 import fmgs_client
-from fmgs_client import client, types
+from fmgs_client import client, retry, types
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -29,10 +29,11 @@ def test_client_imports_without_torch():
 
 
 def test_package_exports_the_public_api():
-    public = "Box CameraSpec FmgsClient FmgsError Instance Pixel PointResult Presence RenderResult SceneInfo "
-    public += "SegmentResult TextAnswer"
+    public = "Box CameraSpec FmgsClient FmgsError Instance Pixel PointResult Presence RenderResult "
+    public += "RetryPolicy SceneInfo SegmentResult TextAnswer"
     assert sorted(fmgs_client.__all__) == public.split()
     for name in fmgs_client.__all__:
-        assert getattr(fmgs_client, name) is getattr(client if name.startswith("Fmgs") else types, name)
+        home = client if name.startswith("Fmgs") else retry if name == "RetryPolicy" else types
+        assert getattr(fmgs_client, name) is getattr(home, name)
     project = (ROOT / "pyproject.toml").read_text()
     assert f'version = "{fmgs_client.__version__}"' in project

@@ -199,7 +199,8 @@ mkdir -p "$(dirname "$report")"
 cat >"$report" <<EOF
 # The container image
 
-Made by \`bash scripts/image.sh --flavour $flavour\` on $(date -u +%Y-%m-%d) ($(nproc) cores, $(uname -m);
+Made by \`bash scripts/image.sh --flavour $flavour\` on $(date -u +%Y-%m-%d) at commit
+$(git rev-parse --short HEAD 2>/dev/null || echo unknown) ($(nproc) cores, $(uname -m);
 buildah $(buildah --version | awk '{print $3}'), $driver storage, chroot isolation).
 
 | what | value |

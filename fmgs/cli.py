@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import time
 from dataclasses import replace
@@ -372,6 +373,8 @@ def cmd_build(args: argparse.Namespace) -> int:
     from fmgs.build import build_scene
 
     cfg = _build_config(args)
+    if args.offline:  # read at each model load, here and in Ray workers started from this process
+        os.environ["FMGS_OFFLINE"] = "1"
     out = build_scene(args.source, cfg)
     print(f"wrote scene package {out}")
     return 0
@@ -561,6 +564,12 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("source", help="photo folder, or posed dataset folder")
     b.add_argument(
         "--extra", dest="extra_file", help="JSON file with an object merged into the manifest's extra"
+    )
+    b.add_argument(
+        "--offline",
+        action="store_true",
+        help="never download models: use local folders and the hub cache only (as HF_HUB_OFFLINE=1 does); "
+        "a missing model stops the build naming the command that fetches it",
     )
     _config_flag(b, "build")
     g = b.add_argument_group(

@@ -68,6 +68,10 @@ class ServerConfig:
     """Per-Gaussian query state of every scene (flags --index-rank, --index-exact-below, ...)."""
     device: str = "cpu"
     """Device for scenes and text encoders."""
+    model_downloads: bool = True
+    """Fetch a scene's text encoder from the hub (HF_ENDPOINT) on first use when it is neither a local
+    folder nor in the hub cache; off for locked-down deployments (then such a scene fails to load, naming
+    the model, its revision and the command that fetches it). HF_HUB_OFFLINE=1 also turns it off."""
     text_cache: int = 4096
     """Text embeddings cached per encoder."""
     tls_cert: Path | None = None

@@ -95,11 +95,14 @@ def add_service(service: FmgsService, server: grpc.Server) -> None:
     server.add_registered_method_handlers(SERVICE, handlers)
 
 
-def _text_encoder(device: str):
+def _text_encoder(device: str, downloads: bool = True):
+    """Loads a scene's text encoder: a local folder, the hub cache, else a download unless ``downloads``
+    is off (ServerConfig.model_downloads; HF_HUB_OFFLINE/FMGS_OFFLINE also forbid it)."""
+
     def load(encoder_id: str):
         from fmgs.features.text import load_text_encoder
 
-        return load_text_encoder(encoder_id, device=device)
+        return load_text_encoder(encoder_id, device=device, offline=None if downloads else True)
 
     return load
 
@@ -115,7 +118,7 @@ def make_service(cfg: ServerConfig, encoder_factory=None, on_change=None) -> Fmg
         cfg.reload_check_s,
         on_change,
     )
-    encoders = EncoderCache(encoder_factory or _text_encoder(cfg.device), cfg.text_cache)
+    encoders = EncoderCache(encoder_factory or _text_encoder(cfg.device, cfg.model_downloads), cfg.text_cache)
     return FmgsService(cfg, repo, encoders)
 
 

@@ -17,6 +17,9 @@ settings.register_profile(
 )
 settings.load_profile(os.environ.get("FMGS_HYPOTHESIS_PROFILE", "default"))
 
+# Tests never download models: the ones that test downloads turn this off against a local hub server.
+os.environ["FMGS_OFFLINE"] = "1"
+
 DATA_DIR = Path(os.environ.get("FMGS_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"))
 
 

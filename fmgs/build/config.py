@@ -28,7 +28,7 @@ class TargetSpec:
     kind: str = "clip"
     """"clip" (hybrid CLIP + DINO from pretrained models) or "labels" (label masks + a text encoder)."""
     clip_model: str = DEFAULT_CLIP_ID
-    """CLIP model id or local folder (hub cache only, never downloaded)."""
+    """CLIP model id (a local folder, the hub cache, else downloaded on first use) or a local folder."""
     dino_model: str | None = DEFAULT_DINO_ID
     """DINO model id or local folder; None for no DINO target."""
     single_scale: bool = False
@@ -38,7 +38,8 @@ class TargetSpec:
     names: str | None = None
     """scene.json (or a folder holding it) with label_names (kind "labels"); default DATA/scene.json."""
     text_encoder: str = MINILM_ID
-    """Text encoder id for label names (kind "labels")."""
+    """Text encoder id for label names (kind "labels"): MiniLM from its wheel, or a CLIP model id
+    (fetched on first use)."""
     feature_scale: float | None = None
     """Feature maps at this fraction of the image resolution; none (default): sized by feature_side."""
     feature_side: int = FEATURE_SIDE

@@ -243,6 +243,8 @@ def build_scene(source: str | Path, cfg: BuildConfig, progress: bool = True) -> 
     _stage(5, "package", str(out))
     encoder = load_text_encoder(cache.targets["clip"].encoder, device="cpu")
     extra = {"source": str(source), "build_seconds": round(time.perf_counter() - t0, 1)}
+    if getattr(encoder, "files", None) is not None:  # the query encoder: id, revision, file hashes
+        extra["text_encoder"] = encoder.files.record()
     if cfg.targets.kind == "labels":
         from fmgs.features.extract import read_label_names
 

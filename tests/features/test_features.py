@@ -7,7 +7,6 @@ from __future__ import annotations
 import copy
 import json
 import math
-import shutil
 import subprocess
 import sys
 
@@ -42,6 +41,7 @@ from fmgs.features import (
 )
 from fmgs.features.labels import area_matrix
 from fmgs.features.pyramid import interp_matrix
+from tests.helpers.tiny_models import save_clip_folder, tiny_clip_model
 
 transformers = pytest.importorskip("transformers")
 
@@ -68,14 +68,7 @@ def tokenizer(bpe_dir):
 @pytest.fixture(scope="module")
 def tiny_clip(tokenizer):
     """A CLIPModel with random weights and the real CLIP vocabulary: image 32 px, patch 8, 16-D embeddings."""
-    torch.manual_seed(1)
-    small = dict(hidden_size=32, intermediate_size=64, num_hidden_layers=2, num_attention_heads=2)
-    cfg = transformers.CLIPConfig(
-        text_config=dict(small, vocab_size=len(tokenizer), max_position_embeddings=77),
-        vision_config=dict(small, image_size=32, patch_size=8),
-        projection_dim=CLIP_DIM,
-    )
-    return transformers.CLIPModel(cfg).eval()
+    return tiny_clip_model(len(tokenizer), CLIP_DIM)
 
 
 @pytest.fixture(scope="module")
@@ -254,13 +247,7 @@ def test_hybrid_map_with_tiny_clip(tiny_clip):
 
 
 def test_clip_load_from_folder_matches_objects(tiny_clip, tokenizer, bpe_dir, tmp_path):
-    d = tmp_path / "tiny-clip"
-    tiny_clip.save_pretrained(d)
-    for f in ("vocab.json", "merges.txt"):  # the untruncated merges list: the loader must cope
-        shutil.copy(bpe_dir / f, d / f)
-    (d / "preprocessor_config.json").write_text(
-        json.dumps({"image_mean": [0.5] * 3, "image_std": [0.25] * 3})
-    )
+    d = save_clip_folder(tiny_clip, tmp_path / "tiny-clip", bpe_dir)
     texts = ["a red ball", "wooden floor"]
     ref_text = ClipTextEncoder(tiny_clip, tokenizer, "x").encode_text(texts)
     for text_enc in (

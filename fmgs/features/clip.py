@@ -11,8 +11,8 @@ import torch
 import torch.nn.functional as F
 
 from fmgs.errors import ValidationError
-from fmgs.features.models import DEFAULT_CLIP_ID, require_transformers, resolve_model_dir
-from fmgs.features.text import ClipTextEncoder, load_clip_tokenizer, pooled_output
+from fmgs.features.models import DEFAULT_CLIP_ID, ModelFiles, fetch_model, require_transformers
+from fmgs.features.text import ClipTextEncoder, embedding_dim, load_clip_tokenizer, pooled_output
 from fmgs.vecmath import safe_normalize
 
 CLIP_MEAN = (0.48145466, 0.4578275, 0.40821073)
@@ -35,7 +35,8 @@ class ImageEncoder(Protocol):
 
 
 class ClipImageEncoder:
-    """The image tower and projection of a ``transformers.CLIPModel``, L2-normalised.
+    """The image tower and projection of a transformers dual encoder (``CLIPModel``, ``SiglipModel``, or an
+    open_clip checkpoint mapped onto ``CLIPModel``), ``get_image_features`` L2-normalised.
 
     Inputs are resized straight to the model's square input size (no centre crop: the pyramid's crops are
     already square) with bicubic antialiased interpolation, then normalised with the model's mean/std.
@@ -58,7 +59,9 @@ class ClipImageEncoder:
         self.dtype = dtype
         self.model = model.to(self.device, dtype).eval()
         self.id = model_id
-        self.dim = int(model.config.projection_dim)
+        self.files: ModelFiles | None = None
+        """Where the weights came from, when loaded by id."""
+        self.dim = embedding_dim(model.config)
         self.image_size = int(model.config.vision_config.image_size)
         self.mean = torch.tensor(mean, dtype=torch.float32, device=self.device).view(1, 3, 1, 1)
         self.std = torch.tensor(std, dtype=torch.float32, device=self.device).view(1, 3, 1, 1)
@@ -75,10 +78,10 @@ class ClipImageEncoder:
 
         Mean/std come from the folder's ``preprocessor_config.json`` when it has them, else CLIP's.
         """
-        d = resolve_model_dir(model_id, model_dir)
-        model = require_transformers().CLIPModel.from_pretrained(str(d), local_files_only=True)
-        mean, std = _preprocessor_mean_std(d)
-        return cls(model, model_id, device, mean, std, dtype)
+        model, _, (mean, std), files = _load_dual(model_id, model_dir)
+        enc = cls(model, model_id, device, mean, std, dtype)
+        enc.files = files
+        return enc
 
     @torch.inference_mode()
     def encode_images(self, images: torch.Tensor) -> torch.Tensor:
@@ -110,11 +113,35 @@ def load_clip(
     device: str | torch.device = "cpu",
 ) -> ClipEncoders:
     """Both encoders of one CLIP model, loaded once (fetched on first use, as fetch_model does)."""
-    d = resolve_model_dir(model_id, model_dir)
-    model = require_transformers().CLIPModel.from_pretrained(str(d), local_files_only=True)
-    mean, std = _preprocessor_mean_std(d)
+    model, tokenizer, (mean, std), files = _load_dual(model_id, model_dir)
     image = ClipImageEncoder(model, model_id, device, mean, std)
-    return ClipEncoders(image, ClipTextEncoder(model, load_clip_tokenizer(d), model_id, device))
+    text = ClipTextEncoder(model, tokenizer(), model_id, device)
+    image.files = text.files = files
+    return ClipEncoders(image, text)
+
+
+def _load_dual(model_id: str, model_dir: str | os.PathLike | None):
+    """(model, tokenizer loader, (mean, std), ModelFiles) of a dual encoder id (fmgs.features.registry):
+    a transformers CLIP or SigLIP, fetched on first use, or an open_clip checkpoint file."""
+    from fmgs.features.registry import IMAGE_TYPES, parse_encoder_id, require_type
+
+    ref = parse_encoder_id(model_id)
+    if ref.family == "openclip-file":
+        from fmgs.features.openclip import load_openclip_file
+
+        model, tokenizer, files = load_openclip_file(ref)
+        return model, lambda: tokenizer, (CLIP_MEAN, CLIP_STD), files
+    files: ModelFiles = fetch_model(ref.ref, model_dir)
+    kind = require_type(files.path, model_id, IMAGE_TYPES, "image encoder")
+    transformers = require_transformers()
+    model = transformers.AutoModel.from_pretrained(str(files.path), local_files_only=True)
+
+    def tokenizer():
+        if kind == "clip":
+            return load_clip_tokenizer(files.path)
+        return transformers.AutoTokenizer.from_pretrained(str(files.path), local_files_only=True)
+
+    return model, tokenizer, _preprocessor_mean_std(files.path), files
 
 
 def _preprocessor_mean_std(d: Path) -> tuple[tuple[float, ...], tuple[float, ...]]:

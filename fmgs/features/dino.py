@@ -9,7 +9,7 @@ import torch
 import torch.nn.functional as F
 
 from fmgs.errors import ValidationError
-from fmgs.features.models import DEFAULT_DINO_ID, require_transformers, resolve_model_dir
+from fmgs.features.models import DEFAULT_DINO_ID, ModelFiles, fetch_model, require_transformers
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 """Per-channel RGB mean DINO was trained with (ImageNet)."""
@@ -20,7 +20,8 @@ DEFAULT_SHORT_SIDE = 448
 
 
 class DinoEncoder:
-    """Dense patch features of a ``transformers.ViTModel`` (the CLS token dropped), not normalised.
+    """Dense patch features of a DINO ``transformers.ViTModel`` or a DINOv2 ``Dinov2Model`` (with or
+    without registers): the CLS token and any register tokens dropped, not normalised.
 
     The image is resized so its short side is ``short_side`` and both sides are multiples of the patch
     size (aspect kept up to one patch), run once with interpolated position embeddings, and the
@@ -46,8 +47,14 @@ class DinoEncoder:
         self.dtype = dtype
         self.model = model.to(self.device, dtype).eval()
         self.id = model_id
+        self.files: ModelFiles | None = None
+        """Where the weights came from, when loaded by id."""
         self.dim = int(model.config.hidden_size)
         self.patch = int(model.config.patch_size)
+        self.skip = 1 + int(getattr(model.config, "num_register_tokens", 0) or 0)
+        """Tokens before the patch grid: CLS, then DINOv2's register tokens."""
+        # ViT interpolates its position embeddings only when asked; DINOv2 always does.
+        self.forward_kwargs = {"interpolate_pos_encoding": True} if model.config.model_type == "vit" else {}
         if short_side < self.patch:
             raise ValidationError("short_side", f"{short_side} is smaller than the patch size {self.patch}")
         self.short_side = short_side
@@ -63,12 +70,26 @@ class DinoEncoder:
         short_side: int = DEFAULT_SHORT_SIDE,
         dtype: torch.dtype = torch.float32,
     ) -> DinoEncoder:
-        """Load a ViT from ``model_dir``, the folder ``model_id``, the hub cache or a download."""
-        d = resolve_model_dir(model_id, model_dir)
-        model = require_transformers().ViTModel.from_pretrained(
-            str(d), add_pooling_layer=False, local_files_only=True
-        )
-        return cls(model, model_id, device, short_side, dtype=dtype)
+        """Load DINO (``vit``) or DINOv2 (``dinov2``, ``dinov2_with_registers``) from ``model_dir``, the
+        folder ``model_id`` (``hf:`` ids too), the hub cache or a download (fmgs.features.registry)."""
+        from fmgs.features.registry import DENSE_TYPES, parse_encoder_id, require_type
+
+        ref = parse_encoder_id(model_id)
+        if ref.family != "hf":
+            raise ValidationError(model_id, "the dense regulariser loads transformers models (hf: ids) only")
+        files = fetch_model(ref.ref, model_dir)
+        kind = require_type(files.path, model_id, DENSE_TYPES, "dense regulariser")
+        transformers = require_transformers()
+        d = str(files.path)
+        if kind == "vit":
+            model = transformers.ViTModel.from_pretrained(d, add_pooling_layer=False, local_files_only=True)
+        elif kind == "dinov2":
+            model = transformers.Dinov2Model.from_pretrained(d, local_files_only=True)
+        else:
+            model = transformers.Dinov2WithRegistersModel.from_pretrained(d, local_files_only=True)
+        enc = cls(model, model_id, device, short_side, dtype=dtype)
+        enc.files = files
+        return enc
 
     def input_size(self, H: int, W: int) -> tuple[int, int]:
         """(h, w) the network sees for an H x W image: multiples of the patch, short side ``short_side``."""
@@ -89,12 +110,13 @@ class DinoEncoder:
         x = image.permute(2, 0, 1).unsqueeze(0).to(self.device, torch.float32)
         x = F.interpolate(x, size=(h, w), mode="bilinear", align_corners=False, antialias=True)
         x = (x - self.mean) / self.std
-        tokens = self.model(pixel_values=x.to(self.dtype), interpolate_pos_encoding=True).last_hidden_state
+        tokens = self.model(pixel_values=x.to(self.dtype), **self.forward_kwargs).last_hidden_state
         gh, gw = h // self.patch, w // self.patch
-        if tokens.shape[1] != 1 + gh * gw:
+        if tokens.shape[1] != self.skip + gh * gw:
             raise ValidationError(
-                "model", f"{tokens.shape[1]} tokens for a {gh}x{gw} patch grid (expected CLS + patches)"
+                "model",
+                f"{tokens.shape[1]} tokens for a {gh}x{gw} grid (expected {self.skip} before the patches)",
             )
-        grid = tokens[0, 1:].float().reshape(gh, gw, self.dim).permute(2, 0, 1).unsqueeze(0)
+        grid = tokens[0, self.skip :].float().reshape(gh, gw, self.dim).permute(2, 0, 1).unsqueeze(0)
         out = F.interpolate(grid, size=tuple(out_hw), mode="bilinear", align_corners=False)
         return out[0].permute(1, 2, 0).contiguous().to(image.device)

@@ -49,12 +49,14 @@ def _check_texts(texts: list[str]) -> list[str]:
 
 
 def _token_batches(encoder: Any, texts: list[str]):
-    """Yield the encoder's tokenizer output for ``texts`` in batches, on the encoder's device."""
+    """Yield the encoder's tokenizer output for ``texts`` in batches, on the encoder's device (padded to
+    the longest text, or to ``max_length`` for models trained that way: SigLIP)."""
     texts = _check_texts(texts)
+    padding = "max_length" if getattr(encoder, "pad_to_max_length", False) else True
     for s in range(0, len(texts), encoder.batch_size):
         yield encoder.tokenizer(
             texts[s : s + encoder.batch_size],
-            padding=True,
+            padding=padding,
             truncation=True,
             max_length=encoder.max_length,
             return_tensors="pt",
@@ -149,7 +151,8 @@ def load_clip_tokenizer(model_dir: str | os.PathLike) -> Any:
 
 
 class ClipTextEncoder:
-    """The text tower and projection of a ``transformers.CLIPModel`` (get_text_features), L2-normalised."""
+    """The text tower and projection of a transformers dual encoder (``CLIPModel``, ``SiglipModel``, or an
+    open_clip checkpoint mapped onto ``CLIPModel``), ``get_text_features`` L2-normalised."""
 
     def __init__(
         self,
@@ -167,9 +170,11 @@ class ClipTextEncoder:
         self.model = model.to(self.device).eval()
         self.tokenizer = tokenizer
         self.id = model_id
-        self.dim = int(model.config.projection_dim)
+        self.dim = embedding_dim(model.config)
         self.max_length = int(model.config.text_config.max_position_embeddings)
         self.batch_size = batch_size
+        self.pad_to_max_length = model.config.model_type == "siglip"
+        """SigLIP's text tower was trained on texts padded to max_length (64): pad them the same."""
         self.files: ModelFiles | None = None
         """Where the weights came from, when loaded by id (recorded in scene manifests)."""
 
@@ -183,9 +188,25 @@ class ClipTextEncoder:
     ) -> ClipTextEncoder:
         """Load model and tokenizer from ``model_dir``, the folder ``model_id``, the hub cache, or a download
         (fmgs.features.models.fetch_model; ``offline`` or HF_HUB_OFFLINE/FMGS_OFFLINE forbid it)."""
-        files = fetch_model(model_id, model_dir, offline=offline)
-        model = require_transformers().CLIPModel.from_pretrained(str(files.path), local_files_only=True)
-        enc = cls(model, load_clip_tokenizer(files.path), model_id, device)
+        from fmgs.features.registry import TEXT_TYPES, parse_encoder_id, require_type
+
+        ref = parse_encoder_id(model_id)
+        if ref.family == "openclip-file":
+            from fmgs.features.openclip import load_openclip_file
+
+            model, tokenizer, files = load_openclip_file(ref)
+            enc = cls(model, tokenizer, model_id, device)
+            enc.files = files
+            return enc
+        files = fetch_model(ref.ref, model_dir, offline=offline)
+        kind = require_type(files.path, model_id, TEXT_TYPES, "text encoder")
+        transformers = require_transformers()
+        model = transformers.AutoModel.from_pretrained(str(files.path), local_files_only=True)
+        if kind == "clip":
+            tokenizer = load_clip_tokenizer(files.path)
+        else:
+            tokenizer = transformers.AutoTokenizer.from_pretrained(str(files.path), local_files_only=True)
+        enc = cls(model, tokenizer, model_id, device)
         enc.files = files
         return enc
 
@@ -194,9 +215,9 @@ class ClipTextEncoder:
         """[n, D] float32 unit-norm rows on the encoder's device."""
         out = [torch.zeros(0, self.dim, device=self.device)]
         for enc in _token_batches(self, texts):
-            feats = self.model.get_text_features(
-                input_ids=enc["input_ids"], attention_mask=enc["attention_mask"]
-            )
+            # The tokenizer's own inputs (SigLIP's has no attention mask: its padding is part of the text).
+            inputs = {k: enc[k] for k in ("input_ids", "attention_mask") if k in enc}
+            feats = self.model.get_text_features(**inputs)
             out.append(safe_normalize(pooled_output(feats).float()))
         return torch.cat(out)
 
@@ -212,3 +233,9 @@ def load_text_encoder(
     if encoder_id == MINILM_ID:
         return MiniLMTextEncoder(model_dir, device)
     return ClipTextEncoder.load(encoder_id, model_dir, device, offline=offline)
+
+
+def embedding_dim(config: Any) -> int:
+    """Embedding size of a dual encoder: CLIP's projection_dim, else (SigLIP) the text tower's width."""
+    dim = getattr(config, "projection_dim", None)
+    return int(dim if dim else config.text_config.hidden_size)

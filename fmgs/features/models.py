@@ -102,7 +102,8 @@ def fetch_command(model_id: str, revision: str = DEFAULT_REVISION) -> str:
     return f"hf download {model_id}{rev} {include}"
 
 
-def _sha256(path: Path) -> str:
+def sha256_file(path: Path) -> str:
+    """Hex sha256 of a file, read in 4 MiB blocks."""
     h = hashlib.sha256()
     with open(path, "rb") as f:
         for block in iter(lambda: f.read(1 << 22), b""):
@@ -112,7 +113,7 @@ def _sha256(path: Path) -> str:
 
 def _local_files(folder: Path) -> dict[str, str]:
     return {
-        p.name: _sha256(p)
+        p.name: sha256_file(p)
         for p in sorted(folder.iterdir())
         if p.is_file() and p.suffix in (".safetensors", ".bin")
     }
@@ -124,7 +125,7 @@ def _snapshot_files(snap: Path) -> dict[str, str]:
     for p in sorted(snap.rglob("*")):
         if p.is_file():
             name = p.relative_to(snap).as_posix()
-            out[name] = Path(os.readlink(p)).name if p.is_symlink() else _sha256(p)
+            out[name] = Path(os.readlink(p)).name if p.is_symlink() else sha256_file(p)
     return out
 
 

@@ -15,7 +15,6 @@ checkpoint, as they do in the hub repositories that ship it.
 
 from __future__ import annotations
 
-import hashlib
 import math
 import re
 from pathlib import Path
@@ -24,7 +23,7 @@ from typing import Any
 import torch
 
 from fmgs.errors import ValidationError
-from fmgs.features.models import ModelFiles, ModelNotFoundError, require_transformers
+from fmgs.features.models import ModelFiles, ModelNotFoundError, require_transformers, sha256_file
 from fmgs.features.registry import EncoderRef
 
 HEAD_WIDTH = 64
@@ -155,14 +154,6 @@ def to_transformers(sd: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
     return out
 
 
-def _sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 22), b""):
-            h.update(block)
-    return h.hexdigest()
-
-
 def load_openclip_file(ref: EncoderRef) -> tuple[Any, Any, ModelFiles]:
     """(``CLIPModel`` in eval mode, its tokenizer, the files) of an ``openclip-file:`` id."""
     from fmgs.features.text import load_clip_tokenizer
@@ -182,5 +173,5 @@ def load_openclip_file(ref: EncoderRef) -> tuple[Any, Any, ModelFiles]:
         )
     tokenizer = load_clip_tokenizer(path.parent)
     prefix = "openclip-file+quickgelu:" if ref.quick_gelu else "openclip-file:"
-    files = ModelFiles(prefix + ref.ref, path.parent, "local", files={path.name: _sha256(path)})
+    files = ModelFiles(prefix + ref.ref, path.parent, "local", files={path.name: sha256_file(path)})
     return model.eval(), tokenizer, files

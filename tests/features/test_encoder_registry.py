@@ -120,11 +120,8 @@ def _reference_image(sd, pixels, quick_gelu):
 
 
 @pytest.fixture(scope="module")
-def bpe(data_dir):
-    d = data_dir / "clip_tokenizer" / "hf_format"
-    if not (d / "vocab.json").is_file():
-        pytest.skip(f"CLIP tokenizer files not found in {d}")
-    return d
+def bpe(bpe_dir):
+    return bpe_dir
 
 
 @pytest.mark.parametrize(("quick_gelu", "suffix"), [(False, ".bin"), (True, ".safetensors")])

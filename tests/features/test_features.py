@@ -53,14 +53,6 @@ VIT_DIM = 32
 
 
 @pytest.fixture(scope="module")
-def bpe_dir(data_dir):
-    d = data_dir / "clip_tokenizer" / "hf_format"
-    if not (d / "vocab.json").is_file():
-        pytest.skip(f"CLIP tokenizer files not found in {d}")
-    return d
-
-
-@pytest.fixture(scope="module")
 def tokenizer(bpe_dir):
     return clip_tokenizer_from_bpe_files(bpe_dir / "vocab.json", bpe_dir / "merges.txt")
 

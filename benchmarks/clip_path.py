@@ -137,6 +137,38 @@ def report(rows: list[dict], info: dict, cmd: str, standin_cfg: dict) -> str:
     return "\n".join(lines)
 
 
+def target_map_accuracy(data: Path, standin: Path, views: int = 3) -> dict[str, list[float]]:
+    """How well the CLIP targets themselves place each name, before any distillation: per pyramid scale
+    alone and for the hybrid of all, the share of pixels (all, and object pixels: label >= 2) whose
+    target is nearest their own label's name, on the first ``views`` views of a generated scene."""
+    import torch
+    from PIL import Image
+
+    from fmgs.features.pyramid import PyramidConfig, hybrid_map
+    from fmgs.features.standin import load_standin
+    from fmgs.features.text import MiniLMTextEncoder
+
+    names = json.loads((data / "scene.json").read_text())["label_names"]
+    enc = load_standin(f"standin:{standin}")
+    with torch.inference_mode():
+        table = MiniLMTextEncoder().encode_text(names)
+    out: dict[str, list[float]] = {}
+    for scales in [PyramidConfig.scales, *[(s,) for s in PyramidConfig.scales]]:
+        hits = np.zeros(4)
+        for p in sorted((data / "images").iterdir())[:views]:
+            img = torch.from_numpy(np.asarray(Image.open(p).convert("RGB"), np.float32) / 255.0)
+            lab = torch.from_numpy(np.asarray(Image.open(data / "labels" / p.name)).astype(np.int64))
+            with torch.inference_mode():
+                m = hybrid_map(
+                    enc, img, PyramidConfig(scales=scales, crop_px=enc.image_size), tuple(lab.shape)
+                )
+            ok = (m @ table.T).argmax(-1) == lab
+            hits += [float(ok.sum()), ok.numel(), float(ok[lab >= 2].sum()), float((lab >= 2).sum())]
+        key = "hybrid" if len(scales) > 1 else f"{scales[0]}"
+        out[key] = [hits[0] / hits[1], hits[2] / max(hits[3], 1.0)]
+    return out
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--out", required=True)
@@ -148,7 +180,17 @@ def main() -> int:
     ap.add_argument("--standin", default=str(STANDIN), help="the stand-in's folder (standin.json, weights)")
     ap.add_argument("--quick", action="store_true", help="smoke run: one 64x48 scene, short stages")
     ap.add_argument("--report", action="store_true", help="also write benchmarks/results/CLIP_PATH.md")
+    ap.add_argument(
+        "--target-maps",
+        metavar="DATA",
+        help="only print, for a generated scene DATA, how well the CLIP targets alone place each name, per "
+        "pyramid scale and for their hybrid (pixel accuracy, all and object pixels)",
+    )
     a = ap.parse_args()
+    if a.target_maps:
+        for key, (all_px, objects) in target_map_accuracy(Path(a.target_maps), Path(a.standin)).items():
+            print(f"scales {key}: pixels {all_px:.3f}, object pixels {objects:.3f}")
+        return 0
     if a.quick:
         a.seeds, a.views, a.size, a.gs_steps, a.field_steps = "7", 24, "64x48", 300, 150
     out = Path(a.out)

@@ -1,7 +1,8 @@
 """open_clip checkpoint files on the transformers CLIP architecture (``openclip-file:PATH`` ids).
 
-Many users hold LAION's models as open_clip checkpoints (``open_clip_pytorch_model.bin`` or
-``open_clip_model.safetensors``). open_clip's ViT CLIP and transformers' ``CLIPModel`` compute the same
+Many users hold LAION's models as open_clip checkpoints (``open_clip_model.safetensors``; the
+``open_clip_pytorch_model.bin`` beside it is pickled data, which this project never loads). open_clip's
+ViT CLIP and transformers' ``CLIPModel`` compute the same
 function, so the weights map one to one (the attention's packed q/k/v split in three, the projections
 transposed) and the sizes follow from the tensors' shapes: widths, layers, patch, image size, context,
 vocabulary, embedding size; heads are width / 64 (open_clip's head width). The blocks' activation is not
@@ -61,21 +62,20 @@ _IGNORED = {"attn_mask", "visual.attn_mask"}
 
 
 def read_checkpoint(path: Path) -> dict[str, torch.Tensor]:
-    """The state dict of an open_clip checkpoint: safetensors, or a torch file read with weights_only
-    (tensors only, nothing unpickled); a ``state_dict`` wrapper and ``module.`` prefixes are removed."""
-    if path.suffix == ".safetensors":
-        from safetensors.torch import load_file
+    """The state dict of an open_clip checkpoint in safetensors form (``open_clip_model.safetensors``).
 
-        sd: Any = load_file(str(path))
-    else:
-        try:
-            sd = torch.load(str(path), map_location="cpu", weights_only=True)
-        except Exception as e:  # a pickle with objects, a truncated file: say which file and why
-            raise ValidationError(str(path), f"not a readable weights-only checkpoint ({e})") from e
-    if isinstance(sd, dict) and isinstance(sd.get("state_dict"), dict):
-        sd = sd["state_dict"]
-    if not isinstance(sd, dict) or not all(isinstance(v, torch.Tensor) for v in sd.values()):
-        raise ValidationError(str(path), "expected a state dict of tensors")
+    The ``.bin`` form is pickled data, and nothing in this project unpickles: such a file is refused with how
+    to get or make the safetensors form. ``module.`` prefixes are removed."""
+    if path.suffix != ".safetensors":
+        raise ValidationError(
+            str(path),
+            "open_clip .bin/.pt checkpoints are pickles, which FMGS never loads; use the safetensors "
+            "file the model's repository ships beside it (open_clip_model.safetensors), or convert the .bin "
+            "once, on a machine where you trust it, with safetensors.torch.save_file",
+        )
+    from safetensors.torch import load_file
+
+    sd = load_file(str(path))
     return {k.removeprefix("module."): v for k, v in sd.items()}
 
 

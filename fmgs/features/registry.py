@@ -6,8 +6,8 @@ An id says where a model comes from; the model's own config says what it is.
 - ``hf:ORG/NAME``, ``ORG/NAME`` or a folder: a transformers model, fetched on first use
   (fmgs.features.models). Its config.json ``model_type`` picks the wrapper: ``clip`` and ``siglip``
   (image and text towers), ``vit`` (DINO), ``dinov2`` and ``dinov2_with_registers`` (DINOv2).
-- ``openclip-file:PATH``: an open_clip checkpoint file (``open_clip_pytorch_model.bin`` or
-  ``.safetensors``) mapped onto the transformers CLIP architecture (fmgs.features.openclip), GELU blocks
+- ``openclip-file:PATH``: an open_clip checkpoint file (``open_clip_model.safetensors``; the pickled
+  ``.bin`` is refused) mapped onto the transformers CLIP architecture (fmgs.features.openclip), GELU blocks
   as the LAION models have; ``openclip-file+quickgelu:PATH`` for OpenAI-trained checkpoints.
 - ``standin:FOLDER``: the CLIP stand-in trained into MiniLM's text space (fmgs.features.standin): an
   image encoder whose scenes are queried with MiniLM.

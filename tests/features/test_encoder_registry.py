@@ -124,19 +124,16 @@ def bpe(bpe_dir):
     return bpe_dir
 
 
-@pytest.mark.parametrize(("quick_gelu", "suffix"), [(False, ".bin"), (True, ".safetensors")])
-def test_an_openclip_file_gives_open_clips_embeddings(bpe, tmp_path, quick_gelu, suffix):
+@pytest.mark.parametrize("quick_gelu", [False, True])
+def test_an_openclip_file_gives_open_clips_embeddings(bpe, tmp_path, quick_gelu):
     import shutil
 
     tok = clip_tokenizer_from_bpe_files(bpe / "vocab.json", bpe / "merges.txt")
     sd = _openclip_state_dict(len(tok))
-    path = tmp_path / f"open_clip_model{suffix}"
-    if suffix == ".bin":
-        torch.save({"state_dict": {f"module.{k}": v for k, v in sd.items()}}, path)  # a wrapped checkpoint
-    else:
-        from safetensors.torch import save_file
+    from safetensors.torch import save_file
 
-        save_file({k: v.contiguous() for k, v in sd.items()}, str(path))
+    path = tmp_path / "open_clip_model.safetensors"
+    save_file({f"module.{k}": v.contiguous() for k, v in sd.items()}, str(path))  # as saved from DDP
     for f in ("vocab.json", "merges.txt"):
         shutil.copy(bpe / f, tmp_path / f)
     eid = ("openclip-file+quickgelu:" if quick_gelu else "openclip-file:") + str(path)
@@ -161,23 +158,29 @@ def test_an_openclip_file_gives_open_clips_embeddings(bpe, tmp_path, quick_gelu,
 def test_openclip_files_this_mapping_does_not_know_are_refused(bpe, tmp_path):
     import shutil
 
+    from safetensors.torch import save_file
+
+    from fmgs.features.models import ModelNotFoundError
+
     tok = clip_tokenizer_from_bpe_files(bpe / "vocab.json", bpe / "merges.txt")
     for f in ("vocab.json", "merges.txt"):
         shutil.copy(bpe / f, tmp_path / f)
     sd = _openclip_state_dict(len(tok))
     sd["visual.transformer.resblocks.0.ls_1.gamma"] = torch.ones(W)  # layer scale: not CLIP's ViT
-    torch.save(sd, tmp_path / "ls.bin")
+    save_file(sd, str(tmp_path / "ls.safetensors"))
     with pytest.raises(ValidationError, match="ls_1"):
-        load_text_encoder(f"openclip-file:{tmp_path / 'ls.bin'}")
+        load_text_encoder(f"openclip-file:{tmp_path / 'ls.safetensors'}")
     sd = _openclip_state_dict(len(tok))
     del sd["visual.proj"]
-    torch.save(sd, tmp_path / "noproj.bin")
+    save_file(sd, str(tmp_path / "noproj.safetensors"))
     with pytest.raises(ValidationError, match=r"visual\.proj"):
-        load_text_encoder(f"openclip-file:{tmp_path / 'noproj.bin'}")
-    from fmgs.features.models import ModelNotFoundError
-
+        load_text_encoder(f"openclip-file:{tmp_path / 'noproj.safetensors'}")
     with pytest.raises(ModelNotFoundError):
-        load_text_encoder(f"openclip-file:{tmp_path / 'absent.bin'}")
+        load_text_encoder(f"openclip-file:{tmp_path / 'absent.safetensors'}")
+    # The pickled form is never loaded: the error says how to get the safetensors form.
+    (tmp_path / "open_clip_pytorch_model.bin").write_bytes(b"\x80\x04not read")
+    with pytest.raises(ValidationError, match=r"never loads.*open_clip_model\.safetensors"):
+        load_text_encoder(f"openclip-file:{tmp_path / 'open_clip_pytorch_model.bin'}")
 
 
 # ---- SigLIP --------------------------------------------------------------------------------------------

@@ -127,18 +127,16 @@ size=$(pod image inspect --format '{{.Size}}' "$tag")
 say "built $tag in ${build_s}s, $(( size / 1024 / 1024 )) MiB"
 
 # The runtime stage carries no compilers, and runs as the non-root user.
+# One working container for the looks inside: no compilers, and where the size goes (largest packages).
 ctr=$(bah from "$tag")
 compilers=$(bah run "$ctr" -- sh -c \
   'for c in cc gcc g++ c++ clang nvcc make; do command -v "$c" || true; done' 2>/dev/null || true)
+largest=$(bah run "$ctr" -- sh -c 'du -sm /opt/venv/lib/python3.11/site-packages/* | sort -rn | head -6' \
+  | awk '{sub(".*/", "", $2); printf "%s%s %s MiB", sep, $2, $1; sep=", "}')
 bah rm "$ctr" >/dev/null
 [ -z "$compilers" ] || { echo "image.sh: the runtime stage carries compilers: $compilers" >&2; exit 1; }
 user=$(bah inspect --type image --format '{{.Docker.Config.User}}' "$tag")
 [ "$user" = fmgs ] || { echo "image.sh: the image runs as '$user', not fmgs" >&2; exit 1; }
-# Where the size goes: the largest installed packages.
-ctr=$(bah from "$tag")
-largest=$(bah run "$ctr" -- sh -c 'du -sm /opt/venv/lib/python3.11/site-packages/* | sort -rn | head -6' \
-  | awk '{sub(".*/", "", $2); printf "%s%s %s MiB", sep, $2, $1; sep=", "}')
-bah rm "$ctr" >/dev/null
 
 checks="not run (--no-run)"
 if [ "$run" = 1 ]; then

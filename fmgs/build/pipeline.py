@@ -103,13 +103,11 @@ def extract_features(ds, cache_dir: Path, spec: TargetSpec, device: str, progres
         raise ValidationError("targets", f"unknown target kind {spec.kind!r}; choose 'clip' or 'labels'")
     from fmgs.features.clip import load_image_encoder
     from fmgs.features.dino import DinoEncoder
-    from fmgs.features.pyramid import PyramidConfig
+    from fmgs.features.pyramid import pyramid_for
 
     clip = load_image_encoder(spec.clip_model, device=device)
     dino = DinoEncoder.load(spec.dino_model, device=device) if spec.dino_model else None
-    # Crops are resized once, to the model's own input size (224 for the default ViT-B/16).
-    size = int(getattr(clip, "image_size", PyramidConfig.crop_px))
-    pyr = PyramidConfig(scales=(0.25,), crop_px=size) if spec.single_scale else PyramidConfig(crop_px=size)
+    pyr = pyramid_for(clip, spec.single_scale)
     return extract_targets(ds, cache_dir, clip, dino, pyr, ecfg)
 
 

@@ -11,8 +11,8 @@ import torch
 import torch.nn.functional as F
 
 from fmgs.errors import ValidationError
-from fmgs.features.models import DEFAULT_CLIP_ID, ModelFiles, fetch_model, require_transformers
-from fmgs.features.text import ClipTextEncoder, embedding_dim, load_clip_tokenizer, pooled_output
+from fmgs.features.models import DEFAULT_CLIP_ID, ModelFiles
+from fmgs.features.text import ClipTextEncoder, embedding_dim, load_dual_encoder, pooled_output
 from fmgs.vecmath import safe_normalize
 
 CLIP_MEAN = (0.48145466, 0.4578275, 0.40821073)
@@ -133,27 +133,15 @@ def load_clip(
 
 
 def _load_dual(model_id: str, model_dir: str | os.PathLike | None):
-    """(model, tokenizer loader, (mean, std), ModelFiles) of a dual encoder id (fmgs.features.registry):
-    a transformers CLIP or SigLIP, fetched on first use, or an open_clip checkpoint file."""
-    from fmgs.features.registry import IMAGE_TYPES, parse_encoder_id, require_type
+    """(model, tokenizer loader, (mean, std), ModelFiles) of a dual-encoder id (text.load_dual_encoder);
+    an open_clip file normalises as CLIP does, a transformers model as its preprocessor config says."""
+    from fmgs.features.registry import IMAGE_TYPES
 
-    ref = parse_encoder_id(model_id)
-    if ref.family == "openclip-file":
-        from fmgs.features.openclip import load_openclip_file
-
-        model, tokenizer, files = load_openclip_file(ref)
-        return model, lambda: tokenizer, (CLIP_MEAN, CLIP_STD), files
-    files: ModelFiles = fetch_model(ref.ref, model_dir)
-    kind = require_type(files.path, model_id, IMAGE_TYPES, "image encoder")
-    transformers = require_transformers()
-    model = transformers.AutoModel.from_pretrained(str(files.path), local_files_only=True)
-
-    def tokenizer():
-        if kind == "clip":
-            return load_clip_tokenizer(files.path)
-        return transformers.AutoTokenizer.from_pretrained(str(files.path), local_files_only=True)
-
-    return model, tokenizer, _preprocessor_mean_std(files.path), files
+    model, tokenizer, files, openclip = load_dual_encoder(
+        model_id, model_dir, None, IMAGE_TYPES, "image encoder"
+    )
+    norm = (CLIP_MEAN, CLIP_STD) if openclip else _preprocessor_mean_std(files.path)
+    return model, tokenizer, norm, files
 
 
 def _preprocessor_mean_std(d: Path) -> tuple[tuple[float, ...], tuple[float, ...]]:

@@ -60,13 +60,11 @@ class _Worker:
         else:
             from fmgs.features.clip import load_image_encoder
             from fmgs.features.dino import DinoEncoder
-            from fmgs.features.pyramid import PyramidConfig
+            from fmgs.features.pyramid import pyramid_for
 
             self.clip = load_image_encoder(spec.clip_model, device=device)
             self.dino = DinoEncoder.load(spec.dino_model, device=device) if spec.dino_model else None
-            size = int(getattr(self.clip, "image_size", PyramidConfig.crop_px))  # as in the build's own path
-            scales = (0.25,) if spec.single_scale else PyramidConfig.scales
-            self.pyramid = PyramidConfig(scales=scales, crop_px=size)
+            self.pyramid = pyramid_for(self.clip, spec.single_scale)
             self.targets = {"clip": TargetInfo(self.clip.id, self.clip.dim, True)}
             if self.dino is not None:
                 self.targets["dino"] = TargetInfo(self.dino.id, self.dino.dim, False)

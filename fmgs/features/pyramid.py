@@ -53,6 +53,13 @@ class PyramidConfig:
             raise ValidationError("crop_px/batch_size", "must be positive")
 
 
+def pyramid_for(encoder, single_scale: bool = False) -> PyramidConfig:
+    """The build's pyramid for an image encoder: crops resized once, to the encoder's own input size (224
+    for the default ViT-B/16); ``single_scale``: the ablation's one scale (0.25)."""
+    size = int(getattr(encoder, "image_size", PyramidConfig.crop_px))
+    return PyramidConfig(scales=(0.25,) if single_scale else PyramidConfig.scales, crop_px=size)
+
+
 class CropGrid(NamedTuple):
     """Square crops of one scale laid out as a grid."""
 

@@ -188,25 +188,12 @@ class ClipTextEncoder:
     ) -> ClipTextEncoder:
         """Load model and tokenizer from ``model_dir``, the folder ``model_id``, the hub cache, or a download
         (fmgs.features.models.fetch_model; ``offline`` or HF_HUB_OFFLINE/FMGS_OFFLINE forbid it)."""
-        from fmgs.features.registry import TEXT_TYPES, parse_encoder_id, require_type
+        from fmgs.features.registry import TEXT_TYPES
 
-        ref = parse_encoder_id(model_id)
-        if ref.family == "openclip-file":
-            from fmgs.features.openclip import load_openclip_file
-
-            model, tokenizer, files = load_openclip_file(ref)
-            enc = cls(model, tokenizer, model_id, device)
-            enc.files = files
-            return enc
-        files = fetch_model(ref.ref, model_dir, offline=offline)
-        kind = require_type(files.path, model_id, TEXT_TYPES, "text encoder")
-        transformers = require_transformers()
-        model = transformers.AutoModel.from_pretrained(str(files.path), local_files_only=True)
-        if kind == "clip":
-            tokenizer = load_clip_tokenizer(files.path)
-        else:
-            tokenizer = transformers.AutoTokenizer.from_pretrained(str(files.path), local_files_only=True)
-        enc = cls(model, tokenizer, model_id, device)
+        model, tokenizer, files, _ = load_dual_encoder(
+            model_id, model_dir, offline, TEXT_TYPES, "text encoder"
+        )
+        enc = cls(model, tokenizer(), model_id, device)
         enc.files = files
         return enc
 
@@ -237,6 +224,37 @@ def load_text_encoder(
 
         return load_text_encoder(load_standin(encoder_id).text_encoder_id, device=device, offline=offline)
     return ClipTextEncoder.load(encoder_id, model_dir, device, offline=offline)
+
+
+def load_dual_encoder(
+    model_id: str,
+    model_dir: str | os.PathLike | None,
+    offline: bool | None,
+    allowed: tuple[str, ...],
+    role: str,
+) -> tuple[Any, Any, ModelFiles, bool]:
+    """(model, tokenizer loader, ModelFiles, whether it is an open_clip file) of a dual-encoder id
+    (fmgs.features.registry): a transformers CLIP or SigLIP fetched on first use (its ``model_type`` one
+    of ``allowed`` for ``role``), or an open_clip checkpoint file mapped onto CLIPModel."""
+    from fmgs.features.registry import parse_encoder_id, require_type
+
+    ref = parse_encoder_id(model_id)
+    if ref.family == "openclip-file":
+        from fmgs.features.openclip import load_openclip_file
+
+        model, tokenizer, files = load_openclip_file(ref)
+        return model, lambda: tokenizer, files, True
+    files = fetch_model(ref.ref, model_dir, offline=offline)
+    kind = require_type(files.path, model_id, allowed, role)
+    transformers = require_transformers()
+    model = transformers.AutoModel.from_pretrained(str(files.path), local_files_only=True)
+
+    def tokenizer():
+        if kind == "clip":
+            return load_clip_tokenizer(files.path)
+        return transformers.AutoTokenizer.from_pretrained(str(files.path), local_files_only=True)
+
+    return model, tokenizer, files, False
 
 
 def embedding_dim(config: Any) -> int:

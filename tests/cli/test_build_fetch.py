@@ -16,13 +16,11 @@ pytest.importorskip("huggingface_hub")
 REPO = "acme/tiny-clip"
 
 
-def test_a_build_downloads_its_encoder_then_builds_offline_from_the_cache(data_dir, tmp_path, monkeypatch):
+def test_a_build_downloads_its_encoder_then_builds_offline_from_the_cache(bpe_dir, tmp_path, monkeypatch):
     from fmgs.features.text import clip_tokenizer_from_bpe_files
     from fmgs.synth import SynthConfig, generate
 
-    bpe = data_dir / "clip_tokenizer" / "hf_format"
-    if not (bpe / "vocab.json").is_file():
-        pytest.skip(f"CLIP tokenizer files not found in {bpe}")
+    bpe = bpe_dir
     vocab = len(clip_tokenizer_from_bpe_files(bpe / "vocab.json", bpe / "merges.txt"))
     repo = HubRepo.from_folder(REPO, save_clip_folder(tiny_clip_model(vocab), tmp_path / "clip", bpe))
     generate(tmp_path / "scene", SynthConfig(views=12, width=40, height=30, points=3000, supersample=1))

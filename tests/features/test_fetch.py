@@ -26,14 +26,12 @@ REPO = "acme/tiny-clip"
 
 
 @pytest.fixture(scope="module")
-def clip_repo(data_dir, tmp_path_factory):
+def clip_repo(bpe_dir, tmp_path_factory):
     """A tiny random-weight CLIP in hub layout, plus an open_clip checkpoint and flax weights beside it
     (which a download must leave behind)."""
     from fmgs.features.text import clip_tokenizer_from_bpe_files
 
-    bpe = data_dir / "clip_tokenizer" / "hf_format"
-    if not (bpe / "vocab.json").is_file():
-        pytest.skip(f"CLIP tokenizer files not found in {bpe}")
+    bpe = bpe_dir
     vocab = len(clip_tokenizer_from_bpe_files(bpe / "vocab.json", bpe / "merges.txt"))
     model = tiny_clip_model(vocab)
     folder = save_clip_folder(model, tmp_path_factory.mktemp("hub") / "tiny-clip", bpe)

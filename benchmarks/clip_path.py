@@ -137,36 +137,71 @@ def report(rows: list[dict], info: dict, cmd: str, standin_cfg: dict) -> str:
     return "\n".join(lines)
 
 
-def target_map_accuracy(data: Path, standin: Path, views: int = 3) -> dict[str, list[float]]:
-    """How well the CLIP targets themselves place each name, before any distillation: per pyramid scale
-    alone and for the hybrid of all, the share of pixels (all, and object pixels: label >= 2) whose
-    target is nearest their own label's name, on the first ``views`` views of a generated scene."""
+STRIDE_CAPS = (None, 0.1, 0.05, 0.025)
+"""The crop-stride caps the knob table compares (None: the paper's lattice, half the crop edge)."""
+
+
+def target_map_accuracy(data: Path, standin: Path, views: int = 4) -> list[dict]:
+    """How well the CLIP targets themselves place each name, before any distillation, on the first
+    ``views`` views of a generated scene: for each crop-stride cap (STRIDE_CAPS), each pyramid scale alone
+    and the hybrid of all, the share of pixels (all, and object pixels: label >= 2) whose target is
+    nearest their own label's name, and the crops embedded per view. Each scale's crops are embedded
+    once per cap; the hybrid is their equal mean, renormalised, as fmgs.features.pyramid.hybrid_map."""
     import torch
     from PIL import Image
 
-    from fmgs.features.pyramid import PyramidConfig, hybrid_map
+    from fmgs.features.pyramid import PyramidConfig, crop_grid, interp_matrix, scale_grid_embeddings
     from fmgs.features.standin import load_standin
     from fmgs.features.text import MiniLMTextEncoder
+    from fmgs.vecmath import safe_normalize
 
     names = json.loads((data / "scene.json").read_text())["label_names"]
     enc = load_standin(f"standin:{standin}")
     with torch.inference_mode():
         table = MiniLMTextEncoder().encode_text(names)
-    out: dict[str, list[float]] = {}
-    for scales in [PyramidConfig.scales, *[(s,) for s in PyramidConfig.scales]]:
-        hits = np.zeros(4)
+    rows = []
+    for cap in STRIDE_CAPS:
+        cfg = PyramidConfig(crop_px=enc.image_size, max_stride=cap)
+        keys = ["hybrid", *map(str, cfg.scales)]
+        hits = {k: np.zeros(4) for k in keys}
+        crops = 0
         for p in sorted((data / "images").iterdir())[:views]:
             img = torch.from_numpy(np.asarray(Image.open(p).convert("RGB"), np.float32) / 255.0)
             lab = torch.from_numpy(np.asarray(Image.open(data / "labels" / p.name)).astype(np.int64))
-            with torch.inference_mode():
-                m = hybrid_map(
-                    enc, img, PyramidConfig(scales=scales, crop_px=enc.image_size), tuple(lab.shape)
-                )
-            ok = (m @ table.T).argmax(-1) == lab
-            hits += [float(ok.sum()), ok.numel(), float(ok[lab >= 2].sum()), float((lab >= 2).sum())]
-        key = "hybrid" if len(scales) > 1 else f"{scales[0]}"
-        out[key] = [hits[0] / hits[1], hits[2] / max(hits[3], 1.0)]
-    return out
+            H, W = lab.shape
+            maps = []
+            for s in cfg.scales:
+                g = crop_grid(H, W, s, cfg.overlap, cap)
+                crops += g.boxes.shape[0] * g.boxes.shape[1]
+                with torch.inference_mode():
+                    emb = scale_grid_embeddings(enc, img.permute(2, 0, 1), g, cfg)
+                ay, ax = interp_matrix(g.centers_y, H, H).float(), interp_matrix(g.centers_x, W, W).float()
+                maps.append(torch.einsum("hy,ywd->hwd", ay, torch.einsum("yxd,wx->ywd", emb, ax)))
+            for k, m in zip(keys, [safe_normalize(torch.stack(maps).mean(0)), *maps], strict=True):
+                ok = (m @ table.T).argmax(-1) == lab
+                hits[k] += [float(ok.sum()), ok.numel(), float(ok[lab >= 2].sum()), float((lab >= 2).sum())]
+        for k in keys:
+            h = hits[k]
+            acc = {"pixels": h[0] / h[1], "object_pixels": h[2] / max(h[3], 1.0)}
+            rows.append({"max_stride": cap, "scales": k, **acc, "crops_per_view": crops / views})
+    return rows
+
+
+def knob_table(rows: list[dict]) -> list[str]:
+    """Markdown: per stride cap, crops per view and the hybrid's accuracy, then each scale alone."""
+    scales = [r["scales"] for r in rows if r["max_stride"] is None and r["scales"] != "hybrid"]
+    head = "| crop stride cap | crops / view | hybrid: pixels | hybrid: object pixels | "
+    head += " | ".join(f"{s} alone" for s in scales) + " |"
+    lines = [head, "|" + "---|" * (4 + len(scales))]
+    for cap in STRIDE_CAPS:
+        rs = {r["scales"]: r for r in rows if r["max_stride"] == cap}
+        h = rs["hybrid"]
+        name = "none (paper: crop edge / 2)" if cap is None else f"{cap} of the shorter side"
+        cells = " | ".join(f"{rs[s]['object_pixels']:.3f}" for s in scales)
+        lines.append(
+            f"| {name} | {h['crops_per_view']:.0f} | {h['pixels']:.3f} | {h['object_pixels']:.3f} | {cells} |"
+        )
+    return lines
 
 
 def main() -> int:
@@ -188,8 +223,7 @@ def main() -> int:
     )
     a = ap.parse_args()
     if a.target_maps:
-        for key, (all_px, objects) in target_map_accuracy(Path(a.target_maps), Path(a.standin)).items():
-            print(f"scales {key}: pixels {all_px:.3f}, object pixels {objects:.3f}")
+        print("\n".join(knob_table(target_map_accuracy(Path(a.target_maps), Path(a.standin)))))
         return 0
     if a.quick:
         a.seeds, a.views, a.size, a.gs_steps, a.field_steps = "7", 24, "64x48", 300, 150

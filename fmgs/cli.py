@@ -227,6 +227,7 @@ BUILD_ALIASES = {
             "clip_model",
             "dino_model",
             "single_scale",
+            "crop_stride",
             "labels",
             "names",
             "text_encoder",

@@ -7,7 +7,7 @@ import dataclasses
 from dataclasses import dataclass
 
 from fmgs.features.models import DEFAULT_CLIP_ID, DEFAULT_DINO_ID, MINILM_ID
-from fmgs.features.sizes import FEATURE_SIDE, check_feature_scale
+from fmgs.features.sizes import CROP_STRIDE, FEATURE_SIDE, check_feature_scale
 from fmgs.scene.manifest import FIELD_DTYPES, MODELS
 from fmgs.sfm.config import SfMConfig
 from fmgs.train.config import FieldTrainConfig, GSTrainConfig
@@ -33,6 +33,10 @@ class TargetSpec:
     """DINO model id or local folder; None for no DINO target."""
     single_scale: bool = False
     """Ablation: one crop scale instead of the 7-scale pyramid."""
+    crop_stride: float | None = CROP_STRIDE
+    """Cap on the crop pyramid's stride, a fraction of the image's shorter side (kind "clip"): every
+    scale's crops start at most this far apart; none: half the crop edge (the paper's, sparse at the
+    coarse scales; fewer crops, small objects washed out)."""
     labels: str | None = None
     """Label image folder (kind "labels"); default DATA/labels."""
     names: str | None = None
@@ -49,6 +53,8 @@ class TargetSpec:
         if self.kind not in TARGET_KINDS:
             raise ValueError(f"targets kind must be one of {TARGET_KINDS}, got {self.kind!r}")
         check_feature_scale(self.feature_scale, self.feature_side)
+        if self.crop_stride is not None and not 0.0 < self.crop_stride <= 1.0:
+            raise ValueError(f"crop_stride must lie in (0, 1] or be none, got {self.crop_stride}")
 
 
 @dataclass(frozen=True)

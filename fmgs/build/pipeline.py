@@ -10,6 +10,7 @@ Stages, each skipped when its output is already complete in the work folder:
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import time
@@ -107,7 +108,7 @@ def extract_features(ds, cache_dir: Path, spec: TargetSpec, device: str, progres
 
     clip = load_image_encoder(spec.clip_model, device=device)
     dino = DinoEncoder.load(spec.dino_model, device=device) if spec.dino_model else None
-    pyr = pyramid_for(clip, spec.single_scale)
+    pyr = pyramid_for(clip, spec.single_scale, spec.crop_stride)
     return extract_targets(ds, cache_dir, clip, dino, pyr, ecfg)
 
 
@@ -243,6 +244,7 @@ def build_scene(source: str | Path, cfg: BuildConfig, progress: bool = True) -> 
     _stage(5, "package", str(out))
     encoder = load_text_encoder(cache.targets["clip"].encoder, device="cpu")
     extra = {"source": str(source), "build_seconds": round(time.perf_counter() - t0, 1)}
+    extra["targets"] = dataclasses.asdict(cfg.targets)  # how the targets were made: kind, models, pyramid
     if getattr(encoder, "files", None) is not None:  # the query encoder: id, revision, file hashes
         extra["text_encoder"] = encoder.files.record()
     if cfg.targets.kind == "labels":

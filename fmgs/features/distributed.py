@@ -64,7 +64,7 @@ class _Worker:
 
             self.clip = load_image_encoder(spec.clip_model, device=device)
             self.dino = DinoEncoder.load(spec.dino_model, device=device) if spec.dino_model else None
-            self.pyramid = pyramid_for(self.clip, spec.single_scale)
+            self.pyramid = pyramid_for(self.clip, spec.single_scale, spec.crop_stride)
             self.targets = {"clip": TargetInfo(self.clip.id, self.clip.dim, True)}
             if self.dino is not None:
                 self.targets["dino"] = TargetInfo(self.dino.id, self.dino.dim, False)

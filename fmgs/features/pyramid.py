@@ -5,16 +5,23 @@ Geometry (pure, testable):
 - A crop at scale ``s`` is a square of ``c = round(s * min(H, W))`` pixels (at least 1).
 - Along an axis of length ``L`` the crops start at ``n`` evenly spaced positions from 0 to ``L - c``
   (rounded to whole pixels), with ``n`` the smallest count whose spacing is at most the nominal stride
-  ``c * (1 - overlap)``. So crops cover the image, never leave it, and overlap at least as requested;
-  the first and last crop touch the image border (the "edge crops clamped inside").
+  ``c * (1 - overlap)``, capped at ``max_stride * min(H, W)`` when a cap is set. So crops cover the
+  image, never leave it, and overlap at least as requested; the first and last crop touch the image
+  border (the "edge crops clamped inside").
 - Each crop's embedding is placed at the crop centre (continuous pixel coordinates: pixel ``j`` spans
   ``[j, j+1)``, its centre is ``j + 0.5``). A scale's [ny, nx, D] grid is interpolated to the output
   pixels' centres bilinearly through the actual crop centres (piecewise linear per axis, clamped to the
   outermost centres, i.e. ``align_corners=True`` on the crop-centre lattice, border padding outside it).
 - The per-scale maps are averaged and each pixel renormalised to unit length.
 
-Scales default to 7 values spaced linearly from 0.05 to 0.5 of min(H, W) (the LERF/FMGS pyramid);
-the small scales dominate the crop count either way.
+Scales default to 7 values spaced linearly from 0.05 to 0.5 of min(H, W) (the LERF/FMGS pyramid).
+
+The stride cap (``max_stride``, default 0.05 of min(H, W): the finest crop's edge) is ours, not the
+paper's. With strides of half the crop edge alone, a coarse scale's map at a pixel interpolates crops
+centred up to a quarter of the image away, so on objects smaller than that spacing the coarse scales,
+averaged with equal weight, outvote the fine ones, although each crop is right about its own centre.
+Sampling every scale at least as densely as the finest crop resolves keeps the coarse context and puts
+it where it belongs, for more crops; benchmarks/results/CLIP_PATH.md measures both sides of this knob.
 """
 
 from __future__ import annotations
@@ -28,6 +35,7 @@ import torch
 import torch.nn.functional as F
 
 from fmgs.errors import ValidationError
+from fmgs.features.sizes import CROP_STRIDE
 from fmgs.vecmath import safe_normalize
 
 
@@ -39,6 +47,9 @@ class PyramidConfig:
     """Crop edge as a fraction of min(H, W), one entry per scale (each in (0, 1])."""
     overlap: float = 0.5
     """Minimum overlap of neighbouring crops as a fraction of the crop edge (nominal stride c*(1-overlap))."""
+    max_stride: float | None = CROP_STRIDE
+    """Crops of every scale start at most this fraction of min(H, W) apart (at least 1 pixel); None: the
+    nominal stride alone (the paper's lattice, sparse at the coarse scales)."""
     crop_px: int = 224
     """Edge in pixels each crop is resized to before embedding (the model's input size)."""
     batch_size: int = 64
@@ -49,15 +60,21 @@ class PyramidConfig:
             raise ValidationError("scales", f"need at least one scale in (0, 1], got {self.scales}")
         if not 0.0 <= self.overlap < 1.0:
             raise ValidationError("overlap", f"must lie in [0, 1), got {self.overlap}")
+        if self.max_stride is not None and not 0.0 < self.max_stride <= 1.0:
+            raise ValidationError("max_stride", f"must lie in (0, 1] or be None, got {self.max_stride}")
         if self.crop_px < 1 or self.batch_size < 1:
             raise ValidationError("crop_px/batch_size", "must be positive")
 
 
-def pyramid_for(encoder, single_scale: bool = False) -> PyramidConfig:
+def pyramid_for(
+    encoder, single_scale: bool = False, max_stride: float | None = PyramidConfig.max_stride
+) -> PyramidConfig:
     """The build's pyramid for an image encoder: crops resized once, to the encoder's own input size (224
-    for the default ViT-B/16); ``single_scale``: the ablation's one scale (0.25)."""
+    for the default ViT-B/16); ``single_scale``: the ablation's one scale (0.25); ``max_stride``: the
+    crop lattice's stride cap (PyramidConfig.max_stride)."""
     size = int(getattr(encoder, "image_size", PyramidConfig.crop_px))
-    return PyramidConfig(scales=(0.25,) if single_scale else PyramidConfig.scales, crop_px=size)
+    scales = (0.25,) if single_scale else PyramidConfig.scales
+    return PyramidConfig(scales=scales, crop_px=size, max_stride=max_stride)
 
 
 class CropGrid(NamedTuple):
@@ -82,8 +99,9 @@ def _axis_starts(L: int, c: int, stride: float) -> torch.Tensor:
     return torch.floor(pos + 0.5).to(torch.int64)  # round half up: spacing >= 1 keeps starts distinct
 
 
-def crop_grid(H: int, W: int, scale: float, overlap: float) -> CropGrid:
-    """The crops of one scale for an H x W image (see the module docstring for the layout)."""
+def crop_grid(H: int, W: int, scale: float, overlap: float, max_stride: float | None = None) -> CropGrid:
+    """The crops of one scale for an H x W image (see the module docstring for the layout); ``max_stride``:
+    the stride cap as a fraction of min(H, W), None for none."""
     if H < 1 or W < 1:
         raise ValidationError("image", f"size must be positive, got {W}x{H}")
     if not 0.0 < scale <= 1.0 or not 0.0 <= overlap < 1.0:
@@ -91,7 +109,10 @@ def crop_grid(H: int, W: int, scale: float, overlap: float) -> CropGrid:
             "scale/overlap", f"need scale in (0,1], overlap in [0,1); got {scale}, {overlap}"
         )
     c = max(1, round(scale * min(H, W)))
-    stride = max(1.0, c * (1.0 - overlap))
+    stride = c * (1.0 - overlap)
+    if max_stride is not None:
+        stride = min(stride, max_stride * min(H, W))
+    stride = max(1.0, stride)
     xs, ys = _axis_starts(W, c, stride), _axis_starts(H, c, stride)
     y0, x0 = torch.meshgrid(ys, xs, indexing="ij")
     boxes = torch.stack([x0, y0, x0 + c, y0 + c], -1)
@@ -172,7 +193,7 @@ def hybrid_map(
         raise ValidationError("out_hw", f"must be positive, got {out_hw}")
     H, W = image.shape[:2]
     img = image.permute(2, 0, 1).float()
-    grids = [crop_grid(H, W, s, cfg.overlap) for s in cfg.scales]
+    grids = [crop_grid(H, W, s, cfg.overlap, cfg.max_stride) for s in cfg.scales]
     from tqdm.auto import tqdm
 
     total = sum(g.boxes.shape[0] * g.boxes.shape[1] for g in grids)

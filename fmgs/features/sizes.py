@@ -11,6 +11,11 @@ can resolve: a fixed 0.25 made 40x30 maps of 160x120 images (mIoU 0.52 on a user
 0.94 at full size) and 960x540 maps of 4K ones (0.5 GB of 512-D targets per view)."""
 
 
+CROP_STRIDE = 0.05
+"""Default cap on the crop pyramid's stride as a fraction of min(H, W): the finest crop's edge
+(fmgs.features.pyramid explains why)."""
+
+
 def check_feature_scale(feature_scale: float | None, feature_side: int) -> None:
     """ValidationError unless feature_scale is None or in (0, 1] and feature_side >= 1."""
     if feature_scale is not None and not 0.0 < feature_scale <= 1.0:

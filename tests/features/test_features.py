@@ -105,9 +105,10 @@ def mean_colour_embed(crops: torch.Tensor) -> torch.Tensor:
 
 @pytest.mark.parametrize("H,W", [(24, 32), (37, 50), (100, 61), (1, 1), (5, 300), (96, 128)])
 @pytest.mark.parametrize("overlap", [0.0, 0.5, 0.75])
-def test_crop_grid_covers_the_image_and_stays_inside(H, W, overlap):
+@pytest.mark.parametrize("cap", [None, 0.05, 0.2])
+def test_crop_grid_covers_the_image_and_stays_inside(H, W, overlap, cap):
     for scale in (*PyramidConfig().scales, 1.0):
-        g = crop_grid(H, W, scale, overlap)
+        g = crop_grid(H, W, scale, overlap, cap)
         c = g.size
         assert c == max(1, round(scale * min(H, W)))
         b = g.boxes
@@ -117,7 +118,7 @@ def test_crop_grid_covers_the_image_and_stays_inside(H, W, overlap):
         for x0, y0, x1, y1 in b.reshape(-1, 4).tolist():
             covered[y0:y1, x0:x1] = True
         assert covered.all()
-        stride = max(1.0, c * (1 - overlap))
+        stride = max(1.0, min(c * (1 - overlap), math.inf if cap is None else cap * min(H, W)))
         for starts, L in ((b[0, :, 0], W), (b[:, 0, 1], H)):
             n = 1 if L <= c else math.ceil((L - c) / stride - 1e-9) + 1
             assert len(starts) == n
@@ -136,6 +137,23 @@ def test_crop_grid_counts():
         crop_grid(10, 10, 0.0, 0.5)
     with pytest.raises(ValidationError):
         PyramidConfig(overlap=1.0)
+    g = crop_grid(100, 200, 0.5, 0.5, 0.05)  # 50 px crops, stride capped at 5 px: 11 x 31 starts
+    assert g.boxes.shape == (11, 31, 4) and g.boxes[:, 0, 1].tolist() == list(range(0, 51, 5))
+    for bad in (0.0, -0.1, 1.5):
+        with pytest.raises(ValidationError, match="max_stride"):
+            PyramidConfig(max_stride=bad)
+
+
+def test_hybrid_map_samples_every_scale_at_the_stride_cap():
+    """The pyramid asks crop_grid for the capped lattice: the crop count embedded is the capped grids'."""
+    img = torch.rand(40, 60, 3)
+    for cap in (None, 0.05, 0.1):
+        cfg = PyramidConfig(crop_px=8, max_stride=cap)
+        seen = []
+        hybrid_map(lambda x: seen.append(len(x)) or mean_colour_embed(x), img, cfg, (10, 15))
+        want = sum(crop_grid(40, 60, s, 0.5, cap).boxes[..., 0].numel() for s in cfg.scales)
+        assert sum(seen) == want
+    assert want > sum(crop_grid(40, 60, s, 0.5).boxes[..., 0].numel() for s in cfg.scales)
 
 
 def test_interp_matrix_is_linear_through_crop_centres():
@@ -596,7 +614,7 @@ def test_extract_targets_clip_and_dino(synth_scene, tiny_clip, tiny_vit, tmp_pat
     cache = extract_targets(ds, tmp_path / "c", Counting(), dino, pyr, cfg)
     assert cache.targets["clip"] == TargetInfo("test/tiny-clip", CLIP_DIM, True)
     assert cache.targets["dino"] == TargetInfo("test/tiny-dino", VIT_DIM, False)
-    per_image = sum(crop_grid(24, 32, s, 0.5).boxes[..., 0].numel() for s in pyr.scales)
+    per_image = sum(crop_grid(24, 32, s, 0.5, pyr.max_stride).boxes[..., 0].numel() for s in pyr.scales)
     assert sum(calls) == 3 * per_image
     for f in ds.frames:
         m = cache.load(f.name)

@@ -156,9 +156,11 @@ STRIDE_CAPS = (None, 0.1, 0.05, 0.025)
 """The crop-stride caps the knob table compares (None: the paper's lattice, half the crop edge)."""
 
 
-def target_map_accuracy(data: Path, standin: Path, views: int = 4) -> list[dict]:
+def target_map_accuracy(
+    data: Path, standin: Path, views: int = 4, caps: tuple[float | None, ...] = STRIDE_CAPS
+) -> list[dict]:
     """How well the CLIP targets themselves place each name, before any distillation, on the first
-    ``views`` views of a generated scene: for each crop-stride cap (STRIDE_CAPS), each pyramid scale alone
+    ``views`` views of a generated scene: for each crop-stride cap (``caps``), each pyramid scale alone
     and the hybrid of all, the share of pixels (all, and object pixels: label >= 2) whose target is
     nearest their own label's name, and the crops embedded per view. Each scale's crops are embedded
     once per cap; the hybrid is their equal mean, renormalised, as fmgs.features.pyramid.hybrid_map."""
@@ -175,7 +177,7 @@ def target_map_accuracy(data: Path, standin: Path, views: int = 4) -> list[dict]
     with torch.inference_mode():
         table = MiniLMTextEncoder().encode_text(names)
     rows = []
-    for cap in STRIDE_CAPS:
+    for cap in caps:
         cfg = PyramidConfig(crop_px=enc.image_size, max_stride=cap)
         keys = ["hybrid", *map(str, cfg.scales)]
         hits = {k: np.zeros(4) for k in keys}

@@ -12,6 +12,7 @@ from fmgs_client.retry import RetryPolicy
 from fmgs_client.types import (
     Box,
     CameraSpec,
+    Geometry,
     Instance,
     Pixel,
     PointResult,
@@ -29,6 +30,7 @@ __all__ = [
     "CameraSpec",
     "FmgsClient",
     "FmgsError",
+    "Geometry",
     "Instance",
     "Pixel",
     "PointResult",

@@ -22,6 +22,7 @@ from grpc_health.v1 import health_pb2, health_pb2_grpc
 from fmgs_client.retry import RetryPolicy, channel_options
 from fmgs_client.types import (
     CameraSpec,
+    Geometry,
     Instance,
     Pixel,
     PointResult,
@@ -296,6 +297,57 @@ def assemble_segment(chunks: Iterable[pb.SegmentChunk]) -> SegmentResult:
         pixel_labels=labels,
         gaussian_index=gidx,
         gaussian_labels=glab,
+        elapsed_ms=float(first.elapsed_ms),
+    )
+
+
+GEOMETRY_ROWS: dict[str, tuple[tuple[int, ...], type]] = {
+    "index": ((), np.int64),
+    "mean": ((3,), np.float32),
+    "color": ((3,), np.float32),
+    "opacity": ((), np.float32),
+    "scale": ((3,), np.float32),
+}
+
+
+def assemble_geometry(chunks: Iterable[pb.GeometryChunk], max_rows: int | None = None) -> Geometry:
+    """Reassemble the chunks of a ``Geometry`` call into preallocated arrays (ends at ``last`` or at the
+    end of the stream). ``max_rows``: refuse an answer announcing more rows (the caller's cap), before
+    allocating. Raises TensorError or ChunkError when the chunks do not fit together."""
+    first: pb.GeometryChunk | None = None
+    out: dict[str, np.ndarray] = {}
+    rows = 0
+    for c in chunks:
+        if first is None:
+            first = c
+            total = int(c.total)
+            if max_rows is not None and total > max_rows:
+                raise ChunkError(f"geometry: {total} rows announced, {max_rows} asked for at most")
+            out = {n: np.empty((total, *tail), dt) for n, (tail, dt) in GEOMETRY_ROWS.items()}
+        arrays = {n: _rows(getattr(c, n), f"geometry.{n}", *GEOMETRY_ROWS[n]) for n in GEOMETRY_ROWS}
+        k = len(arrays["index"])
+        if any(len(a) != k for a in arrays.values()):
+            raise ChunkError(f"geometry: columns of unequal length in the chunk at row {c.start}")
+        if int(c.start) != rows or rows + k > len(out["index"]):
+            raise ChunkError(
+                f"geometry: chunk of {k} rows at {c.start}, expected row {rows} of {len(out['index'])}"
+            )
+        for n, a in arrays.items():
+            out[n][rows : rows + k] = a
+        rows += k
+        if c.last:
+            break
+    if first is None:
+        raise ChunkError("geometry: empty answer")
+    if rows != len(out["index"]):
+        raise ChunkError(f"geometry: got {rows} rows, the first chunk announced {len(out['index'])}")
+    if len(first.bounds) != 6:
+        raise ChunkError(f"geometry: bounds has {len(first.bounds)} numbers, expected 6")
+    return Geometry(
+        **out,
+        num_gaussians=int(first.num_gaussians),
+        qualified=int(first.qualified),
+        bounds=np.asarray(first.bounds, np.float64),
         elapsed_ms=float(first.elapsed_ms),
     )
 
@@ -679,6 +731,15 @@ class FmgsClient:
             req.camera.CopyFrom(camera.to_proto())
         chunks = self._read_stream(lambda t: self._stub.Segment(req, metadata=self._metadata, timeout=t))
         return self._decode(lambda: assemble_segment(chunks))
+
+    def geometry(self, scene: str, max_gaussians: int = 0, min_opacity: float = 0.0) -> Geometry:
+        """The scene's Gaussians as points: at most ``max_gaussians`` (0: the server's default) of those
+        with opacity >= ``min_opacity``, a uniform sample (fixed seed) when more qualify."""
+        if max_gaussians < 0 or not 0.0 <= min_opacity < 1.0:
+            raise ValueError("max_gaussians must be >= 0 and min_opacity in [0, 1)")
+        req = pb.GeometryRequest(scene=scene, max_gaussians=max_gaussians, min_opacity=min_opacity)
+        chunks = self._read_stream(lambda t: self._stub.Geometry(req, metadata=self._metadata, timeout=t))
+        return self._decode(lambda: assemble_geometry(chunks, max_gaussians or None))
 
 
 def _error(e: grpc.RpcError) -> FmgsError:

@@ -20,7 +20,7 @@ from typing import Any
 UNARY_READS = ("ListScenes", "GetScene", "PointQuery")
 """fmgs.v1.Fmgs unary methods that change nothing: gRPC's retry policy tries them again
 (grpc.health.v1.Health/Check too)."""
-STREAM_READS = ("TextQuery", "Render", "Segment")
+STREAM_READS = ("TextQuery", "Render", "Segment", "Geometry")
 """Server-streaming methods that change nothing: FmgsClient tries them again itself, with the same
 policy, while no message has arrived (grpcio's own stream retries can outlive the call's deadline when
 the connection drops)."""

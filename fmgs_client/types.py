@@ -384,3 +384,30 @@ class SegmentResult:
     """[k] int32 class of each of those Gaussians."""
     elapsed_ms: float = 0.0
     """Server-side time, milliseconds."""
+
+
+@dataclass(frozen=True, eq=False)
+class Geometry:
+    """A scene's Gaussians as points (all of them, or a uniform sample of those opaque enough)."""
+
+    index: np.ndarray
+    """[k] int64 Gaussian indices into the scene, increasing."""
+    mean: np.ndarray
+    """[k,3] float32 means."""
+    color: np.ndarray
+    """[k,3] float32 base colour in [0,1] (SH degree 0)."""
+    opacity: np.ndarray
+    """[k] float32 opacity in [0,1]."""
+    scale: np.ndarray
+    """[k,3] float32 scales (activated, scene units)."""
+    num_gaussians: int
+    """Gaussians in the scene."""
+    qualified: int
+    """Gaussians at or above the opacity floor asked for (k is at most this)."""
+    bounds: np.ndarray
+    """[6] float64 bounds of all the scene's means: min x, y, z, max x, y, z."""
+    elapsed_ms: float = 0.0
+    """Server-side time, milliseconds."""
+
+    def __len__(self) -> int:
+        return len(self.index)

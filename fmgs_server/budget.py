@@ -71,6 +71,13 @@ def segment_bytes(width: int, height: int, classes: int, gaussians: int) -> int:
     return BASE_BYTES + width * height * (classes * 8 + 24) + gaussians * (classes * 4 + 16)
 
 
+def geometry_bytes(gaussians: int, k: int) -> int:
+    """Estimated peak working memory of a geometry call: the opacity test over the scene's Gaussians
+    (float64, float32, mask), the sample's indices, its columns (48 bytes a row) and their message
+    copies."""
+    return BASE_BYTES + gaussians * 21 + k * (8 + 2 * 48)
+
+
 class WorkBudget:
     """Bytes of working memory shared by the requests in flight (``total`` 0: unlimited)."""
 

@@ -51,6 +51,10 @@ class ServerConfig:
     """Characters per text."""
     max_points: int = 1_000_000
     """Points per point query (texts x points x 8 bytes must also fit max_send_bytes)."""
+    default_geometry: int = 200_000
+    """Gaussians a geometry call returns when it leaves max_gaussians 0 (a viewer's points)."""
+    max_geometry: int = 2_000_000
+    """Most Gaussians one geometry call may ask for (48 bytes each on the wire)."""
     point_chunk: int = POINT_CHUNK
     """Points through the field at once: a point query's working memory is 25-32 KiB (measured) per point
     of it (the paper's field), whatever the request's size; the deadline is checked between chunks."""
@@ -102,7 +106,7 @@ class ServerConfig:
         positive = (
             "max_concurrent_rpcs max_streams max_receive_bytes chunk_bytes max_send_bytes max_image_side "
             "max_image_pixels max_top_k default_top_k max_texts max_text_chars max_points text_cache "
-            "point_chunk"
+            "point_chunk default_geometry max_geometry"
         ).split()
         for name in positive:
             if getattr(self, name) < 1:
@@ -111,6 +115,8 @@ class ServerConfig:
             raise ValueError("work_memory_bytes and memory_budget_bytes must be >= 0 (0: no limit)")
         if self.default_top_k > self.max_top_k:
             raise ValueError("default_top_k must not exceed max_top_k")
+        if self.default_geometry > self.max_geometry:
+            raise ValueError("default_geometry must not exceed max_geometry")
         if (self.tls_cert is None) != (self.tls_key is None):
             raise ValueError("tls_cert and tls_key go together")
         if self.client_ca is not None and self.tls_cert is None:

@@ -62,6 +62,21 @@ def top_k(value: int, cfg: ServerConfig) -> int:
     return value
 
 
+def geometry_cap(value: int, cfg: ServerConfig) -> int:
+    """A geometry call's max_gaussians: 0 -> the default; over the limit -> INVALID_ARGUMENT."""
+    if value == 0:
+        return cfg.default_geometry
+    if value > cfg.max_geometry:
+        raise InvalidArgument(f"max_gaussians: {value} is over the limit {cfg.max_geometry}")
+    return int(value)
+
+
+def min_opacity(value: float) -> float:
+    if not (math.isfinite(value) and 0.0 <= value < 1.0):
+        raise InvalidArgument(f"min_opacity: must lie in [0, 1), got {value}")
+    return float(value)
+
+
 def threshold(value: float) -> float:
     if not math.isfinite(value) or not 0 <= value <= 1:
         raise InvalidArgument(f"threshold: must be in [0, 1], got {value}")

@@ -147,3 +147,27 @@ def segment_chunks(
             chunks.append(c)
     chunks[-1].last = True
     return chunks
+
+
+def geometry_chunks(
+    engine: SceneEngine,
+    index: np.ndarray,
+    qualified: int,
+    cols: dict[str, np.ndarray],
+    ms: float,
+    chunk_bytes: int,
+) -> Iterator[pb.GeometryChunk]:
+    """The chunks of a geometry answer: the first describes it, every one carries consecutive rows of the
+    index and of each column; the last is marked."""
+    arrays = {"index": index, **cols}
+    row_bytes = sum(a.itemsize * (a.size // max(1, len(a))) for a in arrays.values())
+    ranges = row_chunks(len(index), row_bytes, chunk_bytes)
+    for n, (s, e) in enumerate(ranges):
+        chunk = pb.GeometryChunk(start=s, last=n == len(ranges) - 1)
+        if n == 0:
+            chunk.num_gaussians, chunk.qualified, chunk.total = engine.num_gaussians, qualified, len(index)
+            chunk.bounds.extend(float(v) for v in engine.bounds)
+            chunk.elapsed_ms = ms
+        for name, a in arrays.items():
+            getattr(chunk, name).CopyFrom(to_tensor(a[s:e]))
+        yield chunk

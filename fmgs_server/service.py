@@ -13,6 +13,7 @@ import numpy as np
 import torch
 
 from fmgs.errors import FmgsError
+from fmgs.query.geometry import select_geometry
 from fmgs.query.points import query_points
 from fmgs.query.pose import render_pose
 from fmgs.query.presence import negative_names
@@ -263,3 +264,24 @@ class FmgsService(pb_grpc.FmgsServicer):
             s = segment(engine, v, cam, request.per_gaussian)
             ms = (time.perf_counter() - t0) * 1e3
         yield from responses.segment_chunks(names, cam, s, ms, self.cfg.chunk_bytes)
+
+    # ------------------------------------------------------------------ geometry
+
+    @rpc_stream
+    def Geometry(self, request, context):
+        self._refuse_sharded("Geometry", request.scene)
+        k = convert.geometry_cap(request.max_gaussians, self.cfg)
+        floor = convert.min_opacity(request.min_opacity)
+        engine = self.repo.get(request.scene)
+        need = budget.geometry_bytes(engine.num_gaussians, min(k, engine.num_gaussians))
+        with self.budget.reserve(need, context, "this geometry"):
+            with self.slots.compute(context):
+                t0 = time.perf_counter()
+                g = engine.gaussians
+                sel = select_geometry(g.opacity_logits, k, floor)
+                index = torch.from_numpy(sel.index).to(g.means.device)
+                cols = engine.gaussian_columns(index, ("mean", "color", "opacity", "scale"))
+                ms = (time.perf_counter() - t0) * 1e3
+            yield from responses.geometry_chunks(
+                engine, sel.index, sel.qualified, cols, ms, self.cfg.chunk_bytes
+            )

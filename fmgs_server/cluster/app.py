@@ -317,6 +317,10 @@ def build_app(cfg: ServerConfig, cc: ClusterConfig, encoder_factory=None):
             async for m in self._stream("Segment", request, grpc_context):
                 yield m
 
+        async def Geometry(self, request, grpc_context):
+            async for m in self._stream("Geometry", request, grpc_context):
+                yield m
+
         async def StreamRender(self, request_stream, grpc_context):
             """Render the latest pose received whenever the previous frame is done (poses that arrive
             meanwhile are skipped, as in ``fmgs serve``)."""

@@ -16,7 +16,9 @@ QUEUE_FULL = Status("RESOURCE_EXHAUSTED", "the cluster's request queue is full; 
 CANCELLED = Status("CANCELLED", "the call was cancelled in the cluster")
 REPLICA_FAILED = Status("INTERNAL", "the scene replica failed while answering (details in the server log)")
 
-READS = frozenset({"ListScenes", "GetScene", "PointQuery", "TextQuery", "Render", "Segment", "Check"})
+READS = frozenset(
+    {"ListScenes", "GetScene", "PointQuery", "TextQuery", "Render", "Segment", "Geometry", "Check"}
+)
 """Calls that change nothing: safe to run again on another replica."""
 
 

@@ -29,7 +29,7 @@ def test_client_imports_without_torch():
 
 
 def test_package_exports_the_public_api():
-    public = "Box CameraSpec FmgsClient FmgsError Instance Pixel PointResult Presence RenderResult "
+    public = "Box CameraSpec FmgsClient FmgsError Geometry Instance Pixel PointResult Presence RenderResult "
     public += "RetryPolicy SceneInfo SegmentResult TextAnswer"
     assert sorted(fmgs_client.__all__) == public.split()
     for name in fmgs_client.__all__:

@@ -26,8 +26,9 @@ def class_vectors() -> torch.Tensor:
     return safe_normalize(torch.randn(3, D, generator=g))
 
 
-def blob_scene(folder, with_field: bool = False, seed: int = 0, scale: float = 0.15):
-    """Export the three-blob scene to ``folder``; returns (path, class vectors [3,D], canonical [4,D])."""
+def blob_scene(folder, with_field: bool = False, seed: int = 0, scale: float = 0.15, opacity_logits=None):
+    """Export the three-blob scene to ``folder``; returns (path, class vectors [3,D], canonical [4,D]).
+    ``opacity_logits`` [N] replaces the uniform 2.0."""
     classes = class_vectors()
     g = torch.Generator().manual_seed(1 + seed)
     means, emb = [], []
@@ -40,7 +41,7 @@ def blob_scene(folder, with_field: bool = False, seed: int = 0, scale: float = 0
         means,
         torch.randn(n, 4, generator=g),
         torch.full((n, 3), -3.0),
-        torch.full((n,), 2.0),
+        torch.full((n,), 2.0) if opacity_logits is None else opacity_logits,
         0.3 * torch.randn(n, 4, 3, generator=g),
     )
     canon = FakeEncoder().encode_text(["object", "stuff", "things", "texture"])

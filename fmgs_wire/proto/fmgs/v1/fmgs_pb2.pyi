@@ -381,3 +381,41 @@ class SegmentChunk(_message.Message):
     elapsed_ms: float
     last: bool
     def __init__(self, class_names: _Optional[_Iterable[str]] = ..., width: _Optional[int] = ..., height: _Optional[int] = ..., pixel_labels: _Optional[_Union[Tensor, _Mapping]] = ..., gaussian_index: _Optional[_Union[Tensor, _Mapping]] = ..., gaussian_labels: _Optional[_Union[Tensor, _Mapping]] = ..., elapsed_ms: _Optional[float] = ..., last: _Optional[bool] = ...) -> None: ...
+
+class GeometryRequest(_message.Message):
+    __slots__ = ("scene", "max_gaussians", "min_opacity")
+    SCENE_FIELD_NUMBER: _ClassVar[int]
+    MAX_GAUSSIANS_FIELD_NUMBER: _ClassVar[int]
+    MIN_OPACITY_FIELD_NUMBER: _ClassVar[int]
+    scene: str
+    max_gaussians: int
+    min_opacity: float
+    def __init__(self, scene: _Optional[str] = ..., max_gaussians: _Optional[int] = ..., min_opacity: _Optional[float] = ...) -> None: ...
+
+class GeometryChunk(_message.Message):
+    __slots__ = ("num_gaussians", "qualified", "total", "bounds", "start", "index", "mean", "color", "opacity", "scale", "elapsed_ms", "last")
+    NUM_GAUSSIANS_FIELD_NUMBER: _ClassVar[int]
+    QUALIFIED_FIELD_NUMBER: _ClassVar[int]
+    TOTAL_FIELD_NUMBER: _ClassVar[int]
+    BOUNDS_FIELD_NUMBER: _ClassVar[int]
+    START_FIELD_NUMBER: _ClassVar[int]
+    INDEX_FIELD_NUMBER: _ClassVar[int]
+    MEAN_FIELD_NUMBER: _ClassVar[int]
+    COLOR_FIELD_NUMBER: _ClassVar[int]
+    OPACITY_FIELD_NUMBER: _ClassVar[int]
+    SCALE_FIELD_NUMBER: _ClassVar[int]
+    ELAPSED_MS_FIELD_NUMBER: _ClassVar[int]
+    LAST_FIELD_NUMBER: _ClassVar[int]
+    num_gaussians: int
+    qualified: int
+    total: int
+    bounds: _containers.RepeatedScalarFieldContainer[float]
+    start: int
+    index: Tensor
+    mean: Tensor
+    color: Tensor
+    opacity: Tensor
+    scale: Tensor
+    elapsed_ms: float
+    last: bool
+    def __init__(self, num_gaussians: _Optional[int] = ..., qualified: _Optional[int] = ..., total: _Optional[int] = ..., bounds: _Optional[_Iterable[float]] = ..., start: _Optional[int] = ..., index: _Optional[_Union[Tensor, _Mapping]] = ..., mean: _Optional[_Union[Tensor, _Mapping]] = ..., color: _Optional[_Union[Tensor, _Mapping]] = ..., opacity: _Optional[_Union[Tensor, _Mapping]] = ..., scale: _Optional[_Union[Tensor, _Mapping]] = ..., elapsed_ms: _Optional[float] = ..., last: _Optional[bool] = ...) -> None: ...

@@ -71,6 +71,11 @@ class FmgsStub:
                 request_serializer=fmgs__wire_dot_proto_dot_fmgs_dot_v1_dot_fmgs__pb2.SegmentRequest.SerializeToString,
                 response_deserializer=fmgs__wire_dot_proto_dot_fmgs_dot_v1_dot_fmgs__pb2.SegmentChunk.FromString,
                 _registered_method=True)
+        self.Geometry = channel.unary_stream(
+                '/fmgs.v1.Fmgs/Geometry',
+                request_serializer=fmgs__wire_dot_proto_dot_fmgs_dot_v1_dot_fmgs__pb2.GeometryRequest.SerializeToString,
+                response_deserializer=fmgs__wire_dot_proto_dot_fmgs_dot_v1_dot_fmgs__pb2.GeometryChunk.FromString,
+                _registered_method=True)
         self.LoadScene = channel.unary_unary(
                 '/fmgs.v1.Fmgs/LoadScene',
                 request_serializer=fmgs__wire_dot_proto_dot_fmgs_dot_v1_dot_fmgs__pb2.SceneRequest.SerializeToString,
@@ -140,6 +145,13 @@ class FmgsServicer:
         context.set_details('Method not implemented!')
         raise NotImplementedError('Method not implemented!')
 
+    def Geometry(self, request, context):
+        """The scene's Gaussians as points (subsampled to a cap), for viewers.
+        """
+        context.set_code(grpc.StatusCode.UNIMPLEMENTED)
+        context.set_details('Method not implemented!')
+        raise NotImplementedError('Method not implemented!')
+
     def LoadScene(self, request, context):
         """Admin (admin token when access control is on).
         """
@@ -196,6 +208,11 @@ def add_FmgsServicer_to_server(servicer, server):
                     servicer.Segment,
                     request_deserializer=fmgs__wire_dot_proto_dot_fmgs_dot_v1_dot_fmgs__pb2.SegmentRequest.FromString,
                     response_serializer=fmgs__wire_dot_proto_dot_fmgs_dot_v1_dot_fmgs__pb2.SegmentChunk.SerializeToString,
+            ),
+            'Geometry': grpc.unary_stream_rpc_method_handler(
+                    servicer.Geometry,
+                    request_deserializer=fmgs__wire_dot_proto_dot_fmgs_dot_v1_dot_fmgs__pb2.GeometryRequest.FromString,
+                    response_serializer=fmgs__wire_dot_proto_dot_fmgs_dot_v1_dot_fmgs__pb2.GeometryChunk.SerializeToString,
             ),
             'LoadScene': grpc.unary_unary_rpc_method_handler(
                     servicer.LoadScene,
@@ -404,6 +421,33 @@ class Fmgs:
             '/fmgs.v1.Fmgs/Segment',
             fmgs__wire_dot_proto_dot_fmgs_dot_v1_dot_fmgs__pb2.SegmentRequest.SerializeToString,
             fmgs__wire_dot_proto_dot_fmgs_dot_v1_dot_fmgs__pb2.SegmentChunk.FromString,
+            options,
+            channel_credentials,
+            insecure,
+            call_credentials,
+            compression,
+            wait_for_ready,
+            timeout,
+            metadata,
+            _registered_method=True)
+
+    @staticmethod
+    def Geometry(request,
+            target,
+            options=(),
+            channel_credentials=None,
+            call_credentials=None,
+            insecure=False,
+            compression=None,
+            wait_for_ready=None,
+            timeout=None,
+            metadata=None):
+        return grpc.experimental.unary_stream(
+            request,
+            target,
+            '/fmgs.v1.Fmgs/Geometry',
+            fmgs__wire_dot_proto_dot_fmgs_dot_v1_dot_fmgs__pb2.GeometryRequest.SerializeToString,
+            fmgs__wire_dot_proto_dot_fmgs_dot_v1_dot_fmgs__pb2.GeometryChunk.FromString,
             options,
             channel_credentials,
             insecure,

@@ -19,6 +19,7 @@ from fmgs_client.client import DEFAULT_ADDRESS, FmgsClient, FmgsError
 from fmgs_client.ply import write_ply
 from fmgs_client.retry import MAX_ATTEMPTS, RetryPolicy
 from fmgs_client.types import CameraSpec, SceneInfo, TextAnswer
+from fmgs_client.viewer_model import ViewerConfig
 from fmgs_wire.images import colorize, depth_to_uint16, label_colors, relevancy_png, to_uint8, write_png
 from fmgs_wire.tokens import read_token_file
 
@@ -293,6 +294,21 @@ def cmd_segment(client: FmgsClient, args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_view(client: FmgsClient, args: argparse.Namespace) -> int:
+    from fmgs_client.viewer import run
+    from fmgs_client.viewer_model import ViewerConfig
+
+    cfg = ViewerConfig(
+        max_points=args.max_points,
+        min_opacity=args.min_opacity,
+        top_k=args.top_k,
+        threshold=args.threshold,
+        picture_side=args.picture_side,
+    )
+    args.out_dir.mkdir(parents=True, exist_ok=True)
+    return run(args.address, args.scene, client, cfg, args.out_dir)
+
+
 def cmd_health(client: FmgsClient, args: argparse.Namespace) -> int:
     status = client.health(args.service)
     print(status)
@@ -378,6 +394,34 @@ def build_parser() -> argparse.ArgumentParser:
     _camera_options(p)
     p.add_argument("--out", type=Path, help="label image PNG (a colour per class)")
     p.set_defaults(fn=cmd_segment)
+
+    p = sub.add_parser("view", help="open the inspector window (Open3D; needs a display)")
+    p.add_argument("scene", nargs="?", help="scene to open (default: the first the server lists)")
+    d = ViewerConfig()
+    p.add_argument(
+        "--max-points", type=int, default=d.max_points,
+        help=f"most Gaussians drawn: a uniform sample above the opacity floor (default {d.max_points})",
+    )  # fmt: skip
+    p.add_argument(
+        "--min-opacity", type=float, default=d.min_opacity,
+        help=f"Gaussians fainter than this are not drawn (default {d.min_opacity})",
+    )  # fmt: skip
+    p.add_argument("--top-k", type=int, default=d.top_k, help=f"Gaussians per phrase (default {d.top_k})")
+    p.add_argument(
+        "--threshold", type=float, default=d.threshold,
+        help=f"only Gaussians with relevancy at least this; 0: the top-k regardless (default {d.threshold})",
+    )  # fmt: skip
+    p.add_argument(
+        "--picture-side", type=int, default=d.picture_side,
+        help=f"longer side of the picture panel's render in pixels (default {d.picture_side})",
+    )  # fmt: skip
+    p.add_argument(
+        "--out-dir",
+        type=Path,
+        default=Path("."),
+        help="where exports are written (default: the current folder)",
+    )
+    p.set_defaults(fn=cmd_view)
 
     p = sub.add_parser("health", help="gRPC health check (exit 0 when SERVING)")
     p.add_argument("service", nargs="?", default="")

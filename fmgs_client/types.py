@@ -9,6 +9,7 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -309,6 +310,39 @@ class CameraSpec:
             height=int(self.height),
             near=float(self.near),
         )
+
+    def to_dict(self) -> dict:
+        """JSON-ready: ``viewmat`` (4 rows of 4, world-to-camera, OpenCV axes), intrinsics in pixels,
+        ``width``, ``height``, ``near`` (what ``fmgs-client render --camera FILE`` reads)."""
+        return {
+            "viewmat": self.viewmat.tolist(),
+            "fx": float(self.fx),
+            "fy": float(self.fy),
+            "cx": float(self.cx),
+            "cy": float(self.cy),
+            "width": int(self.width),
+            "height": int(self.height),
+            "near": float(self.near),
+        }
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> CameraSpec:
+        """The inverse of :meth:`to_dict`; ValueError naming what is missing or wrong."""
+        if not isinstance(d, Mapping):
+            raise ValueError(f"camera: expected a JSON object, got {type(d).__name__}")
+        missing = [k for k in ("viewmat", "fx", "fy", "cx", "cy", "width", "height") if k not in d]
+        if missing:
+            raise ValueError(f"camera: missing {', '.join(missing)}")
+        try:
+            vm = np.asarray(d["viewmat"], np.float64).reshape(4, 4)
+            nums = [float(d[k]) for k in ("fx", "fy", "cx", "cy")]
+            w, h = int(d["width"]), int(d["height"])
+            near = float(d.get("near", 0.0))
+        except (TypeError, ValueError) as e:
+            raise ValueError(f"camera: {e}") from None
+        if not all(math.isfinite(v) for v in nums) or nums[0] <= 0 or nums[1] <= 0 or w < 1 or h < 1:
+            raise ValueError("camera: fx, fy must be positive and finite, width and height at least 1")
+        return cls(vm, *nums, w, h, near)
 
     @classmethod
     def from_proto(cls, m: pb.Camera) -> CameraSpec:

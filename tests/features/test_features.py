@@ -149,8 +149,13 @@ def test_hybrid_map_samples_every_scale_at_the_stride_cap():
     img = torch.rand(40, 60, 3)
     for cap in (None, 0.05, 0.1):
         cfg = PyramidConfig(crop_px=8, max_stride=cap)
-        seen = []
-        hybrid_map(lambda x: seen.append(len(x)) or mean_colour_embed(x), img, cfg, (10, 15))
+        seen: list[int] = []
+
+        def counting(x, seen=seen):
+            seen.append(len(x))
+            return mean_colour_embed(x)
+
+        hybrid_map(counting, img, cfg, (10, 15))
         want = sum(crop_grid(40, 60, s, 0.5, cap).boxes[..., 0].numel() for s in cfg.scales)
         assert sum(seen) == want
     assert want > sum(crop_grid(40, 60, s, 0.5).boxes[..., 0].numel() for s in cfg.scales)

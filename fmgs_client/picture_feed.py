@@ -1,0 +1,96 @@
+"""The inspector's picture panel feed: one StreamRender call per (scene, text), newest pose wins.
+
+The 3D view hands every camera change to :meth:`PictureFeed.put` and never waits; a background thread keeps
+one pose in flight on a StreamRender call and sends the newest pose each time an answer arrives (poses in
+between are dropped here, not queued at the server). A failed stream (the server went away) is reported
+and opened again after a pause, with the newest pose, until the feed is closed.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Callable, Iterator
+
+from fmgs_client.client import FmgsClient, FmgsError
+from fmgs_client.types import CameraSpec, RenderResult
+
+RECONNECT_S = 1.0
+"""Pause before a failed stream is opened again."""
+
+
+class PictureFeed:
+    """Renders of the newest pose for ``scene`` and ``text`` ("" for colour only), delivered to
+    ``on_result(camera, result)`` or ``on_error(error)`` on the feed's thread."""
+
+    def __init__(
+        self,
+        client: FmgsClient,
+        scene: str,
+        text: str,
+        on_result: Callable[[CameraSpec, RenderResult], None],
+        on_error: Callable[[FmgsError], None],
+    ) -> None:
+        self.client, self.scene, self.text = client, scene, text
+        self.outputs = ("relevancy", "rgb", "alpha") if text else ("rgb", "alpha")
+        self._on_result, self._on_error = on_result, on_error
+        self._cond = threading.Condition()
+        self._newest: CameraSpec | None = None
+        self._last: CameraSpec | None = None
+        self._in_flight: dict[int, CameraSpec] = {}
+        self._closed = False
+        self._thread = threading.Thread(target=self._run, name=f"picture-{scene}", daemon=True)
+        self._thread.start()
+
+    def put(self, camera: CameraSpec) -> None:
+        """The view's newest camera (replaces any pose not yet sent)."""
+        with self._cond:
+            self._newest = camera
+            self._cond.notify_all()
+
+    def close(self) -> None:
+        """Stop: the open stream ends once its pose is answered; nothing more is delivered."""
+        with self._cond:
+            self._closed = True
+            self._cond.notify_all()
+
+    @property
+    def closed(self) -> bool:
+        return self._closed
+
+    def _poses(self) -> Iterator[CameraSpec]:
+        """The request stream: the newest pose whenever nothing is in flight (consumed by gRPC)."""
+        seq = 0
+        while True:
+            with self._cond:
+                while not self._closed and (self._newest is None or self._in_flight):
+                    self._cond.wait(0.25)
+                if self._closed:
+                    return
+                cam, self._newest = self._newest, None
+                self._in_flight[seq] = self._last = cam
+            seq += 1
+            yield cam
+
+    def _run(self) -> None:
+        while not self._closed:
+            try:
+                for r in self.client.stream(self.scene, self._poses(), self.text, outputs=self.outputs):
+                    with self._cond:
+                        cam = self._in_flight.pop(r.sequence, None)
+                        self._in_flight.clear()  # an answer settles every older pose
+                        self._cond.notify_all()
+                        closed = self._closed
+                    if cam is not None and not closed:
+                        self._on_result(cam, r)
+                return
+            except FmgsError as e:
+                with self._cond:
+                    self._in_flight.clear()
+                    if self._newest is None:
+                        self._newest = self._last  # the view has not moved: render it again
+                    closed = self._closed
+                if closed:
+                    return
+                self._on_error(e)
+                with self._cond:
+                    self._cond.wait_for(lambda: self._closed, RECONNECT_S)

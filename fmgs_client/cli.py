@@ -6,6 +6,7 @@ Failures print ``error: CODE: details`` to stderr and exit with status 1.
 from __future__ import annotations
 
 import argparse
+import json
 import math
 import sys
 import threading
@@ -16,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from fmgs_client.client import DEFAULT_ADDRESS, FmgsClient, FmgsError
+from fmgs_client.jsonout import emit
 from fmgs_client.ply import write_ply
 from fmgs_client.retry import MAX_ATTEMPTS, RetryPolicy
 from fmgs_client.types import CameraSpec, SceneInfo, TextAnswer
@@ -107,6 +109,13 @@ def scene_with_bounds(client: FmgsClient, name: str) -> SceneInfo:
 
 
 def _camera(args: argparse.Namespace, client: FmgsClient) -> CameraSpec:
+    if args.camera is not None:
+        try:
+            return CameraSpec.from_dict(json.loads(args.camera.read_text()))
+        except json.JSONDecodeError as e:
+            raise ValueError(f"{args.camera}: not JSON ({e})") from None
+        except ValueError as e:
+            raise ValueError(f"{args.camera}: {e}") from None
     if args.eye is None:
         return default_camera(scene_with_bounds(client, args.scene), args.up, args.size, args.fov)
     if args.target is None:
@@ -119,6 +128,9 @@ def _camera(args: argparse.Namespace, client: FmgsClient) -> CameraSpec:
 
 def cmd_list(client: FmgsClient, args: argparse.Namespace) -> int:
     scenes = client.list_scenes()
+    if args.json:
+        emit({"scenes": scenes})
+        return 0
     if not scenes:
         print("no scenes")
         return 0
@@ -131,6 +143,9 @@ def cmd_list(client: FmgsClient, args: argparse.Namespace) -> int:
 
 def cmd_info(client: FmgsClient, args: argparse.Namespace) -> int:
     s = client.scene(args.scene)
+    if args.json:
+        emit(s)
+        return 0
     items = [
         ("name", s.name),
         ("state", s.state + (f" ({s.reason})" if s.reason else "")),
@@ -195,6 +210,9 @@ def cmd_query(client: FmgsClient, args: argparse.Namespace) -> int:
         instances=args.instances,
     )
     for k, a in enumerate(answers):
+        if args.json:
+            emit(a)  # one object per text: indices, relevancy, similarity, means, presence, instances
+            continue
         if k:
             print()
         _print_answer(a, args.rows)
@@ -209,7 +227,8 @@ def cmd_query(client: FmgsClient, args: argparse.Namespace) -> int:
             if a.instance is not None:
                 scalars["instance"] = a.instance
             write_ply(out, a.mean, colorize(a.relevancy), scalars)
-            print(f"wrote {out} ({len(a)} points, {a.text!r})")
+            if not args.json:
+                print(f"wrote {out} ({len(a)} points, {a.text!r})")
     return 0
 
 
@@ -224,13 +243,19 @@ def cmd_render(client: FmgsClient, args: argparse.Namespace) -> int:
         # Empty pixels have no feature and a meaningless relevancy (0.5): fade them to black.
         colours *= np.clip(r.alpha, 0, 1)[..., None]
     write_png(args.out, np.round(colours).astype(np.uint8))
-    print(f"wrote {args.out} ({r.width}x{r.height})")
+    written = {"relevancy": str(args.out)}
     if args.rgb is not None and r.rgb is not None:
         write_png(args.rgb, to_uint8(r.rgb))
-        print(f"wrote {args.rgb}")
+        written["rgb"] = str(args.rgb)
     if args.depth is not None and r.depth is not None:
         write_png(args.depth, depth_to_uint16(r.depth))
-        print(f"wrote {args.depth} (16-bit millimetres)")
+        written["depth"] = str(args.depth)
+    if args.json:
+        emit({"text": args.text, "width": r.width, "height": r.height, "argmax": r.argmax, "files": written,
+              "camera": cam.to_dict(), "elapsed_ms": r.elapsed_ms, "round_trip_ms": wall})  # fmt: skip
+        return 0
+    for kind, path in written.items():
+        print(f"wrote {path}" + (f" ({r.width}x{r.height})" if kind == "relevancy" else ""))
     if r.argmax is not None:
         print(f"argmax pixel x={r.argmax.x} y={r.argmax.y} relevancy={r.argmax.value:.4f}")
     print(f"server {r.elapsed_ms:.1f} ms, round trip {wall:.1f} ms")
@@ -271,6 +296,11 @@ def cmd_stream(client: FmgsClient, args: argparse.Namespace) -> int:
     wall = time.perf_counter() - t0
     fps = n / wall if wall > 0 else float("inf")
     w, h = args.size
+    if args.json:
+        per_frame = server_ms / n if n else None
+        emit({"poses": len(cams), "rendered": n, "seconds": wall, "frames_per_s": fps, "width": w,
+              "height": h, "server_ms_per_frame": per_frame})  # fmt: skip
+        return 0
     print(f"{n} of {len(cams)} poses rendered in {wall:.2f} s: {fps:.1f} frames/s at {w}x{h}")
     if n:
         print(f"server {server_ms / n:.1f} ms per frame")
@@ -278,8 +308,22 @@ def cmd_stream(client: FmgsClient, args: argparse.Namespace) -> int:
 
 
 def cmd_segment(client: FmgsClient, args: argparse.Namespace) -> int:
-    cam = _camera(args, client) if (args.eye is not None or args.out is not None) else None
+    wants = args.eye is not None or args.out is not None or args.camera is not None
+    cam = _camera(args, client) if wants else None
     r = client.segment(args.scene, args.names, camera=cam, per_gaussian=True)
+    if args.out is not None and r.pixel_labels is not None:
+        write_png(args.out, label_colors(r.pixel_labels))
+    if args.json:
+        classes = [
+            {"label": k, "name": name,
+             "gaussians": int((r.gaussian_labels == k).sum()) if r.gaussian_labels is not None else 0,
+             "pixels": int((r.pixel_labels == k).sum()) if r.pixel_labels is not None else 0}
+            for k, name in enumerate(r.class_names)
+        ]  # fmt: skip
+        emit({"classes": classes, "gaussian_index": r.gaussian_index, "gaussian_labels": r.gaussian_labels,
+              "image": str(args.out) if args.out is not None and r.pixel_labels is not None else None,
+              "elapsed_ms": r.elapsed_ms})  # fmt: skip
+        return 0
     print(f"segmented in {r.elapsed_ms:.1f} ms")
     rows = []
     for k, name in enumerate(r.class_names):
@@ -289,7 +333,6 @@ def cmd_segment(client: FmgsClient, args: argparse.Namespace) -> int:
         rows.append((k, name, g, p, colour))
     print(_table(rows, ("label", "class", "gaussians", "pixels", "colour")))
     if args.out is not None and r.pixel_labels is not None:
-        write_png(args.out, label_colors(r.pixel_labels))
         print(f"wrote {args.out}")
     return 0
 
@@ -311,7 +354,10 @@ def cmd_view(client: FmgsClient, args: argparse.Namespace) -> int:
 
 def cmd_health(client: FmgsClient, args: argparse.Namespace) -> int:
     status = client.health(args.service)
-    print(status)
+    if args.json:
+        emit({"service": args.service, "status": status})
+    else:
+        print(status)
     return 0 if status == "SERVING" else 1
 
 
@@ -319,29 +365,52 @@ def cmd_health(client: FmgsClient, args: argparse.Namespace) -> int:
 
 
 def _camera_options(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--eye", type=float, nargs=3, metavar=("X", "Y", "Z"), help="camera position")
-    p.add_argument("--target", type=float, nargs=3, metavar=("X", "Y", "Z"), help="point looked at")
+    p.add_argument(
+        "--camera", type=Path,
+        help="camera JSON (viewmat, fx, fy, cx, cy, width, height; what `view` exports and `render --json` "
+        "prints); overrides --eye/--target/--size/--fov (default: none)",
+    )  # fmt: skip
+    p.add_argument(
+        "--eye", type=float, nargs=3, metavar=("X", "Y", "Z"),
+        help="camera position (default: outside the scene's bounds, looking at their centre)",
+    )  # fmt: skip
+    p.add_argument(
+        "--target",
+        type=float,
+        nargs=3,
+        metavar=("X", "Y", "Z"),
+        help="point looked at, with --eye (default: none)",
+    )
     _view_options(p)
 
 
 def _view_options(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--up", type=float, nargs=3, default=(0.0, 0.0, 1.0), metavar=("X", "Y", "Z"))
-    p.add_argument("--size", type=_size, default=(640, 480), help="WxH (default 640x480)")
-    p.add_argument("--fov", type=float, default=60.0, help="horizontal field of view, degrees")
+    p.add_argument(
+        "--up", type=float, nargs=3, default=(0.0, 0.0, 1.0), metavar=("X", "Y", "Z"),
+        help="the world direction that points up in the image (default 0 0 1)",
+    )  # fmt: skip
+    p.add_argument(
+        "--size", type=_size, default=(640, 480), help="image size WxH in pixels (default 640x480)"
+    )
+    p.add_argument("--fov", type=float, default=60.0, help="horizontal field of view in degrees (default 60)")
 
 
 def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="fmgs-client", description="Query an FMGS server.")
-    ap.add_argument("--address", default=DEFAULT_ADDRESS, help=f"host:port (default {DEFAULT_ADDRESS})")
+    ap.add_argument(
+        "--address", default=DEFAULT_ADDRESS, help=f"server host:port (default {DEFAULT_ADDRESS})"
+    )
     ap.add_argument(
         "--token-file",
         type=Path,
-        help="file holding the bearer token (the first line that is not blank or #)",
+        help="file holding the bearer token (the first line that is not blank or #; default: no token)",
     )
-    ap.add_argument("--root-cert", type=Path, help="CA certificate (PEM): use TLS")
-    ap.add_argument("--client-cert", type=Path, help="client certificate (PEM) for mutual TLS")
-    ap.add_argument("--client-key", type=Path, help="client private key (PEM) for mutual TLS")
-    ap.add_argument("--timeout", type=float, default=30.0, help="seconds per call (default 30)")
+    ap.add_argument("--root-cert", type=Path, help="CA certificate (PEM): use TLS (default: plaintext)")
+    ap.add_argument(
+        "--client-cert", type=Path, help="client certificate (PEM) for mutual TLS (default: none)"
+    )
+    ap.add_argument("--client-key", type=Path, help="client private key (PEM) for mutual TLS (default: none)")
+    ap.add_argument("--timeout", type=float, default=30.0, help="seconds per call; 0: none (default 30)")
     ap.add_argument(
         "--attempts",
         type=int,
@@ -349,53 +418,83 @@ def build_parser() -> argparse.ArgumentParser:
         help=f"tries of a read that fails with UNAVAILABLE, by gRPC's retry policy (1: none; at most "
         f"{MAX_ATTEMPTS}; default {RetryPolicy.attempts})",
     )
+    common = argparse.ArgumentParser(add_help=False)
+    common.add_argument(
+        "--json", action="store_true",
+        help="print each answer as one JSON object per line instead of tables (default: tables)",
+    )  # fmt: skip
     sub = ap.add_subparsers(dest="command", required=True)
 
-    p = sub.add_parser("list", help="list the server's scenes")
+    def command(name: str, help: str) -> argparse.ArgumentParser:
+        return sub.add_parser(name, help=help, description=help, parents=[common])
+
+    p = command("list", "list the server's scenes")
     p.set_defaults(fn=cmd_list)
 
-    p = sub.add_parser("info", help="one scene's metadata")
-    p.add_argument("scene")
+    p = command("info", "one scene's metadata")
+    p.add_argument("scene", help="scene name")
     p.set_defaults(fn=cmd_info)
 
-    p = sub.add_parser("query", help="Gaussians most relevant to each text")
-    p.add_argument("scene")
-    p.add_argument("texts", nargs="+", metavar="TEXT")
-    p.add_argument("--top-k", type=int, default=100)
-    p.add_argument("--threshold", type=float, default=0.0)
-    p.add_argument("--instances", action="store_true", help="group the Gaussians into object instances")
+    p = command("query", "Gaussians most relevant to each text")
+    p.add_argument("scene", help="scene name")
+    p.add_argument("texts", nargs="+", metavar="TEXT", help="one or more texts, each answered on its own")
+    p.add_argument(
+        "--top-k", type=int, default=100, help="Gaussians returned per text, best first (default 100)"
+    )
+    p.add_argument(
+        "--threshold", type=float, default=0.0,
+        help="only Gaussians with relevancy at least this, in [0, 1]; 0: the top-k regardless (default 0)",
+    )  # fmt: skip
+    p.add_argument(
+        "--instances", action="store_true", help="group the Gaussians into object instances (default: off)"
+    )
     p.add_argument("--rows", type=int, default=10, help="table rows to print per text (default 10)")
-    p.add_argument("--ply", type=Path, help="write the Gaussians coloured by relevancy (one file per text)")
+    p.add_argument(
+        "--ply",
+        type=Path,
+        help="write the Gaussians coloured by relevancy, one file per text (default: none)",
+    )
     p.set_defaults(fn=cmd_query)
 
-    p = sub.add_parser("render", help="relevancy image of one view")
-    p.add_argument("scene")
-    p.add_argument("text")
+    p = command("render", "relevancy image of one view")
+    p.add_argument("scene", help="scene name")
+    p.add_argument("text", help="the query whose relevancy is rendered")
     _camera_options(p)
     p.add_argument("--out", type=Path, required=True, help="relevancy PNG (colour-mapped, faded by alpha)")
-    p.add_argument("--raw", action="store_true", help="do not fade empty pixels: colours of relevancy only")
-    p.add_argument("--rgb", type=Path, help="also write the colour image")
-    p.add_argument("--depth", type=Path, help="also write depth (16-bit PNG, millimetres)")
+    p.add_argument(
+        "--raw",
+        action="store_true",
+        help="do not fade empty pixels: colours of relevancy only (default: off)",
+    )
+    p.add_argument("--rgb", type=Path, help="also write the colour image here (default: none)")
+    p.add_argument(
+        "--depth", type=Path, help="also write depth here, 16-bit PNG in millimetres (default: none)"
+    )
     p.set_defaults(fn=cmd_render)
 
-    p = sub.add_parser("stream", help="stream an orbit of poses; report frames per second")
-    p.add_argument("scene")
-    p.add_argument("text")
-    p.add_argument("--frames", type=int, default=60)
+    p = command("stream", "stream an orbit of poses; report frames per second")
+    p.add_argument("scene", help="scene name")
+    p.add_argument("text", help="the query whose relevancy is rendered")
+    p.add_argument("--frames", type=int, default=60, help="poses on the orbit (default 60)")
     _view_options(p)
-    p.add_argument("--encoding", choices=("float32", "png"), default="float32")
+    p.add_argument(
+        "--encoding", choices=("float32", "png"), default="float32",
+        help="how frames travel: float32 arrays or PNG (default float32)",
+    )  # fmt: skip
     p.add_argument("--in-flight", type=int, default=1, help="poses sent ahead of their answers (default 1)")
-    p.add_argument("--out-dir", type=Path, help="write each received frame's relevancy PNG here")
+    p.add_argument(
+        "--out-dir", type=Path, help="write each received frame's relevancy PNG here (default: none)"
+    )
     p.set_defaults(fn=cmd_stream)
 
-    p = sub.add_parser("segment", help="label Gaussians (and a view's pixels) with class names")
-    p.add_argument("scene")
-    p.add_argument("names", nargs="+", metavar="NAME")
+    p = command("segment", "label Gaussians (and a view's pixels) with class names")
+    p.add_argument("scene", help="scene name")
+    p.add_argument("names", nargs="+", metavar="NAME", help="class names")
     _camera_options(p)
-    p.add_argument("--out", type=Path, help="label image PNG (a colour per class)")
+    p.add_argument("--out", type=Path, help="label image PNG, a colour per class (default: none)")
     p.set_defaults(fn=cmd_segment)
 
-    p = sub.add_parser("view", help="open the inspector window (Open3D; needs a display)")
+    p = command("view", "open the inspector window (Open3D; needs a display)")
     p.add_argument("scene", nargs="?", help="scene to open (default: the first the server lists)")
     d = ViewerConfig()
     p.add_argument(
@@ -423,8 +522,8 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.set_defaults(fn=cmd_view)
 
-    p = sub.add_parser("health", help="gRPC health check (exit 0 when SERVING)")
-    p.add_argument("service", nargs="?", default="")
+    p = command("health", "gRPC health check (exit 0 when SERVING)")
+    p.add_argument("service", nargs="?", default="", help='service name (default "": the whole server)')
     p.set_defaults(fn=cmd_health)
     return ap
 

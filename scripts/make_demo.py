@@ -15,7 +15,7 @@ and label names are recorded in the manifest's ``extra`` so tests and clients ca
 
 ``--score-only`` re-scores the package already there (seconds) instead of rebuilding it.
 
-About 13 minutes on a 2-core CPU (measured 12.7 min while other jobs shared it). ``--work DIR`` keeps
+About 30 minutes on a 2-core CPU. ``--work DIR`` keeps
 the intermediate outputs there, and a rerun skips or resumes the stages already complete; without it
 they go to a temporary folder that is removed.
 """
@@ -34,8 +34,12 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 
 NAME = "demo"
-SYNTH = {"--views": "32", "--size": "128x96", "--objects": "6", "--seed": "0", "--points": "5000"}
-GS = {"--gs-steps": "1200", "--sh-degree": "0", "--grad-threshold": "0.001"}
+SYNTH = {"--views": "120", "--size": "128x96", "--objects": "6", "--seed": "0", "--points": "5000"}
+GS = {"--gs-steps": "10000", "--sh-degree": "0", "--grad-threshold": "0.001"}
+MIN_PSNR_DB = 30.0
+"""Held-out colour PSNR the demo must reach: it is the first scene a new user looks through (120 views and
+10,000 steps: benchmarks/results/GS.md measured 31.0 dB on such a scene; 32 views and 1,200 steps gave a
+smeared floor)."""
 FIELD = {"--feature-scale": "0.5", "--field-steps": "1200", "--field-dtype": "float16"}
 MAX_MB = 10.0
 
@@ -76,11 +80,14 @@ def evaluate(package: Path, data: Path) -> dict:
     from fmgs.data.dataset import load_dataset
     from fmgs.features.text import load_text_encoder
     from fmgs.query.engine import SceneEngine
+    from fmgs.train.evaluate import evaluate as evaluate_colour
     from fmgs.train.evaluate_field import evaluate_field
+    from fmgs.train.gaussians import dataset_background
 
     engine = SceneEngine.open(package)
     enc = load_text_encoder(engine.encoder_id)
     ds = load_dataset(data)
+    colour = evaluate_colour(engine.gaussians, ds, None, 1.0, dataset_background(ds))
     q = evaluate_field(engine, ds, enc, ds.split()[1], data / "scene.json")
     top1 = {}
     for o in engine.manifest.extra["objects"]:
@@ -98,6 +105,9 @@ def evaluate(package: Path, data: Path) -> dict:
         "gaussians": engine.num_gaussians,
         "selected": engine.num_embedded,
         "top1_in_box": top1,
+        "heldout_psnr_db": colour.psnr,
+        "heldout_ssim": colour.ssim,
+        "heldout_worst_psnr_db": colour.worst()["psnr"],
         **q.to_dict(),
     }
 
@@ -163,13 +173,16 @@ def main() -> int:
     print(
         f"{NAME}: {r['total_mb']:.2f} MB, {r['gaussians']} Gaussians ({r['selected']} embedded); held-out "
         f"2D localisation {r['localisation_2d']:.1%} of {r['queries_2d']}, 3D {r['localisation_3d']:.1%}, "
-        f"mIoU {r['miou']:.3f}"
+        f"mIoU {r['miou']:.3f}; held-out colour {r['heldout_psnr_db']:.2f} dB (worst view "
+        f"{r['heldout_worst_psnr_db']:.2f} dB)"
         + ("" if r["build_seconds"] is None else f"; built in {r['build_seconds']:.0f} s")
     )
-    ok = r["total_mb"] <= MAX_MB and all(r["top1_in_box"].values())
+    ok = r["total_mb"] <= MAX_MB and all(r["top1_in_box"].values()) and r["heldout_psnr_db"] >= MIN_PSNR_DB
     if not ok:
         print(
-            f"demo check failed: size <= {MAX_MB} MB and every top-1 inside its box required", file=sys.stderr
+            f"demo check failed: size <= {MAX_MB} MB, every top-1 inside its box and held-out colour >= "
+            f"{MIN_PSNR_DB} dB required",
+            file=sys.stderr,
         )
     return 0 if ok else 1
 

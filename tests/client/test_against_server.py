@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import argparse
+import json
 import shutil
 import subprocess
 
@@ -215,6 +217,78 @@ def test_cli(server, tmp_path, capsys):
     assert "frames/s" in capsys.readouterr().out
     assert cli.main([*base, "query", "nope", "a"]) == 1
     assert capsys.readouterr().err.startswith("error: NOT_FOUND: ")
+
+
+def _json_lines(text: str) -> list[dict]:
+    return [json.loads(line) for line in text.splitlines() if line.strip()]
+
+
+def test_cli_json(server, client, tmp_path, capsys):
+    """--json: one object per answer, the same answer the library gets."""
+    base = ["--address", server.address]
+    assert cli.main([*base, "list", "--json"]) == 0
+    [listed] = _json_lines(capsys.readouterr().out)
+    assert [s["name"] for s in listed["scenes"]] == ["blobs", "plain"]
+    assert (
+        cli.main([*base, "query", "blobs", "red cube", "laptop", "--top-k", "30", "--instances", "--json"])
+        == 0
+    )
+    got = _json_lines(capsys.readouterr().out)
+    want = client.query(
+        "blobs", ["red cube", "laptop"], top_k=30, fields=["similarity", "mean"], instances=True
+    )
+    assert [g["text"] for g in got] == ["red cube", "laptop"]
+    for g, w in zip(got, want, strict=True):
+        assert g["index"] == w.index.tolist() and np.allclose(g["relevancy"], w.relevancy)
+        assert np.allclose(g["mean"], w.mean) and g["presence"]["found"] == w.presence.found
+        assert len(g["instances"]) == len(w.instances)
+        for gi, wi in zip(g["instances"], w.instances, strict=True):
+            assert np.allclose(gi["obb"]["center"], wi.obb.center) and np.allclose(
+                gi["aabb"]["extent"], wi.aabb.extent
+            )
+    assert got[0]["presence"]["found"] and not got[1]["presence"]["found"]
+    png = tmp_path / "r.png"
+    assert (
+        cli.main([*base, "render", "blobs", "blue cone", "--size", "32x24", "--out", str(png), "--json"]) == 0
+    )
+    [r] = _json_lines(capsys.readouterr().out)
+    assert r["files"]["relevancy"] == str(png) and (r["width"], r["height"]) == (32, 24)
+    # The camera a render reports (and the viewer exports) is one `render --camera` takes back.
+    cam = tmp_path / "cam.json"
+    cam.write_text(json.dumps(r["camera"]))
+    png2 = tmp_path / "r2.png"
+    assert (
+        cli.main([*base, "render", "blobs", "blue cone", "--camera", str(cam), "--out", str(png2), "--json"])
+        == 0
+    )
+    [r2] = _json_lines(capsys.readouterr().out)
+    assert r2["argmax"] == r["argmax"] and png.read_bytes() == png2.read_bytes()
+    cam.write_text("{}")
+    assert cli.main([*base, "render", "blobs", "x", "--camera", str(cam), "--out", str(png2)]) == 1
+    assert "missing viewmat" in capsys.readouterr().err
+    assert cli.main([*base, "segment", "blobs", *CLASS_NAMES, "--json"]) == 0
+    [seg] = _json_lines(capsys.readouterr().out)
+    assert [c["name"] for c in seg["classes"]] == list(CLASS_NAMES)
+    assert sum(c["gaussians"] for c in seg["classes"]) == len(seg["gaussian_index"])
+    assert cli.main([*base, "health", "--json"]) == 0
+    assert _json_lines(capsys.readouterr().out) == [{"service": "", "status": "SERVING"}]
+    assert cli.main([*base, "info", "blobs", "--json"]) == 0
+    assert _json_lines(capsys.readouterr().out)[0]["num_gaussians"] == 180
+    assert cli.main([*base, "stream", "blobs", "red cube", "--frames", "4", "--size", "16x12", "--json"]) == 0
+    assert _json_lines(capsys.readouterr().out)[0]["poses"] == 4
+
+
+def test_every_option_says_what_it_does_and_its_default():
+    ap = cli.build_parser()
+    subs = next(a for a in ap._actions if isinstance(a, argparse._SubParsersAction))
+    parsers = {"fmgs-client": ap, **subs.choices}
+    for name, p in parsers.items():
+        for act in p._actions:
+            if isinstance(act, argparse._HelpAction | argparse._SubParsersAction):
+                continue
+            assert act.help, f"{name} {act.dest}: no help"
+            if act.option_strings and not act.required:
+                assert "default" in act.help, f"{name} {act.option_strings[0]}: help does not say the default"
 
 
 def test_open3d_export_of_a_real_answer(client, tmp_path):

@@ -167,6 +167,9 @@ def _requests():
     yield "PointQuery", pb.PointQueryRequest(scene="plain", texts=names, points=pts)
     yield "Segment", pb.SegmentRequest(scene="blobs", class_names=names, camera=_cam(), per_gaussian=True)
     yield "Segment", pb.SegmentRequest(scene="blobs", class_names=names)
+    yield "Geometry", pb.GeometryRequest(scene="blobs", max_gaussians=50, min_opacity=0.2)
+    yield "Geometry", pb.GeometryRequest(scene="blobs", max_gaussians=10**12)
+    yield "Geometry", pb.GeometryRequest(scene="blobs-4shards")
 
 
 def _split_floats(result):

@@ -38,6 +38,9 @@ class PictureFeed:
         self._last: CameraSpec | None = None
         self._in_flight: dict[int, CameraSpec] = {}
         self._closed = False
+        self._stream_id = 0
+        """Which stream may take poses: a failed stream's request generator can outlive it on a gRPC
+        thread, and must not take the poses meant for the next."""
         self._thread = threading.Thread(target=self._run, name=f"picture-{scene}", daemon=True)
         self._thread.start()
 
@@ -57,24 +60,30 @@ class PictureFeed:
     def closed(self) -> bool:
         return self._closed
 
-    def _poses(self) -> Iterator[CameraSpec]:
+    def _poses(self, stream_id: int) -> Iterator[CameraSpec]:
         """The request stream: the newest pose whenever nothing is in flight (consumed by gRPC)."""
         seq = 0
         while True:
             with self._cond:
-                while not self._closed and (self._newest is None or self._in_flight):
+                while self._live(stream_id) and (self._newest is None or self._in_flight):
                     self._cond.wait(0.25)
-                if self._closed:
+                if not self._live(stream_id):
                     return
                 cam, self._newest = self._newest, None
                 self._in_flight[seq] = self._last = cam
             seq += 1
             yield cam
 
+    def _live(self, stream_id: int) -> bool:
+        return not self._closed and stream_id == self._stream_id
+
     def _run(self) -> None:
         while not self._closed:
+            with self._cond:
+                self._stream_id += 1
+                poses = self._poses(self._stream_id)
             try:
-                for r in self.client.stream(self.scene, self._poses(), self.text, outputs=self.outputs):
+                for r in self.client.stream(self.scene, poses, self.text, outputs=self.outputs):
                     with self._cond:
                         cam = self._in_flight.pop(r.sequence, None)
                         self._in_flight.clear()  # an answer settles every older pose
@@ -82,15 +91,18 @@ class PictureFeed:
                         closed = self._closed
                     if cam is not None and not closed:
                         self._on_result(cam, r)
-                return
+                error = None  # the server ended the stream (it is shutting down): open another
             except FmgsError as e:
-                with self._cond:
-                    self._in_flight.clear()
-                    if self._newest is None:
-                        self._newest = self._last  # the view has not moved: render it again
-                    closed = self._closed
-                if closed:
-                    return
-                self._on_error(e)
-                with self._cond:
-                    self._cond.wait_for(lambda: self._closed, RECONNECT_S)
+                error = e
+            with self._cond:
+                self._stream_id += 1  # this stream's request generator stops taking poses
+                self._in_flight.clear()
+                if self._newest is None:
+                    self._newest = self._last  # the view has not moved: render it again
+                closed = self._closed
+            if closed:
+                return
+            if error is not None:
+                self._on_error(error)
+            with self._cond:
+                self._cond.wait_for(lambda: self._closed, RECONNECT_S)

@@ -16,9 +16,6 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from fmgs_server.config import ServerConfig
-from fmgs_server.server import start_server
-
 ROOT = Path(__file__).resolve().parents[2]
 XVFB = shutil.which("xvfb-run")
 if XVFB is None and os.environ.get("CI"):
@@ -28,17 +25,14 @@ pytestmark = pytest.mark.skipif(XVFB is None, reason="needs xvfb-run (Debian: xv
 
 @pytest.fixture(scope="module")
 def drive(tmp_path_factory):
-    srv = start_server(ServerConfig(models=ROOT / "models", port=0, reload_check_s=0.0))
+    """The driver serves models/ itself (so it can stop and restart the server) on a free port."""
     out = tmp_path_factory.mktemp("viewer")
-    try:
-        cmd = [XVFB, "-a", "-s", "-screen 0 1280x800x24", sys.executable, "-m", "tests.helpers.drive_viewer"]
-        p = subprocess.run(
-            [*cmd, srv.address, "demo", str(out), "--shots"],
-            cwd=ROOT, capture_output=True, text=True, timeout=600,
-        )  # fmt: skip
-        assert p.returncode == 0, p.stdout[-3000:] + p.stderr[-3000:]
-    finally:
-        srv.stop(0)
+    cmd = [XVFB, "-a", "-s", "-screen 0 1280x800x24", sys.executable, "-m", "tests.helpers.drive_viewer"]
+    p = subprocess.run(
+        [*cmd, f"serve:{ROOT / 'models'}", "demo", str(out), "--shots"],
+        cwd=ROOT, capture_output=True, text=True, timeout=600,
+    )  # fmt: skip
+    assert p.returncode == 0, p.stdout[-3000:] + p.stderr[-3000:]
     return out, json.loads((out / "viewer.json").read_text())
 
 
@@ -78,6 +72,13 @@ def test_exports_segmentation_and_errors(drive):
     assert rec["segment"]["labelled"] > 0 and rec["segment"]["classes"][0] == "floor"
     assert "NOT_FOUND" in rec["error"]["status"] and "Traceback" not in rec["error"]["status"]
     assert rec["error"]["recovered"]
+
+
+def test_window_survives_the_server_going_away(drive):
+    _, rec = drive
+    r = rec["restart"]
+    assert "UNAVAILABLE" in r["status_down"] and "Traceback" not in r["status_down"]
+    assert r["error_up"] == "" and r["picture_after"]
 
 
 def test_screenshots_are_not_blank(drive):

@@ -1,6 +1,10 @@
 """Drive the inspector window as a user would, under a display (xvfb-run), and record what it shows.
 
     xvfb-run -a python -m tests.helpers.drive_viewer ADDRESS SCENE OUT_DIR [--shots]
+    xvfb-run -a python -m tests.helpers.drive_viewer serve:MODELS SCENE OUT_DIR   # its own server
+
+With ``serve:MODELS`` it serves MODELS itself, and at the end stops that server and starts it again on the
+same port, recording what the window says meanwhile and that it recovers.
 
 Opens ``fmgs_client.viewer.Inspector`` on the scene, pumps Open3D's event loop, then calls the same
 callbacks typing and clicking trigger: Enter in the query box ("red cube"), a picture mode, a result
@@ -42,6 +46,18 @@ def main() -> int:
     from fmgs_client.viewer_model import PICTURE_MODES, ViewerConfig, box_lines
 
     t_start = time.monotonic()
+    srv, make_server = None, None
+    if a.address.startswith("serve:"):
+        from fmgs_server.config import ServerConfig
+        from fmgs_server.server import start_server
+
+        models = Path(a.address.split(":", 1)[1])
+
+        def make_server(port: int = 0):
+            return start_server(ServerConfig(models=models, port=port, reload_check_s=0.0))
+
+        srv = make_server()
+        a.address = srv.address
     app = o3d.visualization.gui.Application.instance
     app.initialize()
     client = FmgsClient(a.address, timeout=60)
@@ -189,6 +205,22 @@ def main() -> int:
     pump(lambda: insp.idle and insp.scene == a.scene, "the scene again")
     rec["error"]["recovered"] = insp.last_error == ""
 
+    # 7. The server goes away and comes back: a readable line meanwhile, then the window works again.
+    if srv is not None:
+        port = int(a.address.rsplit(":", 1)[1])
+        srv.stop(0)
+        insp.refresh_scenes()
+        pump(lambda: insp.idle, "the call to a stopped server")
+        rec["restart"] = {"status_down": insp.status.text, "error_down": insp.last_error}
+        srv = make_server(port)
+        insp.refresh_scenes()
+        pump(lambda: insp.idle, "the server again")
+        centre = np.asarray(insp.view.scene.bounding_box.get_center())
+        insp.view.look_at(centre, centre + np.array([3.0, -3.0, 3.0]), np.array([0.0, 0.0, 1.0]))  # moved
+        pump(picture_ready(insp._text()), "a picture after the restart")
+        rec["restart"].update(error_up=insp.last_error, picture_after=True)
+        srv.stop(0)
+
     rec["seconds"] = time.monotonic() - t_start
     (a.out / "viewer.json").write_text(json.dumps(rec, indent=1))
     if insp.feed is not None:
@@ -199,4 +231,8 @@ def main() -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    try:
+        main()
+    except BaseException as e:  # report, then leave without the teardown that can hang
+        print(f"drive_viewer failed: {e!r}", flush=True)
+        os._exit(1)

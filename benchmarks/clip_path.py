@@ -180,7 +180,7 @@ def target_map_accuracy(
     import torch
     from PIL import Image
 
-    from fmgs.features.pyramid import PyramidConfig, crop_grid, interp_matrix, scale_grid_embeddings
+    from fmgs.features.pyramid import PyramidConfig, crop_grid, scale_map
     from fmgs.features.standin import load_standin
     from fmgs.features.text import MiniLMTextEncoder
     from fmgs.vecmath import safe_normalize
@@ -204,10 +204,9 @@ def target_map_accuracy(
                 g = crop_grid(H, W, s, cfg.overlap, cap)
                 crops += g.boxes.shape[0] * g.boxes.shape[1]
                 with torch.inference_mode():
-                    emb = scale_grid_embeddings(enc, img.permute(2, 0, 1), g, cfg)
-                ay, ax = interp_matrix(g.centers_y, H, H).float(), interp_matrix(g.centers_x, W, W).float()
-                maps.append(torch.einsum("hy,ywd->hwd", ay, torch.einsum("yxd,wx->ywd", emb, ax)))
-            for k, m in zip(keys, [safe_normalize(torch.stack(maps).mean(0)), *maps], strict=True):
+                    maps.append(scale_map(enc, img.permute(2, 0, 1), g, cfg, (H, W)))
+            # The hybrid exactly as hybrid_map blends it: the mean of the scales' maps, renormalised.
+            for k, m in zip(keys, [safe_normalize(sum(maps) / len(maps)), *maps], strict=True):
                 ok = (m @ table.T).argmax(-1) == lab
                 hits[k] += [float(ok.sum()), ok.numel(), float(ok[lab >= 2].sum()), float((lab >= 2).sum())]
         for k in keys:

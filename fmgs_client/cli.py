@@ -311,35 +311,31 @@ def cmd_segment(client: FmgsClient, args: argparse.Namespace) -> int:
     wants = args.eye is not None or args.out is not None or args.camera is not None
     cam = _camera(args, client) if wants else None
     r = client.segment(args.scene, args.names, camera=cam, per_gaussian=True)
-    if args.out is not None and r.pixel_labels is not None:
-        write_png(args.out, label_colors(r.pixel_labels))
+    image = args.out if args.out is not None and r.pixel_labels is not None else None
+    if image is not None:
+        write_png(image, label_colors(r.pixel_labels))
+    counts = r.counts()
     if args.json:
         classes = [
-            {"label": k, "name": name,
-             "gaussians": int((r.gaussian_labels == k).sum()) if r.gaussian_labels is not None else 0,
-             "pixels": int((r.pixel_labels == k).sum()) if r.pixel_labels is not None else 0}
-            for k, name in enumerate(r.class_names)
-        ]  # fmt: skip
+            {"label": k, "name": name, "gaussians": g, "pixels": p}
+            for k, (name, (g, p)) in enumerate(zip(r.class_names, counts, strict=True))
+        ]
         emit({"classes": classes, "gaussian_index": r.gaussian_index, "gaussian_labels": r.gaussian_labels,
-              "image": str(args.out) if args.out is not None and r.pixel_labels is not None else None,
-              "elapsed_ms": r.elapsed_ms})  # fmt: skip
+              "image": str(image) if image is not None else None, "elapsed_ms": r.elapsed_ms})  # fmt: skip
         return 0
     print(f"segmented in {r.elapsed_ms:.1f} ms")
     rows = []
-    for k, name in enumerate(r.class_names):
-        g = int((r.gaussian_labels == k).sum()) if r.gaussian_labels is not None else 0
-        p = int((r.pixel_labels == k).sum()) if r.pixel_labels is not None else 0
+    for k, (name, (g, p)) in enumerate(zip(r.class_names, counts, strict=True)):
         colour = "#" + bytes(label_colors(np.array([k]))[0]).hex() if r.pixel_labels is not None else ""
         rows.append((k, name, g, p, colour))
     print(_table(rows, ("label", "class", "gaussians", "pixels", "colour")))
-    if args.out is not None and r.pixel_labels is not None:
-        print(f"wrote {args.out}")
+    if image is not None:
+        print(f"wrote {image}")
     return 0
 
 
 def cmd_view(client: FmgsClient, args: argparse.Namespace) -> int:
     from fmgs_client.viewer import run
-    from fmgs_client.viewer_model import ViewerConfig
 
     cfg = ViewerConfig(
         max_points=args.max_points,

@@ -56,10 +56,6 @@ class PictureFeed:
             self._closed = True
             self._cond.notify_all()
 
-    @property
-    def closed(self) -> bool:
-        return self._closed
-
     def _poses(self, stream_id: int) -> Iterator[CameraSpec]:
         """The request stream: the newest pose whenever nothing is in flight (consumed by gRPC)."""
         seq = 0

@@ -419,6 +419,17 @@ class SegmentResult:
     elapsed_ms: float = 0.0
     """Server-side time, milliseconds."""
 
+    def counts(self) -> list[tuple[int, int]]:
+        """(Gaussians, pixels) labelled with each class, in class order (0 where not asked for)."""
+
+        def count(labels: np.ndarray | None, k: int) -> int:
+            return int((labels == k).sum()) if labels is not None else 0
+
+        return [
+            (count(self.gaussian_labels, k), count(self.pixel_labels, k))
+            for k in range(len(self.class_names))
+        ]
+
 
 @dataclass(frozen=True, eq=False)
 class Geometry:

@@ -25,7 +25,7 @@ import numpy as np
 from fmgs_client.client import FmgsClient, FmgsError
 from fmgs_client.open3d_tools import _o3d, export_answer
 from fmgs_client.picture_feed import PictureFeed
-from fmgs_client.types import CameraSpec, Geometry, RenderResult, SceneInfo
+from fmgs_client.types import CameraSpec, Geometry, RenderResult, SceneInfo, SegmentResult
 from fmgs_client.viewer_model import (
     PICTURE_MODES,
     AnswerView,
@@ -148,19 +148,19 @@ class Inspector:
 
         p.add_child(gui.Label(f"Export to {self.out_dir}"))
         row = gui.Horiz(0.25 * em)
-        for name, fn in (("Answer PLY", self.on_export_ply), ("Screenshot", self.on_screenshot)):
+        exports = (("Answer PLY", self.on_export_ply), ("Screenshot", self.on_screenshot),
+                   ("Camera JSON", self.on_save_camera))  # fmt: skip
+        for name, fn in exports:
             b = gui.Button(name)
             b.set_on_clicked(fn)
             row.add_child(b)
-        b = gui.Button("Camera JSON")
-        b.set_on_clicked(self.on_save_camera)
-        row.add_child(b)
         p.add_child(row)
 
         self.scene: str | None = None
         self.info: SceneInfo | None = None
         self.geometry: Geometry | None = None
         self.answers: list[AnswerView] = []
+        self.segmentation: SegmentResult | None = None
         self.selected = 0
         """Which phrase's answer is drawn."""
         self.drawn: dict[str, Any] = {}
@@ -267,6 +267,14 @@ class Inspector:
             s.add_geometry(name, geom, material)
         self.drawn[name] = geom
 
+    def _draw_scene(self, colors: np.ndarray, size: float) -> None:
+        """The scene's points (the Geometry answer) in ``colors``."""
+        self._put("scene", self._points(self.geometry.mean, colors), self._material("points", size))
+
+    def _clear_answer(self) -> None:
+        self._put("answer", None, None)
+        self._put("boxes", None, None)
+
     def _points(self, pts: np.ndarray, colors: np.ndarray):
         o3d = self.o3d
         pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(pts, np.float64)))
@@ -318,7 +326,7 @@ class Inspector:
         self.answers, self.selected, self.last_picture = [], 0, None
         self.view.scene.clear_geometry()
         self.drawn.clear()
-        self._put("scene", self._points(g.mean, g.color), self._material("points", 4.0))
+        self._draw_scene(g.color, 4.0)
         lo, hi = robust_bounds(g.mean)
         self.view.setup_camera(FOV_DEG, self.o3d.geometry.AxisAlignedBoundingBox(lo, hi), (lo + hi) / 2)
         eye, centre = home_view(lo, hi, FOV_DEG)
@@ -366,13 +374,12 @@ class Inspector:
         if g is None:
             return
         if not self.answers:
-            self._put("scene", self._points(g.mean, g.color), self._material("points", 3.0))
-            self._put("answer", None, None)
-            self._put("boxes", None, None)
+            self._draw_scene(g.color, 3.0)
+            self._clear_answer()
             self.legend_label.text = "relevancy: no answer"
             return
         v = self.answers[self.selected]
-        self._put("scene", self._points(g.mean, dimmed(g.color, self.cfg.dim)), self._material("points", 2.0))
+        self._draw_scene(dimmed(g.color, self.cfg.dim), 2.0)
         self._put("answer", self._points(v.points, v.colors), self._material("points", 5.0))
         pts, edges = box_lines([i.obb for i in v.answer.instances])
         if len(pts):
@@ -418,14 +425,10 @@ class Inspector:
         if g is None:
             return
         self.answers = []
-        self._put(
-            "scene", self._points(g.mean, segment_colors(g, seg, self.cfg.dim)), self._material("points", 3.0)
-        )
-        self._put("answer", None, None)
-        self._put("boxes", None, None)
+        self._draw_scene(segment_colors(g, seg, self.cfg.dim), 3.0)
+        self._clear_answer()
         lines = []
-        for k, name in enumerate(seg.class_names):
-            n = int((seg.gaussian_labels == k).sum()) if seg.gaussian_labels is not None else 0
+        for k, (name, (n, _)) in enumerate(zip(seg.class_names, seg.counts(), strict=True)):
             c = label_colors(np.array([k]))[0]
             lines.append(f"#{bytes(c).hex()}  {name}: {n:,} Gaussians")
         self.results.set_items(lines)
@@ -435,13 +438,17 @@ class Inspector:
 
     # ------------------------------------------------------------------ the picture panel
 
-    def current_camera(self) -> CameraSpec:
-        """The 3D view's camera as a pinhole camera at the picture panel's size."""
+    def _view_camera(self) -> CameraSpec:
+        """The 3D view's camera as a pinhole camera at the view's size."""
         f = self.view.frame
         cam = self.view.scene.camera
-        full = camera_from_gl(
+        return camera_from_gl(
             cam.get_view_matrix(), cam.get_projection_matrix(), max(f.width, 8), max(f.height, 8)
         )
+
+    def current_camera(self) -> CameraSpec:
+        """The 3D view's camera at the picture panel's size."""
+        full = self._view_camera()
         return scaled(full, *picture_size(full.width, full.height, self.cfg.picture_side))
 
     def on_tick(self) -> bool:
@@ -539,10 +546,7 @@ class Inspector:
     def on_save_camera(self, path: str | Path | None = None) -> Path:
         """The current view as camera JSON (``fmgs-client render --camera FILE``), at the 3D view's size."""
         out = Path(path) if path else self.out_dir / f"{self._stem()}-camera.json"
-        f = self.view.frame
-        cam = self.view.scene.camera
-        spec = camera_from_gl(cam.get_view_matrix(), cam.get_projection_matrix(), f.width, f.height)
-        out.write_text(json.dumps(spec.to_dict(), indent=1))
+        out.write_text(json.dumps(self._view_camera().to_dict(), indent=1))
         self._set_status(f"wrote {out}")
         return out
 

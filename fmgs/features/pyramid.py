@@ -172,6 +172,24 @@ def scale_grid_embeddings(
     return torch.cat(out).reshape(ny, nx, -1)
 
 
+def scale_map(
+    embed_fn: Callable[[torch.Tensor], torch.Tensor],
+    img: torch.Tensor,
+    grid: CropGrid,
+    cfg: PyramidConfig,
+    out_hw: tuple[int, int],
+    bar=None,
+) -> torch.Tensor:
+    """One scale's map: img [3,H,W] -> [h,w,D] float32 (out_hw = (h, w)), the grid's crop embeddings
+    interpolated bilinearly through the crop centres to the output pixels' centres (not normalised)."""
+    H, W = img.shape[1:]
+    h, w = out_hw
+    emb = scale_grid_embeddings(embed_fn, img, grid, cfg, bar)  # [ny, nx, D]
+    ay = interp_matrix(grid.centers_y, h, H).to(img.device, torch.float32)  # [h, ny]
+    ax = interp_matrix(grid.centers_x, w, W).to(img.device, torch.float32)  # [w, nx]
+    return torch.einsum("hy,ywd->hwd", ay, torch.einsum("yxd,wx->ywd", emb, ax))
+
+
 def hybrid_map(
     embed_fn: Callable[[torch.Tensor], torch.Tensor],
     image: torch.Tensor,
@@ -200,9 +218,6 @@ def hybrid_map(
     acc = None
     with tqdm(total=total, desc="clip crops", unit="crop", disable=not progress, leave=False) as bar:
         for g in grids:
-            emb = scale_grid_embeddings(embed_fn, img, g, cfg, bar)  # [ny, nx, D]
-            ay = interp_matrix(g.centers_y, h, H).to(img.device, torch.float32)  # [h, ny]
-            ax = interp_matrix(g.centers_x, w, W).to(img.device, torch.float32)  # [w, nx]
-            m = torch.einsum("hy,ywd->hwd", ay, torch.einsum("yxd,wx->ywd", emb, ax))
+            m = scale_map(embed_fn, img, g, cfg, (h, w), bar)
             acc = m if acc is None else acc + m
     return safe_normalize(acc / len(grids))

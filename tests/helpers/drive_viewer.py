@@ -191,7 +191,7 @@ def main() -> int:
     # 5. Segmentation.
     insp.classes.text_value = a.classes
     insp.on_segment(a.classes)
-    pump(lambda: insp.idle and getattr(insp, "segmentation", None) is not None, "the segmentation")
+    pump(lambda: insp.idle and insp.segmentation is not None, "the segmentation")
     seg = insp.segmentation
     rec["segment"] = {"classes": list(seg.class_names), "labelled": len(seg.gaussian_labels)}
     grab("4-segment")

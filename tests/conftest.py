@@ -20,6 +20,11 @@ settings.load_profile(os.environ.get("FMGS_HYPOTHESIS_PROFILE", "default"))
 # Tests never download models: the ones that test downloads turn this off against a local hub server.
 os.environ["FMGS_OFFLINE"] = "1"
 
+# Without a GPU, the triton backend's kernel runs in Triton's interpreter (tests/render/test_triton_blend.py);
+# the variable must be set before triton is first imported.
+if not torch.cuda.is_available():
+    os.environ.setdefault("TRITON_INTERPRET", "1")
+
 DATA_DIR = Path(os.environ.get("FMGS_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"))
 
 

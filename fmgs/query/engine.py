@@ -32,7 +32,7 @@ class EngineConfig:
     index: IndexConfig = field(default_factory=IndexConfig)
     """Per-Gaussian query state (exact or compact)."""
     backend: str = "auto"
-    """Rasteriser backend for pose queries ("auto", "cpu", "reference", "cuda")."""
+    """Rasteriser backend for pose queries ("auto", "cpu", "reference", "cuda", "triton")."""
     device: str = "cpu"
     """Device holding the render geometry; a CUDA device also holds the query state (exact float32)."""
 

@@ -4,7 +4,9 @@
 - ``cpu``: compiled numba kernels, loaded lazily: without gradients the fast inference path
   (``cpu_fast.py``), with gradients numba blending forward and backward behind the reference's
   projection (``cpu_grad.py``);
-- ``cuda``: gsplat on a CUDA device (``cuda_gsplat.py``), loaded lazily.
+- ``cuda``: gsplat on a CUDA device (``cuda_gsplat.py``), loaded lazily;
+- ``triton``: a one-pass wide-channel forward kernel on a CUDA device with the reference's exact rule
+  (``triton_blend.py``), no gradients, loaded lazily.
 
 ``backend="auto"`` picks ``cuda`` for CUDA tensors, ``cpu`` on the CPU when no gradient is needed or the
 features are narrow (RGB training), else ``reference``.
@@ -25,7 +27,7 @@ __all__ = [
     "BACKENDS", "Projection", "RasterConfig", "RenderOutput", "rasterize", "validate_inputs", "visible",
 ]  # fmt: skip
 
-BACKENDS = ("auto", "reference", "cpu", "cuda")
+BACKENDS = ("auto", "reference", "cpu", "cuda", "triton")
 
 
 def validate_inputs(
@@ -133,6 +135,15 @@ def rasterize(
             backend = "cpu"
         else:
             backend = "reference"
+    if backend == "triton":
+        if needs_grad:
+            raise ValidationError("backend", "the triton backend renders without gradients; train with cuda")
+        from fmgs.render.triton_blend import rasterize_triton
+
+        out = rasterize_triton(means, quats, scales, opacities, features, camera, background, config)
+        if between_tiles is not None:
+            between_tiles()
+        return out
     if backend == "reference":
         from fmgs.render.reference import rasterize_reference
 

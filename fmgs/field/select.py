@@ -18,7 +18,7 @@ from fmgs.field.config import SelectConfig
 from fmgs.gaussians import GaussianSet
 from fmgs.render.projection import project
 from fmgs.render.types import RasterConfig
-from fmgs.render.weights import ViewWeights, view_weights
+from fmgs.render.weights import ViewWeights, view_weights, weights_config
 
 
 class Selection(NamedTuple):
@@ -44,7 +44,7 @@ def select_gaussians(
         keep = torch.zeros(gaussians.num, dtype=torch.bool)
         g = gaussians
         for cam in cameras:
-            vw = view_weights(g.means, g.quats, g.scales, g.opacities, cam)
+            vw = view_weights(g.means, g.quats, g.scales, g.opacities, cam, weights_config(g.means.device))
             keep[covering(vw, cfg.coverage).cpu()] = True
         return Selection(torch.nonzero(keep).squeeze(1), gaussians.num)
     opac = gaussians.opacities

@@ -28,8 +28,7 @@ from fmgs.field.select import Selection, select_gaussians
 from fmgs.gaussians import GaussianSet
 from fmgs.io.atomic import atomic_path
 from fmgs.io.checkpoint import load_training_state, save_training_state
-from fmgs.render.types import RasterConfig
-from fmgs.render.weights import ViewWeights, view_weights
+from fmgs.render.weights import ViewWeights, view_weights, weights_config
 from fmgs.sparse import SparseMatrix
 from fmgs.train.config import FieldTrainConfig
 from fmgs.train.threads import thread_count
@@ -87,7 +86,7 @@ def prepare_views(
 ) -> list[ViewTarget]:
     """Blending weights and targets of each frame at the cache's map resolution."""
     views = []
-    raster = RasterConfig()
+    raster = weights_config(device)
     for i in frames:
         name = ds.frames[i].name
         maps = cache.load(name)
@@ -181,7 +180,8 @@ def _train(
     cams = [ds.frames[i].camera for i in train]
     if cfg.select.rule == "coverage":  # at the resolution the features are trained at
         cams = [c.resized(*reversed(cache.size(ds.frames[i].name))) for c, i in zip(cams, train, strict=True)]
-    selection = select_gaussians(gaussians, cams, cfg.select)
+    # On the training device: the coverage rule computes every training view's blending weights.
+    selection = select_gaussians(gaussians.to(dev), cams, cfg.select)
     if len(selection.index) == 0:
         raise ValidationError("gaussians", f"no Gaussian passes the {cfg.select.rule!r} selection")
     g = gaussians.subset(selection.index).to(dev)

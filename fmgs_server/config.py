@@ -72,6 +72,9 @@ class ServerConfig:
     """Per-Gaussian query state of every scene (flags --index-rank, --index-exact-below, ...)."""
     device: str = "cpu"
     """Device for scenes and text encoders."""
+    backend: str = "auto"
+    """Rasteriser backend of renders and segmentation: auto, cpu, reference, cuda (gsplat) or triton (the
+    one-pass forward kernel on a CUDA device) (docs/rendering.md)."""
     model_downloads: bool = True
     """Fetch a scene's text encoder from the hub (HF_ENDPOINT) on first use when it is neither a local
     folder nor in the hub cache; off for locked-down deployments (then such a scene fails to load, naming
@@ -113,6 +116,9 @@ class ServerConfig:
                 raise ValueError(f"{name} must be >= 1")
         if self.work_memory_bytes < 0 or self.memory_budget_bytes < 0:
             raise ValueError("work_memory_bytes and memory_budget_bytes must be >= 0 (0: no limit)")
+        backends = ("auto", "cpu", "reference", "cuda", "triton")  # fmgs.render.BACKENDS (no torch here)
+        if self.backend not in backends:
+            raise ValueError(f"backend must be one of {backends}, got {self.backend!r}")
         if self.default_top_k > self.max_top_k:
             raise ValueError("default_top_k must not exceed max_top_k")
         if self.default_geometry > self.max_geometry:

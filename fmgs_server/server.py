@@ -110,7 +110,7 @@ def _text_encoder(device: str, downloads: bool = True):
 def make_service(cfg: ServerConfig, encoder_factory=None, on_change=None) -> FmgsService:
     """The service over ``cfg.models`` with its repository and text-encoder cache (no transport): what
     ``start_server`` serves, and what each Ray replica holds (fmgs_server.cluster)."""
-    ecfg = EngineConfig(cfg.index, device=cfg.device)
+    ecfg = EngineConfig(cfg.index, backend=cfg.backend, device=cfg.device)
     repo = SceneRepository(
         cfg.models,
         lambda p: SceneEngine.open(p, ecfg),

@@ -128,7 +128,7 @@ class ShardedSceneService:
         with self._lock:
             repo = self._repos.get(scene)
             if repo is None:
-                ecfg = EngineConfig(self.cfg.index, device=self.cfg.device)
+                ecfg = EngineConfig(self.cfg.index, backend=self.cfg.backend, device=self.cfg.device)
                 repo = SceneRepository(
                     self.cfg.models / scene,
                     lambda p: SceneEngine.open(p, ecfg),

@@ -81,8 +81,8 @@ def test_every_server_setting_is_a_flag():
         if isinstance(v, bool):
             argv.append(flag if not v else "--no-" + flag[2:])
             expect[f.name] = not v
-        elif f.name in ("tls_cert", "tls_key", "client_ca"):
-            continue  # these go together (validated): set below
+        elif f.name in ("tls_cert", "tls_key", "client_ca", "backend"):
+            continue  # validated (these go together; a backend name): set below
         elif isinstance(v, int | float):
             argv += [flag, str(v + 1)]
             expect[f.name] = v + 1
@@ -90,8 +90,9 @@ def test_every_server_setting_is_a_flag():
             argv += [flag, "x"]
             expect[f.name] = Path("x") if f.type in ("Path", "Path | None") else "x"
     argv += ["--tls-cert", "c.pem", "--tls-key", "k.pem", "--client-ca", "ca.pem", "--index-rerank", "3"]
-    argv += ["--default-top-k", "5"]
+    argv += ["--default-top-k", "5", "--backend", "triton"]
     expect["default_top_k"] = 5
+    expect["backend"] = "triton"
     cfg = config_from_args(build_parser().parse_args(argv))
     for k, v in expect.items():
         assert getattr(cfg, k) == v, k
@@ -107,6 +108,15 @@ def test_server_config_file_and_validation(tmp_path):
     assert (cfg.port, cfg.host, cfg.index.rank) == (7, "0.0.0.0", 0)
     with pytest.raises(ValueError, match="port"):
         config_from_args(build_parser().parse_args(["--port", "70000"]))
+    with pytest.raises(ValueError, match="backend must be one of"):
+        config_from_args(build_parser().parse_args(["--backend", "gpu"]))
+
+
+def test_server_backends_are_the_rasterisers():
+    from fmgs.render import BACKENDS
+
+    for name in BACKENDS:  # the server checks names without importing torch: the same list
+        ServerConfig(backend=name).validate()
 
 
 def _run(code: str) -> subprocess.CompletedProcess:

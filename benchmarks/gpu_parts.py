@@ -134,12 +134,13 @@ def part_env(work: Path, quick: bool) -> dict:
         ["nvidia-smi", "--query-gpu=name,driver_version,memory.total", "--format=csv,noheader"]
     )
     info["nvcc"] = tool(["nvcc", "--version"])
-    try:
-        from importlib.metadata import version
+    from importlib.metadata import version
 
-        info["gsplat"] = version("gsplat")
-    except Exception as e:
-        info["gsplat"] = f"absent ({e})"
+    for pkg in ("gsplat", "triton", "grpcio"):
+        try:
+            info[pkg] = version(pkg)
+        except Exception as e:
+            info[pkg] = f"absent ({e})"
     return info
 
 
@@ -196,39 +197,50 @@ def part_tests(work: Path, quick: bool) -> dict:
 
 
 def part_pose(work: Path, quick: bool) -> dict:
-    """Relevancy images 480x270 of a 1M-Gaussian scene: engine (CUDA and CPU) and gRPC on loopback."""
-    import grpc
-
+    """Relevancy images 480x270 of a 1M-Gaussian scene: the engine (CUDA with gsplat and with the triton
+    backend, and the CPU) and gRPC on loopback, with where a served image's time goes."""
     from benchmarks.gpu_agreement import device_agreement
     from fmgs.query.engine import EngineConfig, SceneEngine
     from fmgs.query.pose import render_pose
     from fmgs_server.config import ServerConfig
     from fmgs_server.server import start_server
     from fmgs_wire.proto.fmgs.v1 import fmgs_pb2 as pb
-    from fmgs_wire.proto.fmgs.v1 import fmgs_pb2_grpc as pb_grpc
 
     n = 20_000 if quick else 1_000_000
     models = work / "models-pose"
     s, queries, canon, emb = _exported_scene(models / "pose", n, seed=4, n_queries=64)
-    cam = s.cameras[0].resized(480, 270)
-    res: dict = {"gaussians": n, "size": "480x270", "target_images_per_s": 300}
-
-    eng = SceneEngine.open(models / "pose", EngineConfig(device=DEVICE))
-    # cached text (a pose stream: one text, many poses) and a new text every frame
-    ts = timed(lambda e=eng: render_pose(e, cam, queries[0]), 20 if quick else 300)
-    res["engine_cuda_cached_ms"] = med_ms(ts)
-    res["engine_cuda_cached_images_per_s"] = 1e3 / med_ms(ts)
-    it = iter(range(10**9))
-    ts = timed(lambda e=eng: render_pose(e, cam, queries[next(it) % 64]), 20 if quick else 200)
-    res["engine_cuda_new_text_ms"] = med_ms(ts)
-    res["engine_cuda_new_text_images_per_s"] = 1e3 / med_ms(ts)
-    ts = timed(
-        lambda e=eng: render_pose(e, cam, queries[0], ("relevancy", "rgb", "depth")), 10 if quick else 100
-    )
-    res["engine_cuda_rel_rgb_depth_ms"] = med_ms(ts)
-    gpu_img = render_pose(eng, cam, queries[5]).relevancy
-    res["cuda_peak_gib"] = peak_gib()
-    del eng
+    W, H = (64, 36) if quick else (480, 270)  # --quick checks the script (triton in its interpreter)
+    cam = s.cameras[0].resized(W, H)
+    res: dict = {"gaussians": n, "size": f"{W}x{H}", "target_images_per_s": 300}
+    frames = 5 if quick else 300
+    gpu_img = None
+    for backend, tag in (("auto", "engine_cuda"), ("triton", "engine_triton")):
+        try:
+            eng = SceneEngine.open(models / "pose", EngineConfig(device=DEVICE, backend=backend))
+            reset_peak()
+            # cached text (a pose stream: one text, many poses) and a new text every frame
+            ts = timed(lambda e=eng: render_pose(e, cam, queries[0]), frames)
+            res[f"{tag}_cached_ms"] = med_ms(ts)
+            res[f"{tag}_cached_images_per_s"] = 1e3 / med_ms(ts)
+            it = iter(range(10**9))
+            ts = timed(lambda e=eng, it=it: render_pose(e, cam, queries[next(it) % 64]), frames)
+            res[f"{tag}_new_text_ms"] = med_ms(ts)
+            res[f"{tag}_new_text_images_per_s"] = 1e3 / med_ms(ts)
+            ts = timed(
+                lambda e=eng: render_pose(e, cam, queries[0], ("relevancy", "rgb", "depth")), frames // 3
+            )
+            res[f"{tag}_rel_rgb_depth_ms"] = med_ms(ts)
+            res[f"{tag}_peak_gib"] = peak_gib()
+            img = render_pose(eng, cam, queries[5]).relevancy
+            if gpu_img is None:
+                gpu_img = img
+            else:
+                res["triton_vs_gsplat_relevancy_max_abs"] = float((img - gpu_img).abs().max())
+            del eng
+        except Exception as e:  # a failed backend must not lose the rest of the part
+            res[f"{tag}_error"] = f"{type(e).__name__}: {e}"[:300]
+        print(f"[pose] {tag}: {res.get(f'{tag}_cached_ms', res.get(f'{tag}_error'))}", flush=True)
+    res["cuda_peak_gib"] = res.get("engine_cuda_peak_gib")
     cpu = SceneEngine.open(models / "pose", EngineConfig(device="cpu"))
     ts = timed(lambda e=cpu: render_pose(e, cam, queries[0]), 3, warm=1)
     res["engine_cpu_ms"] = med_ms(ts)
@@ -238,24 +250,122 @@ def part_pose(work: Path, quick: bool) -> dict:
     )
     res["speedup_cuda_vs_cpu"] = res["engine_cpu_ms"] / res["engine_cuda_cached_ms"]
     res["agreement"] = device_agreement(models / "pose", cpu, emb, cam, DEVICE)
+    print(f"[pose] agreement: {res['agreement']}", flush=True)
     del cpu
+    (work / "part-pose.partial.json").write_text(json.dumps(res, default=str))
 
     enc = TableEncoder(queries, canon)
-    srv = start_server(ServerConfig(models=models, port=0, device=DEVICE), encoder_factory=lambda i: enc)
     pcam = proto_camera(cam)
-    try:
-        req = lambda i: pb.RenderRequest(scene="pose", camera=pcam, text=f"q{i % 64}", sequence=i)  # noqa: E731
-        with grpc.insecure_channel(srv.address) as ch:
+    req = lambda i: pb.RenderRequest(scene="pose", camera=pcam, text=f"q{i % 64}", sequence=i)  # noqa: E731
+    for backend in ("auto", "triton"):
+        if f"{'engine_cuda' if backend == 'auto' else 'engine_triton'}_error" in res:
+            continue
+        key = "grpc" if backend == "auto" else "grpc_triton"
+        srv = start_server(
+            ServerConfig(models=models, port=0, device=DEVICE, backend=backend), encoder_factory=lambda i: enc
+        )
+        try:
+            res[key] = _grpc_breakdown(srv.address, req, cam, frames, quick)
+            res[key].update(_grpc_concurrent(srv.address, req, 8, 3.0 if quick else 8.0))
+        finally:
+            srv.stop(0)
+        print(f"[pose] {key}: {res[key]}", flush=True)
+        (work / "part-pose.partial.json").write_text(json.dumps(res, default=str))
+    # The headline figures of the default (gsplat) server, under the names earlier runs used.
+    g = res.get("grpc", {})
+    res["grpc_sequential_ms"] = g.get("sequential_ms")
+    res["grpc_sequential_images_per_s"] = g.get("sequential_images_per_s")
+    for k in ("grpc_concurrent_clients", "grpc_concurrent_images_per_s", "grpc_concurrent_errors"):
+        res[k] = g.get(k)
+    return res
+
+
+def _grpc_breakdown(address: str, req, cam, frames: int, quick: bool) -> dict:
+    """Where a served relevancy image's time goes, one client on loopback: the raw stub (unary Render),
+    the same with the single-threaded unary-stream channel option, the thin client (its decode included),
+    a pose stream (StreamRender, one client), the server's own render time, the response's encode and the
+    client's decode, and a bare gRPC server echoing the same bytes (the transport's floor)."""
+    import grpc
+    import grpc.experimental
+
+    from fmgs_client import CameraSpec, FmgsClient
+    from fmgs_client.client import assemble_render
+    from fmgs_wire.proto.fmgs.v1 import fmgs_pb2_grpc as pb_grpc
+
+    single = [(grpc.experimental.ChannelOptions.SingleThreadedUnaryStream, 1)]
+    big = [("grpc.max_receive_message_length", 64 << 20)]
+    out: dict = {}
+    for tag, opts in (("", big), ("single_threaded_", big + single)):
+        with grpc.insecure_channel(address, options=opts) as ch:
             stub = pb_grpc.FmgsStub(ch)
             for i in range(70):  # load, embed and cache every query text
-                list(stub.Render(req(i)))
-            ts = timed(lambda: list(stub.Render(req(0))), 20 if quick else 200, warm=2)
-            res["grpc_sequential_ms"] = med_ms(ts)
-            res["grpc_sequential_images_per_s"] = 1e3 / med_ms(ts)
-        res.update(_grpc_concurrent(srv.address, req, 8, 3.0 if quick else 10.0))
+                chunks = list(stub.Render(req(i)))
+            ts, inner = [], []
+            for _ in range(frames):
+                t0 = time.perf_counter()
+                chunks = list(stub.Render(req(0)))
+                ts.append(time.perf_counter() - t0)
+                inner.append(chunks[0].elapsed_ms)
+            out[f"{tag}sequential_ms"] = med_ms(ts)
+            out[f"{tag}sequential_images_per_s"] = 1e3 / med_ms(ts)
+            out[f"{tag}server_render_ms"] = statistics.median(inner)
+    out["response_bytes"] = sum(c.ByteSize() for c in chunks)
+    out["response_chunks"] = len(chunks)
+    out["client_decode_ms"] = med_ms(timed(lambda: assemble_render(chunks), frames, warm=2))
+    payload = [c.SerializeToString() for c in chunks]
+    out["client_parse_ms"] = med_ms(
+        timed(lambda: [type(chunks[0]).FromString(b) for b in payload], frames, warm=2)
+    )
+    out["server_serialize_ms"] = med_ms(
+        timed(lambda: [c.SerializeToString() for c in chunks], frames, warm=2)
+    )
+    out.update(_echo_floor(payload, frames))
+    # The thin client, as an integrator calls it.
+    spec = CameraSpec.from_proto(proto_camera(cam))
+    with FmgsClient(address, timeout=30) as client:
+        for _ in range(3):
+            client.render("pose", spec, text="q0")
+        ts = timed(lambda: client.render("pose", spec, text="q0"), frames, warm=2)
+        out["client_render_ms"] = med_ms(ts)
+        out["client_render_images_per_s"] = 1e3 / med_ms(ts)
+        # A pose stream: poses generated as fast as the client sends them; the server renders the newest.
+        seconds = 2.0 if quick else 5.0
+        got, t0 = 0, time.perf_counter()
+
+        def poses():
+            while time.perf_counter() - t0 < seconds:
+                yield spec
+
+        for _ in client.stream("pose", poses(), text="q0"):
+            got += 1
+        out["client_stream_images_per_s"] = got / (time.perf_counter() - t0)
+    return out
+
+
+def _echo_floor(payload: list[bytes], frames: int) -> dict:
+    """A bare gRPC server streaming back ``payload`` (a served answer's messages) to a unary-stream call:
+    what the transport alone costs, without and with the single-threaded unary-stream option."""
+    from concurrent import futures
+
+    import grpc
+    import grpc.experimental
+
+    srv = grpc.server(futures.ThreadPoolExecutor(4), options=[("grpc.max_send_message_length", 64 << 20)])
+    handler = grpc.unary_stream_rpc_method_handler(lambda r, c: iter(payload))
+    srv.add_generic_rpc_handlers([grpc.method_handlers_generic_handler("echo.Echo", {"Get": handler})])
+    port = srv.add_insecure_port("127.0.0.1:0")
+    srv.start()
+    out = {}
+    try:
+        single = [(grpc.experimental.ChannelOptions.SingleThreadedUnaryStream, 1)]
+        for tag, opts in (("", []), ("single_threaded_", single)):
+            opts = [*opts, ("grpc.max_receive_message_length", 64 << 20)]
+            with grpc.insecure_channel(f"127.0.0.1:{port}", options=opts) as ch:
+                call = ch.unary_stream("/echo.Echo/Get")
+                out[f"{tag}echo_floor_ms"] = med_ms(timed(lambda c=call: list(c(b"")), frames, warm=5))
     finally:
         srv.stop(0)
-    return res
+    return out
 
 
 def _grpc_concurrent(address: str, req, clients: int, seconds: float) -> dict:
@@ -300,46 +410,114 @@ def _grpc_concurrent(address: str, req, clients: int, seconds: float) -> dict:
 
 
 def part_paper(work: Path, quick: bool) -> dict:
-    """CLIP 512 + DINO 384 + RGB of the garden scene: stored features, or decoded from the field per frame."""
+    """CLIP 512 + DINO 384 + RGB of the garden scene through ``rasterize``: gsplat (``cuda``, passes of
+    CHANNEL_CHUNK channels) against the one-pass ``triton`` backend, each image's error against the float64
+    reference, the triton launch sweep, and the 5-channel relevancy-sized render."""
     from fmgs.field.model import FeatureField, FieldConfig
     from fmgs.render import rasterize
+    from fmgs.render import triton_blend as tb
+    from fmgs.render.binning import bin_tiles
+    from fmgs.render.projection import project
+    from fmgs.render.types import RasterConfig
 
     s = garden()
+    if quick:  # a check of the script (on the CPU, triton in its interpreter): a slice of the scene
+        cut = ("means", "quats", "scales", "opacities", "colors")
+        s = s._replace(**{k: getattr(s, k)[:1500] for k in cut})
     dev = torch.device(DEVICE)
     n = len(s.means)
     geo = [t.to(dev) for t in (s.means, s.quats, s.scales, s.opacities)]
     clip = fieldlike(s.means, 512, seed=1).to(dev)
     dino = fieldlike(s.means, 384, seed=2).to(dev) * 3
     rgb = s.colors.to(dev)
+    feats = torch.cat([clip, dino, rgb], 1)
     field = FeatureField.for_points(FieldConfig(), s.means).to(dev).eval()
     look = field.lookup(geo[0])
-    res: dict = {"gaussians": n, "paper_fps": PAPER_FPS, "target_fps": 2 * PAPER_FPS}
-    runs = 10 if quick else 100
-    for W, H in ((480, 270), (648, 420)):
-        cam = s.cameras[0].resized(W, H)
+    res: dict = {
+        "gaussians": n,
+        "paper_fps": PAPER_FPS,
+        "target_fps": 2 * PAPER_FPS,
+        "channels": feats.shape[1],
+    }
+    runs = 2 if quick else 100
+    # --quick (a check of the script on the CPU, triton in its interpreter): tiny pictures
+    sizes = ((48, 27), (64, 42)) if quick else ((480, 270), (648, 420))
+    cam = s.cameras[0].resized(*sizes[0])
+    main = f"{sizes[0][0]}x{sizes[0][1]}"
+    with torch.no_grad():
+        truth = rasterize(*[t.double() for t in geo], feats.double(), cam, backend="reference").image
+        sync()
+        for backend in (FAST, "triton"):
+            img = rasterize(*geo, feats, cam, backend=backend).image
+            res[f"{main}_{backend}_relmax_vs_f64"] = rel_max(img, truth)
+            del img
+        del truth
+        # Where a triton frame's time goes: the float64 projection and binning (torch) before the kernel.
+        rc = RasterConfig()
+        res[f"{main}_project_bin_ms"] = med_ms(
+            timed(lambda: bin_tiles(project(*geo, cam, rc), cam.width, cam.height, rc.tile_size), runs)
+        )
+    for W, H in sizes:
+        c = s.cameras[0].resized(W, H)
         tag = f"{W}x{H}"
+        for backend in (FAST, "triton"):
 
-        @torch.no_grad()
-        def stored(cam=cam):
-            return rasterize(*geo, torch.cat([clip, dino, rgb], 1), cam)
+            @torch.no_grad()
+            def stored(c=c, backend=backend):
+                return rasterize(*geo, feats, c, backend=backend)
 
-        @torch.no_grad()
-        def separate(cam=cam):
-            return [rasterize(*geo, f, cam) for f in (clip, dino, rgb)]
+            @torch.no_grad()
+            def separate(c=c, backend=backend):
+                return [rasterize(*geo, f, c, backend=backend) for f in (clip, dino, rgb)]
 
-        @torch.no_grad()
-        def decoded(cam=cam):
-            out = field.decode(look)
-            return rasterize(*geo, torch.cat([out.clip, out.dino, rgb], 1), cam)
+            @torch.no_grad()
+            def decoded(c=c, backend=backend):
+                out = field.decode(look)
+                return rasterize(*geo, torch.cat([out.clip, out.dino, rgb], 1), c, backend=backend)
 
-        for name, fn in (
-            ("stored_one_call", stored),
-            ("stored_three_calls", separate),
-            ("field_decoded", decoded),
-        ):
-            ms = med_ms(timed(fn, runs))
-            res[f"{tag}_{name}_ms"] = ms
-            res[f"{tag}_{name}_fps"] = 1e3 / ms
+            @torch.no_grad()
+            def five(c=c, backend=backend):
+                return rasterize(*geo, feats[:, :5], c, backend=backend)
+
+            for name, fn in (
+                ("stored_one_call", stored),
+                ("stored_three_calls", separate),
+                ("field_decoded", decoded),
+                ("5ch", five),
+            ):
+                ms = med_ms(timed(fn, runs))
+                key = f"{tag}_{name}" if backend == FAST else f"{tag}_triton_{name}"
+                res[f"{key}_ms"] = ms
+                res[f"{key}_fps"] = 1e3 / ms
+            print(
+                f"[paper] {tag} {backend}: {res[key.replace('5ch', 'stored_one_call') + '_fps']:.1f} FPS",
+                flush=True,
+            )
+    # The launch sweep at the first size through rasterize (the module's TUNING is what rasterize uses).
+    res["sweep"] = {}
+    keep = tb.TUNING
+    with torch.no_grad():
+        truth = rasterize(*[t.double() for t in geo], feats.double(), cam, backend="reference").image
+        for name, tuning in tb.SWEEP.items():
+            tb.TUNING = tuning
+            try:
+                t0 = time.perf_counter()
+                img = rasterize(*geo, feats, cam, backend="triton").image
+                sync()
+                first_s = time.perf_counter() - t0  # includes compiling this launch
+                err = rel_max(img, truth)
+                del img
+                ms = med_ms(timed(lambda: rasterize(*geo, feats, cam, backend="triton"), runs))
+                ms5 = med_ms(timed(lambda: rasterize(*geo, feats[:, :5], cam, backend="triton"), runs))
+                res["sweep"][name] = {
+                    "tuning": tuning._asdict(), "ms": ms, "fps": 1e3 / ms, "relmax_vs_f64": err,
+                    "5ch_ms": ms5, "first_call_s": first_s,
+                }  # fmt: skip
+            except Exception as e:  # one launch that fails to compile must not lose the others
+                res["sweep"][name] = {"tuning": tuning._asdict(), "error": f"{type(e).__name__}: {e}"[:300]}
+            print(f"[paper] sweep {name}: {res['sweep'][name]}", flush=True)
+            (work / "part-paper.partial.json").write_text(json.dumps(res, default=str))
+    tb.TUNING = keep
     res["cuda_peak_gib"] = peak_gib()
     return res
 

@@ -214,7 +214,7 @@ def part_pose(work: Path, quick: bool) -> dict:
     res: dict = {"gaussians": n, "size": f"{W}x{H}", "target_images_per_s": 300}
     frames = 5 if quick else 300
     gpu_img = None
-    for backend, tag in (("auto", "engine_cuda"), ("triton", "engine_triton")):
+    for backend, tag in (("cuda", "engine_cuda"), ("triton", "engine_triton")):  # gsplat, then triton
         try:
             eng = SceneEngine.open(models / "pose", EngineConfig(device=DEVICE, backend=backend))
             reset_peak()
@@ -257,10 +257,10 @@ def part_pose(work: Path, quick: bool) -> dict:
     enc = TableEncoder(queries, canon)
     pcam = proto_camera(cam)
     req = lambda i: pb.RenderRequest(scene="pose", camera=pcam, text=f"q{i % 64}", sequence=i)  # noqa: E731
-    for backend in ("auto", "triton"):
-        if f"{'engine_cuda' if backend == 'auto' else 'engine_triton'}_error" in res:
+    for backend in ("cuda", "triton"):
+        if f"{'engine_cuda' if backend == 'cuda' else 'engine_triton'}_error" in res:
             continue
-        key = "grpc" if backend == "auto" else "grpc_triton"
+        key = "grpc" if backend == "cuda" else "grpc_triton"
         srv = start_server(
             ServerConfig(models=models, port=0, device=DEVICE, backend=backend), encoder_factory=lambda i: enc
         )
@@ -271,7 +271,7 @@ def part_pose(work: Path, quick: bool) -> dict:
             srv.stop(0)
         print(f"[pose] {key}: {res[key]}", flush=True)
         (work / "part-pose.partial.json").write_text(json.dumps(res, default=str))
-    # The headline figures of the default (gsplat) server, under the names earlier runs used.
+    # The headline figures of the gsplat server, under the names earlier runs used.
     g = res.get("grpc", {})
     res["grpc_sequential_ms"] = g.get("sequential_ms")
     res["grpc_sequential_images_per_s"] = g.get("sequential_images_per_s")

@@ -8,8 +8,9 @@
 - ``triton``: a one-pass wide-channel forward kernel on a CUDA device with the reference's exact rule
   (``triton_blend.py``), no gradients, loaded lazily.
 
-``backend="auto"`` picks ``cuda`` for CUDA tensors, ``cpu`` on the CPU when no gradient is needed or the
-features are narrow (RGB training), else ``reference``.
+``backend="auto"`` picks, for CUDA tensors, ``triton`` when no gradient is needed (and Triton is installed)
+and ``cuda`` otherwise; on the CPU, ``cpu`` when no gradient is needed or the features are narrow (RGB
+training), else ``reference``.
 """
 
 from __future__ import annotations
@@ -96,6 +97,12 @@ def visible(
     return project(means, quats, scales, opacities, camera, config).visible.cpu()
 
 
+def _have_triton() -> bool:
+    import importlib.util
+
+    return importlib.util.find_spec("triton") is not None
+
+
 def _grad_channels() -> int:
     from fmgs.render.cpu_grad import MAX_AUTO_CHANNELS
 
@@ -130,7 +137,9 @@ def rasterize(
     )
     if backend == "auto":
         if features.is_cuda:
-            backend = "cuda"
+            # Renders without gradients follow the reference's rule exactly (images agree with the CPU's);
+            # training needs gsplat's backward.
+            backend = "cuda" if needs_grad or not _have_triton() else "triton"
         elif features.device.type == "cpu" and (not needs_grad or features.shape[1] <= _grad_channels()):
             backend = "cpu"
         else:

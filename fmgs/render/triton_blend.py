@@ -52,16 +52,18 @@ class BlendTuning(NamedTuple):
     """Pipeline stages of the ``for`` loop (with ``pipelined``)."""
 
 
-TUNING = BlendTuning()
-"""The launch parameters ``rasterize_triton`` uses."""
+TUNING = BlendTuning(block_pixels=64, num_warps=4)
+"""The launch parameters ``rasterize_triton`` uses: the fastest of SWEEP on an H200 (benchmarks/results/GPU.md,
+part "paper")."""
 
 SWEEP: dict[str, BlendTuning] = {
-    "default": BlendTuning(),
+    "default": BlendTuning(block_pixels=64, num_warps=4),
+    "p256c64w8": BlendTuning(),
     "p256c32": BlendTuning(block_channels=32),
     "p128c32w4": BlendTuning(block_pixels=128, block_channels=32, num_warps=4),
-    "p64c64w4": BlendTuning(block_pixels=64, num_warps=4),
-    "geom32": BlendTuning(geom64=False),
-    "ieee": BlendTuning(precision="ieee"),
+    "geom32": BlendTuning(block_pixels=64, num_warps=4, geom64=False),
+    "ieee": BlendTuning(block_pixels=64, num_warps=4, precision="ieee"),
+    "geom32_ieee": BlendTuning(block_pixels=64, num_warps=4, geom64=False, precision="ieee"),
     "pipelined": BlendTuning(block_pixels=128, block_gaussians=32, block_channels=32, pipelined=True),
 }
 """Launches benchmarks/gpu_parts.py times against each other (tests/cuda holds each to the reference)."""

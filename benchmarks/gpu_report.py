@@ -15,23 +15,58 @@ def _f(x, fmt: str = ".1f") -> str:
     return str(x)
 
 
-def _agreement(by_set: dict | None) -> list[str]:
+_PAIR_WORDS = {
+    "cpu_vs_f64": "CPU vs float64",
+    "cpu_vs_cuda": "CPU vs CUDA",
+    "cuda_vs_f64": "CUDA vs float64",
+    "cpu_vs_triton": "CPU vs CUDA (triton)",
+    "triton_vs_f64": "CUDA (triton) vs float64",
+}
+
+
+def _agreement(by_set: dict | None, note: str = "") -> list[str]:
     """The CPU and CUDA engines' relevancy images per query set, and each against the float64 reference."""
     if not by_set:
         return ["Agreement per query set: not measured in this run (added after it).", ""]
+    keys = list(dict.fromkeys(k for w in by_set.values() for k in w))
     L = [
         "Agreement per query set (target: every figure <= 1e-4): max |relevancy difference| between the "
-        "engines, and of each against a float64 dot-then-render of the stored embeddings.",
+        "engines, and of each against a float64 dot-then-render of the stored embeddings." + note,
         "",
-        "| query set | CPU vs CUDA | CPU vs float64 | CUDA vs float64 |",
-        "|---|---:|---:|---:|",
+        "| query set | " + " | ".join(_PAIR_WORDS.get(k, k) for k in keys) + " |",
+        "|---|" + "---:|" * len(keys),
     ]
     for name, w in by_set.items():
-        L.append(
-            f"| {name} | {_f(w['cpu_vs_cuda'], '.2e')} | {_f(w['cpu_vs_f64'], '.2e')} | "
-            f"{_f(w['cuda_vs_f64'], '.2e')} |"
-        )
+        L.append(f"| {name} | " + " | ".join(_f(w.get(k), ".2e") for k in keys) + " |")
     return [*L, ""]
+
+
+def _grpc(g: dict | None, label: str) -> list[str]:
+    """Where a served image's time goes (part pose, _grpc_breakdown), one server."""
+    if not g:
+        return []
+    return [
+        f"| {label}: raw stub, unary Render | {_f(g.get('sequential_ms'), '.2f')} | "
+        f"{_f(g.get('sequential_images_per_s'))} |",
+        f"| {label}: raw stub, single-threaded unary-stream channel option | "
+        f"{_f(g.get('single_threaded_sequential_ms'), '.2f')} | "
+        f"{_f(g.get('single_threaded_sequential_images_per_s'))} |",
+        f"| {label}: thin client `FmgsClient.render` (decode included) | "
+        f"{_f(g.get('client_render_ms'), '.2f')} | "
+        f"{_f(g.get('client_render_images_per_s'))} |",
+        f"| {label}: thin client pose stream (`stream`, poses sent as fast as the generator yields) | | "
+        f"{_f(g.get('client_stream_images_per_s'))} |",
+        f"| {label}: {g.get('grpc_concurrent_clients')} clients, unary | | "
+        f"{_f(g.get('grpc_concurrent_images_per_s'))} ({g.get('grpc_concurrent_errors')} errors) |",
+        f"| {label}: of one call, the server's render (elapsed_ms) | "
+        f"{_f(g.get('server_render_ms'), '.2f')} | |",
+        f"| {label}: of one call, a bare gRPC server echoing the same {g.get('response_bytes', 0):,} bytes "
+        f"(plain / single-threaded option) | {_f(g.get('echo_floor_ms'), '.2f')} / "
+        f"{_f(g.get('single_threaded_echo_floor_ms'), '.2f')} | |",
+        f"| {label}: of one call, serialise / parse / client decode | "
+        f"{_f(g.get('server_serialize_ms'), '.3f')} / {_f(g.get('client_parse_ms'), '.3f')} / "
+        f"{_f(g.get('client_decode_ms'), '.3f')} | |",
+    ]
 
 
 def _status(p: dict | None) -> str | None:
@@ -43,6 +78,61 @@ def _status(p: dict | None) -> str | None:
     if "error" in p:
         return f"failed: {p['error']}"
     return None
+
+
+def _paper(q: dict) -> list[str]:
+    """The 899-channel render, gsplat against triton, errors and the launch sweep."""
+    tri = "480x270_triton_stored_one_call_ms" in q
+    L = ["| size | features | gsplat ms | gsplat FPS |" + (" triton ms | triton FPS |" if tri else ""),
+         "|---|---|---:|---:|" + ("---:|---:|" if tri else "")]  # fmt: skip
+    for tag in ("480x270", "648x420"):
+        for name, what in (
+            ("stored_one_call", "stored per Gaussian, one 899-channel render"),
+            ("stored_three_calls", "stored, three renders (512, 384, 3)"),
+            ("field_decoded", "decoded from the field (hash grid + heads) every frame"),
+            ("5ch", "5 channels (a relevancy render's width)"),
+        ):
+            if f"{tag}_{name}_ms" not in q:
+                continue
+            row = f"| {tag} | {what} | {_f(q[f'{tag}_{name}_ms'], '.2f')} | {_f(q[f'{tag}_{name}_fps'])} |"
+            if tri:
+                row += f" {_f(q[f'{tag}_triton_{name}_ms'], '.2f')} | {_f(q[f'{tag}_triton_{name}_fps'])} |"
+            L.append(row)
+    L.append("")
+    if tri:
+        L += [
+            f"Error of the 899-channel image at 480x270 against the float64 reference (max |difference| / "
+            f"max |truth|): gsplat {_f(q.get('480x270_cuda_relmax_vs_f64'), '.1e')}, triton "
+            f"{_f(q.get('480x270_triton_relmax_vs_f64'), '.1e')} (target 1e-4). The float64 projection and "
+            "binning that precede the triton kernel (torch) take "
+            f"{_f(q.get('480x270_project_bin_ms'), '.2f')} ms of each triton frame.",
+            "",
+        ]
+    sw = q.get("sweep") or {}
+    if sw:
+        L += [
+            "Triton launches (fmgs/render/triton_blend.py SWEEP; 480x270, through `rasterize`):",
+            "",
+            "| pixels per program | Gaussians per step | channels per program | alpha | products | warps | "
+            "loop | 899 ch ms | FPS | 5 ch ms | rel. error |",
+            "|---:|---:|---:|---|---|---:|---|---:|---:|---:|---:|",
+        ]
+        for r in sw.values():
+            t = r["tuning"]
+            loop = f"pipelined for, {t['stages']} stages" if t["pipelined"] else "while"
+            head = (
+                f"| {t['block_pixels']} | {t['block_gaussians']} | {t['block_channels']} | "
+                f"{'float64' if t['geom64'] else 'float32'} | {t['precision']} | {t['num_warps']} | {loop} |"
+            )
+            if "error" in r:
+                L.append(head + f" failed: {r['error'][:80]} | | | |")
+            else:
+                L.append(
+                    head + f" {_f(r['ms'], '.2f')} | {_f(r['fps'])} | {_f(r['5ch_ms'], '.2f')} | "
+                    f"{_f(r['relmax_vs_f64'], '.1e')} |"
+                )
+        L.append("")
+    return L
 
 
 def write_report(results: dict, path: Path) -> None:
@@ -64,7 +154,8 @@ def write_report(results: dict, path: Path) -> None:
         f"| host | {env.get('cpu', '?')}, {env.get('cores', '?')} cores, {env.get('ram_gb', '?')} GB |",
         f"| software | torch {env.get('torch', '?')} (CUDA {env.get('torch_cuda', '?')}), "
         f"{env.get('nvcc', '?')}, "
-        f"gsplat {env.get('gsplat', '?')}, Python {env.get('python', '?')} |",
+        f"gsplat {env.get('gsplat', '?')}, Triton {env.get('triton', '?')}, "
+        f"Python {env.get('python', '?')} |",
         f"| commit, date | {results.get('commit', '?')}, {env.get('date', '?')} |",
         "",
     ]
@@ -93,26 +184,45 @@ def write_report(results: dict, path: Path) -> None:
         L += [
             "| path | ms per image | images/s |",
             "|---|---:|---:|",
-            f"| engine, CUDA, same text (stream) | {_f(p['engine_cuda_cached_ms'], '.2f')} | "
+            f"| engine, CUDA with gsplat, same text (stream) | {_f(p['engine_cuda_cached_ms'], '.2f')} | "
             f"{_f(p['engine_cuda_cached_images_per_s'])} |",
-            f"| engine, CUDA, new text each image | {_f(p['engine_cuda_new_text_ms'], '.2f')} | "
+            "| engine, CUDA with gsplat, new text each image | "
+            f"{_f(p['engine_cuda_new_text_ms'], '.2f')} | "
             f"{_f(p['engine_cuda_new_text_images_per_s'])} |",
-            f"| engine, CUDA, relevancy + RGB + depth | {_f(p['engine_cuda_rel_rgb_depth_ms'], '.2f')} | "
+            "| engine, CUDA with gsplat, relevancy + RGB + depth | "
+            f"{_f(p['engine_cuda_rel_rgb_depth_ms'], '.2f')} | "
             f"{_f(1e3 / p['engine_cuda_rel_rgb_depth_ms'])} |",
+            *(
+                [
+                    f"| engine, CUDA with the triton backend, same text | "
+                    f"{_f(p['engine_triton_cached_ms'], '.2f')} | "
+                    f"{_f(p['engine_triton_cached_images_per_s'])} |",
+                    f"| engine, CUDA with the triton backend, new text each image | "
+                    f"{_f(p['engine_triton_new_text_ms'], '.2f')} | "
+                    f"{_f(p['engine_triton_new_text_images_per_s'])} |",
+                    f"| engine, CUDA with the triton backend, relevancy + RGB + depth | "
+                    f"{_f(p['engine_triton_rel_rgb_depth_ms'], '.2f')} | "
+                    f"{_f(1e3 / p['engine_triton_rel_rgb_depth_ms'])} |",
+                ]
+                if "engine_triton_cached_ms" in p
+                else []
+            ),
             f"| engine, CPU of the same machine | {_f(p['engine_cpu_ms'], '.1f')} | "
             f"{_f(p['engine_cpu_images_per_s'])} |",
-            f"| gRPC loopback, one client, sequential | {_f(p['grpc_sequential_ms'], '.2f')} | "
+            f"| gRPC loopback (gsplat), one client, sequential | {_f(p['grpc_sequential_ms'], '.2f')} | "
             f"{_f(p['grpc_sequential_images_per_s'])} |",
-            f"| gRPC loopback, {p['grpc_concurrent_clients']} clients | | "
+            f"| gRPC loopback (gsplat), {p['grpc_concurrent_clients']} clients | | "
             f"{_f(p['grpc_concurrent_images_per_s'])} "
             f"({p['grpc_concurrent_errors']} errors) |",
+            *_grpc(p.get("grpc"), "gRPC, gsplat"),
+            *_grpc(p.get("grpc_triton"), "gRPC, triton backend"),
             "",
-            f"CUDA engine vs CPU engine, same scene and text: max |relevancy difference| "
+            "CUDA engine (gsplat) vs CPU engine, same scene and text: max |relevancy difference| "
             f"{_f(p['cuda_vs_cpu_relevancy_max_abs'], '.2e')}; peak GPU memory "
             f"{_f(p['cuda_peak_gib'], '.2f')} GiB.",
             "",
         ]
-        L += _agreement(p.get("agreement"))
+        L += _agreement(p.get("agreement"), p.get("agreement_note", ""))
     q = P.get("paper")
     L += [
         "## The paper's full render: CLIP 512 + DINO 384 + RGB, garden (138,766 Gaussians)",
@@ -123,17 +233,7 @@ def write_report(results: dict, path: Path) -> None:
     if _status(q):
         L += [_status(q), ""]
     else:
-        L += ["| size | features | ms | FPS |", "|---|---|---:|---:|"]
-        for tag in ("480x270", "648x420"):
-            for name, what in (
-                ("stored_one_call", "stored per Gaussian, one 899-channel render"),
-                ("stored_three_calls", "stored, three renders (512, 384, 3)"),
-                ("field_decoded", "decoded from the field (hash grid + heads) every frame"),
-            ):
-                L.append(
-                    f"| {tag} | {what} | {_f(q[f'{tag}_{name}_ms'], '.2f')} | {_f(q[f'{tag}_{name}_fps'])} |"
-                )
-        L.append("")
+        L += _paper(q)
     a = P.get("agreement")
     L += ["## Correctness on the device: gsplat against the reference backend", ""]
     if _status(a):
@@ -233,8 +333,13 @@ def write_report(results: dict, path: Path) -> None:
             f"({f.get('geometry', 'gs_train fit')}): loop "
             f"{_f(f['train_loop_s'])} s ({_f(f['ms_per_step'], '.1f')} ms/step) + "
             f"{_f(f['prepare_s'])} s selection "
-            f"and blending weights = **{_f(f['train_total_s'] / 60, '.1f')} min**; peak GPU memory "
-            f"{_f(f['peak_gpu_gib'], '.2f')} GiB."
+            f"and blending weights = **{_f(f['train_total_s'] / 60, '.1f')} min**"
+            + (
+                f"; with the targets, **{_f((f['train_total_s'] + f['extract_s']) / 60, '.1f')} min** in all"
+                if f.get("full_schedule")
+                else ""
+            )
+            + f"; peak GPU memory {_f(f['peak_gpu_gib'], '.2f')} GiB."
             + (
                 ""
                 if f.get("full_schedule", True)

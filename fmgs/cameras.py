@@ -11,6 +11,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
+import numpy as np
 import torch
 
 from fmgs.checks import check_finite, check_shape
@@ -56,26 +57,23 @@ class Camera:
         """Raise ValidationError naming the first broken field."""
         check_shape("K", self.K, (3, 3))
         check_shape("viewmat", self.viewmat, (4, 4))
-        check_finite("K", self.K)
-        check_finite("viewmat", self.viewmat)
+        # numpy views of the two small matrices: a camera per request (pose streams) stays cheap.
+        K, V = self.K.numpy(), self.viewmat.numpy()
+        if not (np.isfinite(K).all() and np.isfinite(V).all()):
+            check_finite("K", self.K)
+            check_finite("viewmat", self.viewmat)
         for name, v in (("width", self.width), ("height", self.height)):
             if not isinstance(v, int) or isinstance(v, bool) or v < 1:
                 raise ValidationError(name, f"must be a positive integer, got {v!r}")
-        if not (self.K[0, 0] > 0 and self.K[1, 1] > 0):
+        if not (K[0, 0] > 0 and K[1, 1] > 0):
             raise ValidationError("K", "focal lengths fx, fy must be positive")
-        if (
-            self.K[0, 1] != 0
-            or self.K[1, 0] != 0
-            or self.K[2, 0] != 0
-            or self.K[2, 1] != 0
-            or self.K[2, 2] != 1
-        ):
+        if K[0, 1] != 0 or K[1, 0] != 0 or K[2, 0] != 0 or K[2, 1] != 0 or K[2, 2] != 1:
             raise ValidationError("K", "expected [[fx,0,cx],[0,fy,cy],[0,0,1]] (no skew)")
-        if not torch.equal(self.viewmat[3], torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=torch.float64)):
+        if not (V[3] == (0.0, 0.0, 0.0, 1.0)).all():
             raise ValidationError("viewmat", "last row must be [0,0,0,1]")
-        R = self.viewmat[:3, :3]
-        err = (R @ R.T - torch.eye(3, dtype=torch.float64)).abs().max().item()
-        if err > _ROT_TOL or torch.det(R).item() < 0:
+        R = V[:3, :3]
+        err = float(np.abs(R @ R.T - np.eye(3)).max())
+        if err > _ROT_TOL or np.linalg.det(R) < 0:
             raise ValidationError(
                 "viewmat", f"rotation is not a proper rotation (orthonormality error {err:.2e})"
             )

@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any, TypeVar
 
 import grpc
+import grpc.experimental
 import numpy as np
 from grpc_health.v1 import health_pb2, health_pb2_grpc
 
@@ -435,6 +436,9 @@ class FmgsClient:
         options = [
             ("grpc.max_receive_message_length", max_message_bytes),
             ("grpc.max_send_message_length", max_message_bytes),
+            # Server-streaming calls (Render, TextQuery, ...) run on the calling thread instead of a thread
+            # spawned per call (the saving per call: GPU.md, the pose part's gRPC breakdown).
+            (grpc.experimental.ChannelOptions.SingleThreadedUnaryStream, 1),
             *channel_options(self._retry),
         ]
         if root_cert is None:

@@ -119,7 +119,12 @@ def _paper(q: dict) -> list[str]:
         ]
         for r in sw.values():
             t = r["tuning"]
-            loop = f"pipelined for, {t['stages']} stages" if t["pipelined"] else "while"
+            if t.get("pipelined"):  # a launch of earlier runs (removed: slower than the single pass)
+                loop = f"pipelined for, {t['stages']} stages"
+            elif t.get("weights_once", 0) and 899 / t["block_channels"] >= t["weights_once"]:
+                loop = f"weights once, then {t['stages']}-stage for"
+            else:
+                loop = "single pass (while)"
             head = (
                 f"| {t['block_pixels']} | {t['block_gaussians']} | {t['block_channels']} | "
                 f"{'float64' if t['geom64'] else 'float32'} | {t['precision']} | {t['num_warps']} | {loop} |"

@@ -28,15 +28,16 @@ if torch.cuda.is_available():
         allow_module_level=True,
     )
 
-from fmgs.render.triton_blend import BlendTuning, rasterize_triton  # noqa: E402
+from fmgs.render.projection import project  # noqa: E402
+from fmgs.render.triton_blend import BlendTuning, project_triton, rasterize_triton  # noqa: E402
 
 # The default launch; a small one: 64-pixel blocks (four programs per 16x16 tile), 16 channels per
-# program, float32 alpha from tile-relative offsets, plain float32 products; and the pipelined one (tile
-# extents measured first, then a for loop over them).
+# program, float32 alpha from tile-relative offsets, plain float32 products; and the weights-once path
+# (tile extents, then the weights into a buffer, then multiplied by each block of channels).
 TUNINGS = {
     "default": BlendTuning(),
     "small": BlendTuning(64, 16, 16, False, "ieee", 4),
-    "pipelined": BlendTuning(128, 32, 32, True, "tf32x3", 8, pipelined=True, stages=3),
+    "weights_once": BlendTuning(128, 32, 16, True, "tf32x3", 8, stages=3, weights_once=1),
 }
 
 
@@ -67,7 +68,7 @@ def test_other_tile_sizes(tile):
     _check(sc, BlendTuning(), config=RasterConfig(tile_size=tile))
 
 
-@pytest.mark.parametrize("tuning", ["default", "pipelined"])
+@pytest.mark.parametrize("tuning", ["default", "weights_once"])
 @pytest.mark.parametrize("opacity", [1 - 1e-7, 0.02])
 def test_ten_thousand_stacked_layers(opacity, tuning):
     """Early termination over many list steps: alpha clamps to alpha_max, T crosses 1e-4 mid-step."""
@@ -166,3 +167,48 @@ def test_rasterize_dispatches_and_refuses_gradients():
     feats = sc.features.float().requires_grad_(True)
     with pytest.raises(ValidationError, match="without gradients"):
         rasterize(*sc.args()[:4], feats, sc.camera, backend="triton")
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_projection_kernel_is_projects_twin(dtype):
+    """project_triton does projection.project's float64 arithmetic: the same culling, boxes and radii, and
+    the same centres, depths and conics up to the order of a few sums (1e-12 relative)."""
+    rng = np.random.default_rng(5)
+    n = 40
+    means = np.r_[rng.normal(size=(n, 3)) * 0.5 + [0, 0, 3], [[0, 0, 0.125], [0, 0, -1.0], [1e30, 0, 1e30]]]
+    quats = np.r_[_rand_quats(n, 3), [[1e-300, 0, 0, 1e-300], [0, 1, 0, 0], [1, 1, 1, 1]]]
+    scales = np.r_[
+        np.abs(rng.normal(size=(n, 3))) * [0.3, 1e-6, 1e-3], [[0.1] * 3, [0.1] * 3, [1e20, 1, 1e-20]]
+    ]
+    opac = np.r_[rng.uniform(0, 1, n), [1.0, 0.5, 1e-30]]
+    scenes = [
+        random_scene(seed=9, n=300, d=1, width=53, height=29, focal=40.0),
+        # needles, means on and behind the near plane, huge and tiny values, denormal quats, opacity extremes
+        _scene(means, quats, scales, opac, near=0.125),
+    ]
+    for sc in scenes:
+        args = [
+            t.to(dtype) if t.dtype == torch.float64 and dtype == torch.float32 else t
+            for t in sc.args(dtype)[:4]
+        ]
+        a = project(*args, sc.camera, RasterConfig())
+        b = project_triton(*args, sc.camera, RasterConfig())
+        for name in ("radii", "bbox", "visible"):
+            assert torch.equal(getattr(a, name), getattr(b, name)), name
+        for name in ("means2d", "depths", "conics", "opacities"):
+            x, y = getattr(a, name)[a.visible], getattr(b, name)[a.visible]
+            assert torch.isfinite(y).all(), name
+            assert float(((x - y).abs() / x.abs().clamp_min(1e-300)).max()) <= 1e-12, name
+
+
+def test_weights_once_equals_the_single_pass():
+    """Both paths form the same float32 weights and the same products in the same order: equal images."""
+    sc = random_scene(seed=21, n=200, d=50, width=40, height=33, focal=30.0, background=True)
+    single = rasterize_triton(
+        *sc.args(), sc.background.float(), tuning=BlendTuning(block_channels=16, weights_once=0)
+    )
+    once = rasterize_triton(
+        *sc.args(), sc.background.float(), tuning=BlendTuning(block_channels=16, weights_once=1)
+    )
+    for name in ("image", "alpha", "depth"):
+        assert torch.equal(getattr(single, name), getattr(once, name)), name

@@ -39,8 +39,10 @@ def bin_tiles(proj: Projection, width: int, height: int, tile: int) -> TileBins:
     ny = box[:, 3] - box[:, 1] + 1
     count = nx * ny
     total = int(count.sum())
-    owner = torch.repeat_interleave(torch.arange(len(ids), device=dev), count)
-    local = torch.arange(total, device=dev) - torch.repeat_interleave(torch.cumsum(count, 0) - count, count)
+    # output_size: the total is known, so neither expansion waits on the device for it again
+    owner = torch.repeat_interleave(torch.arange(len(ids), device=dev), count, output_size=total)
+    first = torch.repeat_interleave(torch.cumsum(count, 0) - count, count, output_size=total)
+    local = torch.arange(total, device=dev) - first
     tx = box[owner, 0] + local % nx[owner]
     ty = box[owner, 1] + local // nx[owner]
     tile_id = ty * tiles_x + tx

@@ -98,6 +98,15 @@ def _blend_step(
 
 
 @triton.jit
+def _store_aux(aux_ptr, pix, mask, wsum, zsum, Tcar, W, H):
+    """Per pixel: weight sum, weighted depth sum and final transmittance into aux [3,H,W]."""
+    HW = H * W
+    tl.store(aux_ptr + pix, wsum, mask=mask)
+    tl.store(aux_ptr + HW + pix, zsum, mask=mask)
+    tl.store(aux_ptr + 2 * HW + pix, Tcar, mask=mask)
+
+
+@triton.jit
 def tile_extents(
     gauss_ids_ptr,  # [I] int64 tile lists, front to back (TileBins.gauss_ids)
     offsets_ptr,  # [n_tiles+1] int64
@@ -189,11 +198,7 @@ def blend_tiles(
 
     pix = (py * W + px).to(tl.int64)
     tl.store(out_ptr + pix[:, None] * C + ch[None, :], acc, mask=pix_ok[:, None] & ch_ok[None, :])
-    first = pix_ok & (cb == 0)
-    HW = H * W
-    tl.store(aux_ptr + pix, wsum, mask=first)
-    tl.store(aux_ptr + HW + pix, zsum, mask=first)
-    tl.store(aux_ptr + 2 * HW + pix, Tcar, mask=first)
+    _store_aux(aux_ptr, pix, pix_ok & (cb == 0), wsum, zsum, Tcar, W, H)
 
 
 @triton.jit
@@ -391,11 +396,7 @@ def tile_weights(
         wsum += tl.sum(w, axis=1)
         zsum += tl.sum(w * z[None, :], axis=1)
         j0 += BK
-    pix = (py * W + px).to(tl.int64)
-    HW = H * W
-    tl.store(aux_ptr + pix, wsum, mask=pix_ok)
-    tl.store(aux_ptr + HW + pix, zsum, mask=pix_ok)
-    tl.store(aux_ptr + 2 * HW + pix, Tcar, mask=pix_ok)
+    _store_aux(aux_ptr, (py * W + px).to(tl.int64), pix_ok, wsum, zsum, Tcar, W, H)
 
 
 @triton.jit

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import importlib.util
 
-import numpy as np
 import pytest
 import torch
 
@@ -18,7 +17,7 @@ from benchmarks.scenes import garden
 from fmgs.render import rasterize
 from tests.helpers.scenes import random_scene
 from tests.helpers.tolerances import assert_close, rel_err
-from tests.render.test_stiff import _scene
+from tests.render.test_stiff import stacked_layers
 
 cuda = pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device on this machine")
 has_triton = pytest.mark.skipif(importlib.util.find_spec("triton") is None, reason="Triton is not installed")
@@ -44,17 +43,7 @@ def test_every_launch_matches_the_float64_reference(name):
 
 @pytest.mark.parametrize("opacity", [1 - 1e-7, 0.02])
 def test_stacked_layers_terminate_as_the_reference(opacity):
-    n = 10_000
-    sc = _scene(
-        np.c_[np.zeros(n), np.zeros(n), np.linspace(1.0, 3.0, n)],
-        np.tile([1.0, 0, 0, 0], (n, 1)),
-        np.full((n, 3), 5.0),
-        np.full(n, opacity),
-        feats=np.random.default_rng(0).uniform(0, 1, (n, 3)),
-        width=8,
-        height=6,
-        focal=4.0,
-    )
+    sc = stacked_layers(opacity)
     ref = rasterize(*sc.args(torch.float64), backend="reference")
     out = rasterize(*[t.cuda() for t in sc.args()[:5]], sc.camera, backend="triton")
     assert_close(out.image, ref.image, torch.float32, "image")

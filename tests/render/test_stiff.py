@@ -206,14 +206,10 @@ def test_camera_inside_a_gaussian():
     assert outs["reference"].visible[0] and not outs["reference"].visible[1]
 
 
-@pytest.mark.parametrize("opacity", [1 - 1e-7, 0.02])
-def test_ten_thousand_stacked_layers(opacity):
-    """10,000 coincident Gaussians along the optical axis: early termination, no underflow, same decisions."""
-    n = 10_000
-    z = np.linspace(1.0, 3.0, n)
-    means = np.c_[np.zeros(n), np.zeros(n), z]
-    sc = _scene(
-        means,
+def stacked_layers(opacity: float, n: int = 10_000) -> RandomScene:
+    """n coincident Gaussians along the optical axis of an 8x6 camera, front to back over z in [1, 3]."""
+    return _scene(
+        np.c_[np.zeros(n), np.zeros(n), np.linspace(1.0, 3.0, n)],
         np.tile([1.0, 0, 0, 0], (n, 1)),
         np.full((n, 3), 5.0),
         np.full(n, opacity),
@@ -222,6 +218,12 @@ def test_ten_thousand_stacked_layers(opacity):
         height=6,
         focal=4.0,
     )
+
+
+@pytest.mark.parametrize("opacity", [1 - 1e-7, 0.02])
+def test_ten_thousand_stacked_layers(opacity):
+    """10,000 coincident Gaussians along the optical axis: early termination, no underflow, same decisions."""
+    sc = stacked_layers(opacity)
     ref, outs = _check_all(sc, dtype=torch.float64)
     _check_all(sc, dtype=torch.float32)
     centre = outs["cpu"].alpha

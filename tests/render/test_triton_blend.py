@@ -19,7 +19,7 @@ from fmgs.render import RasterConfig, rasterize
 from tests.helpers.brute_force import brute_force_render
 from tests.helpers.scenes import random_scene
 from tests.helpers.tolerances import RTOL, assert_close
-from tests.render.test_stiff import _exact_alpha_image, _rand_quats, _scene
+from tests.render.test_stiff import _exact_alpha_image, _rand_quats, _scene, stacked_layers
 
 triton = pytest.importorskip("triton", reason="the triton backend needs Triton (requirements/cpu.txt has it)")
 if torch.cuda.is_available():
@@ -72,18 +72,7 @@ def test_other_tile_sizes(tile):
 @pytest.mark.parametrize("opacity", [1 - 1e-7, 0.02])
 def test_ten_thousand_stacked_layers(opacity, tuning):
     """Early termination over many list steps: alpha clamps to alpha_max, T crosses 1e-4 mid-step."""
-    n = 10_000
-    z = np.linspace(1.0, 3.0, n)
-    sc = _scene(
-        np.c_[np.zeros(n), np.zeros(n), z],
-        np.tile([1.0, 0, 0, 0], (n, 1)),
-        np.full((n, 3), 5.0),
-        np.full(n, opacity),
-        feats=np.random.default_rng(0).uniform(0, 1, (n, 3)),
-        width=8,
-        height=6,
-        focal=4.0,
-    )
+    sc = stacked_layers(opacity)
     _check(sc, TUNINGS[tuning])
 
 

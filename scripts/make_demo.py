@@ -1,6 +1,6 @@
 """Regenerate the demo scene package ``models/demo`` (a small labelled synthetic scene, a few MB).
 
-    python scripts/make_demo.py [--out models] [--work DIR] [--device cpu]
+    python scripts/make_demo.py [--out models] [--work DIR] [--device cpu] [--threads N]
 
 It imports the project as installed (``.ci/install`` installs this checkout editable into .venv).
 

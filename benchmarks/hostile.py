@@ -201,11 +201,12 @@ def slot_releases(models: Path, cam: pb.Camera, texts: tuple[str, ...]) -> dict[
 def peak_rss(models: Path, cam: pb.Camera, texts: tuple[str, ...]) -> dict[str, dict]:
     """Peak RSS above the warmed-up baseline for the worst request of each kind, each in a fresh server
     (no heap left over from an earlier request), with the estimate the working-memory budget reserves."""
-    from fmgs.scene.package import load_scene
+    from fmgs.scene.manifest import Manifest
 
     out = {}
     big = camera(cam, MAX_W, MAX_H)
-    gaussians = load_scene(models / "demo").gaussians.num  # a render's estimate counts them
+    manifest = Manifest.read(models / "demo")  # the estimates count the scene's Gaussians
+    gaussians, embedded, dim = manifest.num_gaussians, manifest.num_selected, manifest.dim
     pts = np.random.default_rng(2).uniform(-1, 1, size=(1_000_000, 3)).astype(np.float32)
     many = [f"{t} {i}" for i in range(11) for t in texts][:64]
     classes = [f"{x} {i}" for i in range(3) for x in texts][:16]
@@ -249,13 +250,13 @@ def peak_rss(models: Path, cam: pb.Camera, texts: tuple[str, ...]) -> dict[str, 
                     )
                 )
             ),
-            budget.text_bytes(7590, 64, 3 * 7),
+            budget.text_bytes(embedded, 64, 3 * 7, embedded, dim),  # as the server reserves
         ),
         f"Segment {MAX_W}x{MAX_H}, 16 classes, per Gaussian": (
             lambda s: list(
                 s.Segment(pb.SegmentRequest(scene="demo", class_names=classes, camera=big, per_gaussian=True))
             ),
-            budget.segment_bytes(MAX_W, MAX_H, 16, 1343),
+            budget.segment_bytes(MAX_W, MAX_H, 16, embedded),
         ),
     }
     for name, (call, estimate) in cases.items():

@@ -5,8 +5,8 @@
 Makes a synthetic scene of N Gaussians (benchmarks.scenes.synthetic, embeddings that vary smoothly with
 position), serves it with the real server on loopback (a table text encoder: embedding cost is not what
 is measured), and opens ``fmgs_client.viewer.Inspector`` under ``xvfb-run`` (Mesa's llvmpipe: a software
-renderer, so frame times are an upper bound for a machine with a GPU), once per point cap (the default
-200,000 and every Gaussian). Each run measures: the Geometry call alone (median of 3), the time from
+renderer, so frame times are an upper bound for a machine with a GPU), once per point cap (50,000, the
+default 200,000 and every Gaussian). Each run measures: the Geometry call alone (median of 3), the time from
 opening the scene to its points drawn, the frame time (one event-loop tick that draws a moved camera;
 median and 95th percentile over 60 frames of an orbit), a text query answered and drawn, and the viewer
 process's resident memory. Writes viewer.json and VIEWER.md (with --report, also VIEWER.json and VIEWER.md in
@@ -29,8 +29,9 @@ import numpy as np
 from benchmarks.common import ROOT, machine, machine_words, save_report
 
 SCENE = "big"
-CAPS = (200_000, None)
-"""Point caps measured: the viewer's default and none (every Gaussian)."""
+CAPS = (50_000, 200_000, None)
+"""Point caps measured: a quarter of the default, the viewer's default (ViewerConfig.max_points) and none
+(every Gaussian)."""
 
 
 def make_scene(models: Path, n: int) -> None:
@@ -141,10 +142,14 @@ def report(rows: list[dict], info: dict, cmd: str, n: int) -> str:
         "| frame read back (median, p95) | query to drawn | viewer RSS |",
         "|---|---|---|---|---|---|---|---|",
     ]
+    from fmgs_client.viewer_model import ViewerConfig
+
+    default = ViewerConfig().max_points
     for r in rows:
         f, rb = np.asarray(r["frame_ms"]), np.asarray(r["frame_readback_ms"])
         sampled = r["max_points"] < r["gaussians"]
-        cap = f"{r['drawn']:,} of {r['gaussians']:,}" + (" (the default cap)" if sampled else " (all)")
+        which = " (the default cap)" if r["max_points"] == default else "" if sampled else " (all)"
+        cap = f"{r['drawn']:,} of {r['gaussians']:,}{which}"
         lines.append(
             f"| {cap} | {np.median(r['geometry_call_s']):.2f} s | {r['open_to_drawn_s']:.2f} s | "
             f"{np.median(f):.0f} ms | {np.percentile(f, 95):.0f} ms | {np.median(rb):.0f} ms, "

@@ -11,6 +11,8 @@ from fmgs.scene.manifest import MODELS
 from fmgs_wire import DEFAULT_PORT
 
 MiB = 1 << 20
+PATH_FIELDS = ("models", "tls_cert", "tls_key", "client_ca", "token_file", "admin_token_file")
+"""ServerConfig's fields that hold paths: a str given for one becomes a Path."""
 
 
 @dataclass(frozen=True)
@@ -98,6 +100,14 @@ class ServerConfig:
     names)."""
     grace_s: float = 10.0
     """In-flight requests get this long to finish on SIGTERM."""
+
+    def __post_init__(self) -> None:
+        # A caller may spell a path as a str (as TOML and most Python code do); the server calls Path
+        # methods on them, so a str models made every call fail with INTERNAL.
+        for name in PATH_FIELDS:
+            value = getattr(self, name)
+            if value is not None and not isinstance(value, Path):
+                object.__setattr__(self, name, Path(value))
 
     @property
     def compute_slots(self) -> int:

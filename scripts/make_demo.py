@@ -1,6 +1,6 @@
 """Regenerate the demo scene package ``models/demo`` (a small labelled synthetic scene, a few MB).
 
-    python scripts/make_demo.py [--out models] [--work DIR] [--device cpu]
+    python scripts/make_demo.py [--out models] [--work DIR] [--device cpu] [--threads N]
 
 It imports the project as installed (``.ci/install`` installs this checkout editable into .venv).
 
@@ -15,9 +15,10 @@ and label names are recorded in the manifest's ``extra`` so tests and clients ca
 
 ``--score-only`` re-scores the package already there (seconds) instead of rebuilding it.
 
-About 13 minutes on a 2-core CPU (measured 12.7 min while other jobs shared it). ``--work DIR`` keeps
-the intermediate outputs there, and a rerun skips or resumes the stages already complete; without it
-they go to a temporary folder that is removed.
+About 40 minutes on a 2-core CPU shared with other jobs (measured 2,323 s with ``--threads 1``, of which
+the 15,000 3DGS steps took 2,039 s); less on an idle machine. ``--work DIR`` keeps the intermediate outputs
+there, and a rerun skips or resumes the stages already complete; without it they go to a temporary folder
+that is removed.
 """
 
 from __future__ import annotations
@@ -34,9 +35,20 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 
 NAME = "demo"
-SYNTH = {"--views": "32", "--size": "128x96", "--objects": "6", "--seed": "0", "--points": "5000"}
-GS = {"--gs-steps": "1200", "--sh-degree": "0", "--grad-threshold": "0.001"}
-FIELD = {"--feature-scale": "0.5", "--field-steps": "1200", "--field-dtype": "float16"}
+# Dense sparse points start the floor's Gaussians narrower than a checker cell (with 5,000 they started
+# wider and smeared it); 120 views and 15,000 steps fit it sharp (benchmarks/results/DEMO.md).
+SYNTH = {"--views": "120", "--size": "128x96", "--objects": "6", "--seed": "0", "--points": "40000"}
+GS = {"--gs-steps": "15000", "--sh-degree": "0", "--grad-threshold": "0.001"}
+# A small hash table and the 4,000 heaviest Gaussians embedded keep the package a few MB.
+FIELD = {
+    "--feature-scale": "0.5",
+    "--field-steps": "1200",
+    "--field-dtype": "float16",
+    "--field-field-grid-levels": "16",
+    "--field-field-grid-features": "4",
+    "--field-field-grid-log2-table": "14",
+    "--field-select-max-selected": "4000",
+}
 MAX_MB = 10.0
 
 
@@ -114,6 +126,12 @@ def main() -> int:
     ap.add_argument("--work", help="folder for intermediate outputs (kept; default: a temporary folder)")
     ap.add_argument("--device", default="cpu", help="torch device (cpu reproduces the committed package)")
     ap.add_argument(
+        "--threads",
+        default="0",
+        help="CPU threads of the 3DGS and field stages (default 0: the cores idle when each starts; give 1 "
+        "on a machine others share, where two threads oversubscribe it and run many times slower)",
+    )
+    ap.add_argument(
         "--score-only",
         action="store_true",
         help="score the package already in --out (re-synthesising only the held-out views' data); no build",
@@ -154,6 +172,10 @@ def main() -> int:
                     str(extra),
                     "--device",
                     args.device,
+                    "--gs-threads",
+                    args.threads,
+                    "--field-threads",
+                    args.threads,
                     "--seed",
                     "0",
                 ]

@@ -100,9 +100,15 @@ class SelectConfig:
     """Rule "paper": keep Gaussians with opacity above this ..."""
     radius_min: float = 2.0
     """... whose projected 3-sigma radius exceeds this many pixels in at least one training view."""
+    max_selected: int | None = None
+    """At most this many Gaussians carry features: of those the rule keeps, the ones with the largest
+    blending weight summed over all pixels of the training views; none: no cap. Caps a package's
+    embeddings and the field's training cost."""
 
     def __post_init__(self) -> None:
         if self.rule not in SELECT_RULES:
             raise ValueError(f"select rule must be one of {SELECT_RULES}, got {self.rule!r}")
         if not 0.0 < self.coverage <= 1.0:
             raise ValueError(f"coverage must lie in (0, 1], got {self.coverage}")
+        if self.max_selected is not None and self.max_selected < 1:
+            raise ValueError(f"max_selected must be at least 1 (or none), got {self.max_selected}")

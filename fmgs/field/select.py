@@ -5,6 +5,8 @@ by weight and keep the heaviest until they make up ``coverage`` of the pixel's w
 kept if any pixel keeps it. Every pixel's colour is then mostly made of Gaussians with features, so
 its rendered feature says what it shows rather than what lies behind a featureless thin object.
 Rule "paper": opaque Gaussians that cover more than a couple of pixels in some view (the FMGS code).
+With ``max_selected`` K, either rule's choice is cut to the K Gaussians of largest blending weight summed
+over every pixel of the training views: the ones that make up most of what the views show.
 """
 
 from __future__ import annotations
@@ -39,24 +41,59 @@ def select_gaussians(
     gaussians: GaussianSet, cameras: list[Camera], cfg: SelectConfig = SelectConfig()
 ) -> Selection:
     """Apply ``cfg.rule`` over ``cameras`` (the training views; for "coverage" at the resolution the
-    features are trained at)."""
+    features are trained at), then ``cfg.max_selected``."""
+    g = gaussians
+    weight = None
     if cfg.rule == "coverage":
-        keep = torch.zeros(gaussians.num, dtype=torch.bool)
-        g = gaussians
+        keep = torch.zeros(g.num, dtype=torch.bool)
+        if cfg.max_selected is not None:
+            weight = torch.zeros(g.num, dtype=torch.float64)
         for cam in cameras:
             vw = view_weights(g.means, g.quats, g.scales, g.opacities, cam, weights_config(g.means.device))
             keep[covering(vw, cfg.coverage).cpu()] = True
-        return Selection(torch.nonzero(keep).squeeze(1), gaussians.num)
-    opac = gaussians.opacities
-    keep_opacity = opac > cfg.opacity_min
-    big = torch.zeros_like(keep_opacity)
-    idx = torch.nonzero(keep_opacity).squeeze(1)
-    g = gaussians.subset(idx)
-    rc = RasterConfig()
+            if weight is not None:
+                weight.index_add_(0, vw.gaussians.cpu(), column_sums(vw).cpu())
+    else:
+        opac = g.opacities
+        keep = (opac > cfg.opacity_min).cpu()
+        big = torch.zeros_like(keep)
+        idx = torch.nonzero(keep).squeeze(1)
+        sub = g.subset(idx)
+        rc = RasterConfig()
+        for cam in cameras:
+            proj = project(sub.means, sub.quats, sub.scales, sub.opacities, cam, rc)
+            big[idx] |= (proj.visible & (proj.radii > cfg.radius_min)).cpu()
+        keep &= big
+    index = torch.nonzero(keep).squeeze(1)
+    if cfg.max_selected is not None and len(index) > cfg.max_selected:
+        if weight is None:
+            weight = summed_weights(g, cameras)
+        index = heaviest(index, weight[index], cfg.max_selected)
+    return Selection(index, g.num)
+
+
+def column_sums(vw: ViewWeights) -> torch.Tensor:
+    """[M] float64: each of the view's Gaussians' blending weight summed over the view's pixels."""
+    csr = vw.matrix.csr
+    out = torch.zeros(len(vw.gaussians), dtype=torch.float64, device=csr.values().device)
+    return out.index_add_(0, csr.col_indices(), csr.values().double())
+
+
+def summed_weights(gaussians: GaussianSet, cameras: list[Camera]) -> torch.Tensor:
+    """[N] float64: each Gaussian's blending weight summed over every pixel of ``cameras``."""
+    g = gaussians
+    weight = torch.zeros(g.num, dtype=torch.float64)
     for cam in cameras:
-        proj = project(g.means, g.quats, g.scales, g.opacities, cam, rc)
-        big[idx] |= proj.visible & (proj.radii > cfg.radius_min)
-    return Selection(torch.nonzero(keep_opacity & big).squeeze(1), len(opac))
+        vw = view_weights(g.means, g.quats, g.scales, g.opacities, cam)
+        weight.index_add_(0, vw.gaussians.cpu(), column_sums(vw).cpu())
+    return weight
+
+
+def heaviest(index: torch.Tensor, weight: torch.Tensor, k: int) -> torch.Tensor:
+    """The ``k`` entries of ``index`` [M] with the largest ``weight`` [M] (ties: the lower index),
+    increasing."""
+    order = torch.argsort(-weight, stable=True)[:k]
+    return torch.sort(index[order]).values
 
 
 def covering(vw: ViewWeights, coverage: float) -> torch.Tensor:

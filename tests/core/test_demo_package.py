@@ -33,6 +33,7 @@ def test_demo_is_a_small_minilm_scene(demo):
         "field.safetensors",
         "gaussians.safetensors",
         "manifest.json",
+        "query_state.safetensors",
     ]
 
 
@@ -65,7 +66,7 @@ def test_float16_field_reproduces_the_stored_embeddings(demo):
     means = g.means
     with torch.no_grad():
         f = scene.field(means, dino=False).clip
-    # The demo predates the neighbour mean: its manifest has no key, so K=1 (the field at each mean).
+    # Stored embeddings are the field averaged over dense neighbourhoods (K from the manifest).
     f = neighbour_mean(means, reach_of(g.scales), f, stored_neighbours(scene.manifest.extra))
     cos = (f * scene.embeddings).sum(1) / scene.embeddings.norm(dim=1)
     assert float(cos.min()) > 0.99

@@ -211,6 +211,35 @@ def test_coverage_keeps_a_thin_object_the_paper_rule_drops():
         SelectConfig(coverage=0.0)
 
 
+@pytest.mark.parametrize("rule", ["coverage", "paper"])
+def test_max_selected_keeps_the_heaviest_by_dense_per_view_sums(rule):
+    """The cap keeps, of the rule's choice, the K Gaussians whose blending weight summed over every pixel
+    of every view is largest; the sums here come from each view's dense weight matrix."""
+    from fmgs.cameras import Camera
+
+    scenes = [random_scene(seed, 300, 1, 29, 21, 25.0) for seed in (11, 12, 13)]
+    m, q, sc, o, _, _ = scenes[0].args(torch.float32)
+    gs = GaussianSet(m, q, torch.log(sc), torch.logit(o.clamp(1e-4, 1 - 1e-4)), torch.zeros(len(m), 1, 3))
+    cams: list[Camera] = [s.camera for s in scenes]
+    dense = torch.zeros(gs.num, dtype=torch.float64)
+    for cam in cams:
+        vw = view_weights(gs.means, gs.quats, gs.scales, gs.opacities, cam)
+        dense[vw.gaussians] += vw.matrix.dense().double().sum(0)
+    free = select_gaussians(gs, cams, SelectConfig(rule=rule))
+    k = len(free.index) // 3
+    w = dense[free.index]
+    order = torch.argsort(-w)
+    assert w[order[k - 1]] - w[order[k]] > 1e-6  # a clear cut, so rounding cannot decide it
+    want = torch.sort(free.index[order[:k]]).values
+    capped = select_gaussians(gs, cams, SelectConfig(rule=rule, max_selected=k))
+    assert torch.equal(capped.index, want) and capped.total == gs.num
+    # A cap at or above the rule's count changes nothing.
+    same = select_gaussians(gs, cams, SelectConfig(rule=rule, max_selected=len(free.index)))
+    assert torch.equal(same.index, free.index)
+    with pytest.raises(ValueError, match="max_selected"):
+        SelectConfig(max_selected=0)
+
+
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 def test_view_weights_render_equals_the_rasteriser(dtype):
     s = random_scene(3, 200, 6, 37, 29, 35.0)

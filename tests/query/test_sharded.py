@@ -222,7 +222,11 @@ def test_sharded_relevancy_renders_composite_close_to_the_unsharded_render(tmp_p
         # off by more than 0.05 (where a Gaussian straddling a split plane is blended out of order).
         assert float(err.mean()) < 0.005 and float(err.flatten().quantile(0.99)) < 0.05
         assert float((err > 0.05).float().mean()) < 0.01
-        assert got.argmax[:2] == ref.argmax[:2]  # the most relevant pixel is the same
+        # The most relevant pixel is one the reference finds as relevant to within 1e-4 of its maximum: the
+        # demo's query peaks on a plateau (top pixels within 1.2e-5 of each other), where a 3e-5
+        # compositing difference may pick a neighbour.
+        x, y, top = got.argmax
+        assert float(ref.relevancy[y, x]) >= ref.argmax[2] - 1e-4 and abs(top - ref.argmax[2]) < 1e-4
         worst = max(worst, float(err.mean()))
         # the order matters: compositing back to front is measurably worse
         order = render_order(sharded.manifest, cam)

@@ -84,7 +84,7 @@ def summed_weights(gaussians: GaussianSet, cameras: list[Camera]) -> torch.Tenso
     g = gaussians
     weight = torch.zeros(g.num, dtype=torch.float64)
     for cam in cameras:
-        vw = view_weights(g.means, g.quats, g.scales, g.opacities, cam)
+        vw = view_weights(g.means, g.quats, g.scales, g.opacities, cam, weights_config(g.means.device))
         weight.index_add_(0, vw.gaussians.cpu(), column_sums(vw).cpu())
     return weight
 

@@ -84,6 +84,8 @@ def render_pose(
         if "relevancy" in outputs:  # scored where it was rendered: only [H,W] crosses to the host
             rel, arg = score_image(out.image.float())
             rel = rel.cpu()
+        if between_tiles is not None:  # scoring a large image takes as long as a batch of tiles
+            between_tiles()
     if "rgb" in outputs or "depth" in outputs:
         out = render_rgb(engine.gaussians, camera, backend=engine.cfg.backend, between_tiles=between_tiles)
         rgb = out.image.float().clamp(0, 1).cpu()

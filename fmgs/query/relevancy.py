@@ -20,8 +20,9 @@ def relevancy(
     query_dots: torch.Tensor, canonical_dots: torch.Tensor, temperature: float = TEMPERATURE
 ) -> torch.Tensor:
     """[...] relevancy from f.q [...] and f.c_n [..., C] (float32 or float64; C >= 1)."""
-    q = query_dots.to(canonical_dots.dtype)[..., None]
-    return torch.sigmoid(temperature * (q - canonical_dots)).amin(-1)
+    # min_n sigmoid(t(q - c_n)) = sigmoid(t(q - max_n c_n)) exactly: subtraction, scaling and sigmoid are
+    # monotone in c_n, so one sigmoid per element replaces C of them.
+    return torch.sigmoid(temperature * (query_dots.to(canonical_dots.dtype) - canonical_dots.amax(-1)))
 
 
 def relevancy_reference(

@@ -181,6 +181,42 @@ def stable_argsort_positive(keys):  # pragma: no cover
     return idx
 
 
+@njit(cache=True, parallel=True)
+def bin_kernel_parallel(order, tbox, tiles_x, tiles_y, chunks):  # pragma: no cover
+    """``bin_kernel``'s output, by a counting sort over ``chunks`` consecutive slices of ``order``: each
+    slice counts its pairs per tile, then writes them after every earlier slice's pairs of that tile, so
+    each tile's list keeps the front-to-back order."""
+    n_tiles = tiles_x * tiles_y
+    n = order.shape[0]
+    counts = np.zeros((chunks, n_tiles), dtype=np.int64)
+    for c in prange(chunks):
+        for k in range(c * n // chunks, (c + 1) * n // chunks):
+            g = order[k]
+            for ty in range(tbox[g, 1], tbox[g, 3] + 1):
+                for tx in range(tbox[g, 0], tbox[g, 2] + 1):
+                    counts[c, ty * tiles_x + tx] += 1
+    offsets = np.zeros(n_tiles + 1, dtype=np.int64)
+    starts = np.empty((chunks, n_tiles), dtype=np.int64)
+    pos = 0
+    for tid in range(n_tiles):
+        offsets[tid] = pos
+        for c in range(chunks):
+            starts[c, tid] = pos
+            pos += counts[c, tid]
+    offsets[n_tiles] = pos
+    ids = np.empty(pos, dtype=np.int64)
+    for c in prange(chunks):
+        fill = starts[c]
+        for k in range(c * n // chunks, (c + 1) * n // chunks):
+            g = order[k]
+            for ty in range(tbox[g, 1], tbox[g, 3] + 1):
+                for tx in range(tbox[g, 0], tbox[g, 2] + 1):
+                    tid = ty * tiles_x + tx
+                    ids[fill[tid]] = g
+                    fill[tid] += 1
+    return ids, offsets
+
+
 @njit(cache=True)
 def bin_kernel(order, tbox, tiles_x, tiles_y):  # pragma: no cover
     """Counting sort of (tile, Gaussian) pairs; ``order`` is already front to back."""

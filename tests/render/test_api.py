@@ -138,10 +138,24 @@ def test_between_tiles_hook_leaves_the_image_unchanged_and_can_stop_it(backend):
     hooked = rasterize(*sc.args(), backend=backend, between_tiles=lambda: calls.append(1))
     assert torch.equal(plain.image, hooked.image) and torch.equal(plain.alpha, hooked.alpha)
     assert torch.equal(plain.n_contrib, hooked.n_contrib) and torch.equal(plain.weight_sum, hooked.weight_sum)
-    assert len(calls) == (8 if backend == "cpu" else 1)
+    # cpu: after projection, depth sorting and binning, then after each of the 8 batches of tiles
+    assert len(calls) == (3 + 8 if backend == "cpu" else 1)
 
     def stop():
         raise TimeoutError("deadline")
 
     with pytest.raises(TimeoutError):
         rasterize(*sc.args(), backend=backend, between_tiles=stop)
+
+
+def test_many_small_batches_leave_the_cpu_image_unchanged(monkeypatch):
+    import fmgs.render.cpu_fast as cf
+
+    sc = random_scene(seed=5, n=400, d=4, width=90, height=70, focal=70.0, background=True)
+    plain = rasterize(*sc.args(), backend="cpu")
+    monkeypatch.setattr(cf, "BATCH_PAIRS", 50)  # cut by pairs into many batches
+    calls = []
+    hooked = rasterize(*sc.args(), backend="cpu", between_tiles=lambda: calls.append(1))
+    assert len(calls) > 3 + cf.TILE_BATCHES
+    for name in ("image", "alpha", "depth", "n_contrib", "weight_sum"):
+        assert torch.equal(getattr(plain, name), getattr(hooked, name)), name

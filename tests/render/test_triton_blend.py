@@ -21,7 +21,7 @@ from tests.helpers.scenes import random_scene
 from tests.helpers.tolerances import RTOL, assert_close
 from tests.render.test_stiff import _exact_alpha_image, _rand_quats, _scene, stacked_layers
 
-triton = pytest.importorskip("triton", reason="the triton backend needs Triton (requirements/cpu.txt has it)")
+triton = pytest.importorskip("triton", reason="the triton backend needs Triton (in requirements/test.txt)")
 if torch.cuda.is_available():
     pytest.skip(
         "a CUDA device is visible: tests/cuda/test_triton_cuda.py checks the compiled kernel",

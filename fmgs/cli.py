@@ -136,6 +136,7 @@ def cmd_synth(args: argparse.Namespace) -> int:
         points=args.points,
         distortion=dist,
         preset=args.preset,
+        novel=args.novel,
         rig=args.rig,
         backdrop=args.backdrop,
         declare_background=not args.undeclared_background,
@@ -470,7 +471,14 @@ def build_parser() -> argparse.ArgumentParser:
         default="basic",
         choices=PRESETS,
         help="basic: the first objects, spread apart; cluttered: a seeded choice of up to 13 objects "
-        "(thin, small, flat), about half touching another, on a striped floor",
+        "(thin, small, flat), about half touching another, on a striped floor; world: up to 15 objects of "
+        "distinct shapes named by colour, texture and shape (fmgs.synthworld), small to large",
+    )
+    sy.add_argument(
+        "--novel",
+        type=int,
+        default=0,
+        help="world preset: this many objects take a held-out colour-shape pair (default 0: none)",
     )
     sy.add_argument("--points", type=int, default=20_000, help="surface samples in points3D.ply")
     sy.add_argument(

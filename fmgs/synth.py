@@ -49,9 +49,12 @@ WALL_HEIGHT) encloses the floor, as a room or a street does, with BACKGROUND abo
 labelled background (0) and its surface is sampled into points3D.ply, as structure from motion would."""
 WALL_RADIUS = 6.0
 WALL_HEIGHT = 2.5
-PRESETS = ("basic", "cluttered")
+PRESETS = ("basic", "cluttered", "world")
 """basic: the first ``objects`` of OBJECTS, spread apart on a checkered floor. cluttered: a seeded
-choice of ``objects`` from all of OBJECTS, about half placed touching another, on a striped floor."""
+choice of ``objects`` from all of OBJECTS, about half placed touching another, on a striped floor.
+world: ``objects`` of distinct shapes from the wider world (fmgs.synthworld: 15 shapes, 12 colours,
+11 surface textures, named "<colour> <texture> <shape>"), sizes from small to large, about a third
+touching another, on a striped floor; ``novel`` of them with a held-out colour-shape pair."""
 FLOOR_COLOUR = (0.55, 0.5, 0.45)
 BACKGROUND = (0.8, 0.85, 0.95)
 LIGHT = np.array([0.4, 0.5, 0.77]) / np.linalg.norm([0.4, 0.5, 0.77])  # world +z is up
@@ -94,6 +97,9 @@ class SynthConfig:
     declare_background: bool = True
     """Write the constant backdrop colour into transforms.json ("background"); False leaves it undeclared,
     as most captures do, so a trainer must cope with it on its own."""
+    novel: int = 0
+    """Preset "world": how many objects take a held-out colour-shape pair (fmgs.synthworld.HELD_OUT);
+    the others never do."""
 
 
 def _look_at(eye: np.ndarray, target: np.ndarray) -> np.ndarray:
@@ -122,35 +128,64 @@ def _camera_position(cfg: SynthConfig, v: int) -> tuple[np.ndarray, np.ndarray]:
     return eye, np.array([0.0, 0.0, 0.25])
 
 
+def _shape_makers():
+    """Shape word -> function of the size s making its open3d mesh (built along +z, centred later)."""
+    import open3d as o3d
+
+    g = o3d.geometry.TriangleMesh
+
+    def diamond(s):
+        m = g.create_octahedron(s / 2)
+        m.scale(1.0, center=(0, 0, 0))
+        v = np.asarray(m.vertices) * np.array([0.8, 0.8, 1.2])  # taller than wide: a gem, not a die
+        m.vertices = o3d.utility.Vector3dVector(v)
+        return m
+
+    def egg(s):
+        m = g.create_sphere(s / 2, resolution=20)
+        v = np.asarray(m.vertices) * np.array([0.75, 0.75, 1.0])
+        v[:, 2] *= np.where(v[:, 2] > 0, 1.15, 0.9)  # a narrower top
+        m.vertices = o3d.utility.Vector3dVector(v)
+        return m
+
+    return {
+        "cube": lambda s: g.create_box(s, s, s),
+        "ball": lambda s: g.create_sphere(s / 2, resolution=24),
+        "cylinder": lambda s: g.create_cylinder(s / 3, s, resolution=24),
+        "cone": lambda s: g.create_cone(s / 2.5, s, resolution=24),
+        "donut": lambda s: g.create_torus(s / 2.6, s / 7, radial_resolution=24, tubular_resolution=12),
+        "pyramid": lambda s: g.create_cone(s / 2, s * 0.8, resolution=4),
+        "ring": lambda s: g.create_torus(s / 2.2, s / 12, radial_resolution=24, tubular_resolution=8),
+        "box": lambda s: g.create_box(s * 1.2, s * 0.5, s * 0.4),
+        "pencil": lambda s: _lying(g.create_cylinder(0.025, s * 1.3, resolution=12)),
+        "marble": lambda s: g.create_sphere(s * 0.2, resolution=16),
+        "book": lambda s: g.create_box(s * 0.9, s * 0.65, 0.09),
+        "plate": lambda s: g.create_cylinder(s * 0.55, 0.03, resolution=32),
+        "mug": lambda s: _mug(g, s),
+        "egg": egg,
+        "arrow": lambda s: _lying(g.create_arrow(s * 0.06, s * 0.13, s * 0.75, s * 0.3, resolution=12)),
+        "diamond": diamond,
+    }
+
+
 def _meshes(cfg: SynthConfig):
-    """(name, colour, open3d TriangleMesh) for the floor and each object, placed without overlap."""
+    """(name, colour, open3d TriangleMesh, texture) for the floor and each object, placed without
+    overlap; the texture is None outside the world preset (the classic checker)."""
     import open3d as o3d
 
     if cfg.preset not in PRESETS:
         raise ValueError(f"preset must be one of {PRESETS}, got {cfg.preset!r}")
+    if cfg.preset == "world":
+        return _world_meshes(cfg)
     limit = len(OBJECTS) if cfg.preset == "cluttered" else 8
     if not 1 <= cfg.objects <= limit:
         raise ValueError(f"objects must be in 1..{limit} for preset {cfg.preset!r}, got {cfg.objects}")
     rng = np.random.default_rng(cfg.seed)
     g = o3d.geometry.TriangleMesh
-    makers = {
-        "red cube": lambda s: g.create_box(s, s, s),
-        "blue ball": lambda s: g.create_sphere(s / 2, resolution=24),
-        "green cylinder": lambda s: g.create_cylinder(s / 3, s, resolution=24),
-        "yellow cone": lambda s: g.create_cone(s / 2.5, s, resolution=24),
-        "purple donut": lambda s: g.create_torus(s / 2.6, s / 7, radial_resolution=24, tubular_resolution=12),
-        "orange pyramid": lambda s: g.create_cone(s / 2, s * 0.8, resolution=4),
-        "white ring": lambda s: g.create_torus(s / 2.2, s / 12, radial_resolution=24, tubular_resolution=8),
-        "cyan box": lambda s: g.create_box(s * 1.2, s * 0.5, s * 0.4),
-        "yellow pencil": lambda s: _lying(g.create_cylinder(0.025, s * 1.3, resolution=12)),
-        "pink marble": lambda s: g.create_sphere(s * 0.2, resolution=16),
-        "blue book": lambda s: g.create_box(s * 0.9, s * 0.65, 0.09),
-        "white plate": lambda s: g.create_cylinder(s * 0.55, 0.03, resolution=32),
-        "red mug": lambda s: _mug(g, s),
-    }
+    makers = _shape_makers()  # each classic object's last word is its shape
     floor = g.create_box(8.0, 8.0, 0.02)
     floor.translate((-4.0, -4.0, -0.02))
-    out = [("floor", FLOOR_COLOUR, floor)]
+    out = [("floor", FLOOR_COLOUR, floor, None)]
     placed: list[tuple[float, float, float]] = []
     if cfg.preset == "basic":
         chosen = list(OBJECTS[: cfg.objects])
@@ -158,18 +193,53 @@ def _meshes(cfg: SynthConfig):
         chosen = [OBJECTS[i] for i in sorted(rng.choice(len(OBJECTS), cfg.objects, replace=False))]
     for name, colour in chosen:
         size = float(rng.uniform(0.45, 0.7))
-        mesh = makers[name](size)
-        mesh.translate(-mesh.get_axis_aligned_bounding_box().get_center())
-        R = mesh.get_rotation_matrix_from_xyz((0.0, 0.0, float(rng.uniform(0, 2 * np.pi))))
-        mesh.rotate(R, center=(0, 0, 0))
-        r = mesh.get_axis_aligned_bounding_box().get_half_extent()[:2].max()
-        touch = cfg.preset == "cluttered" and placed and rng.uniform() < 0.5
-        x, y = _place(rng, placed, r, touch)
-        placed.append((x, y, r))
-        zmin = mesh.get_axis_aligned_bounding_box().min_bound[2]
-        mesh.translate((x, y, -zmin))  # rest on the floor
-        mesh.compute_triangle_normals()
-        out.append((name, colour, mesh))
+        mesh = makers[name.split()[-1]](size)
+        out.append((name, colour, _put(mesh, rng, placed, cfg.preset == "cluttered" and 0.5), None))
+    return out
+
+
+def _put(mesh, rng, placed: list[tuple[float, float, float]], touch_p: float | bool):
+    """Turn ``mesh`` about z at random, place it on the floor apart from ``placed`` (touching a placed
+    one with probability ``touch_p``), record its footprint in ``placed``; returns the mesh."""
+    mesh.translate(-mesh.get_axis_aligned_bounding_box().get_center())
+    R = mesh.get_rotation_matrix_from_xyz((0.0, 0.0, float(rng.uniform(0, 2 * np.pi))))
+    mesh.rotate(R, center=(0, 0, 0))
+    r = mesh.get_axis_aligned_bounding_box().get_half_extent()[:2].max()
+    touch = bool(touch_p) and bool(placed) and rng.uniform() < touch_p
+    x, y = _place(rng, placed, r, touch)
+    placed.append((x, y, r))
+    zmin = mesh.get_axis_aligned_bounding_box().min_bound[2]
+    mesh.translate((x, y, -zmin))  # rest on the floor
+    mesh.compute_triangle_normals()
+    return mesh
+
+
+WORLD_SIZES = (0.3, 0.95)
+"""Range of the world preset's size factor s (a cube's edge; at the default ring about 9 to 30 pixels
+across at 128x96): small objects beside large ones."""
+
+
+def _world_meshes(cfg: SynthConfig):
+    """The world preset's floor and objects (fmgs.synthworld.sample_objects), smallest placed last."""
+    import open3d as o3d
+
+    from fmgs.synthworld import COLOURS, sample_objects
+
+    rng = np.random.default_rng(cfg.seed)
+    objs = sample_objects(rng, cfg.objects, cfg.novel)
+    sizes = rng.uniform(*WORLD_SIZES, len(objs))
+    makers = _shape_makers()
+    floor = o3d.geometry.TriangleMesh.create_box(8.0, 8.0, 0.02)
+    floor.translate((-4.0, -4.0, -0.02))
+    out = [("floor", FLOOR_COLOUR, floor, "floor")]
+    placed: list[tuple[float, float, float]] = []
+    order = np.argsort(-sizes, kind="stable")  # large ones first: rejection sampling then fits the rest
+    meshes = {}
+    for i in order:
+        o = objs[i]
+        meshes[i] = _put(makers[o.shape](float(sizes[i])), rng, placed, 0.35)
+    for i, o in enumerate(objs):
+        out.append((o.name, COLOURS[o.colour], meshes[i], o.texture))
     return out
 
 
@@ -265,7 +335,7 @@ def generate(out: str | Path, cfg: SynthConfig = SynthConfig()) -> Path:
     items = _meshes(cfg)
     scene = o3d.t.geometry.RaycastingScene()
     geom_label = {}
-    for label, (_, _, mesh) in enumerate(items, start=1):
+    for label, (_, _, mesh, _) in enumerate(items, start=1):
         gid = scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(mesh))
         geom_label[gid] = label
     wall = _wall() if cfg.backdrop == "walls" else None
@@ -273,8 +343,9 @@ def generate(out: str | Path, cfg: SynthConfig = SynthConfig()) -> Path:
     if wall is not None:
         wall_gid = scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(wall))
         geom_label[wall_gid] = 0  # surroundings, not a class
-    names = ["background"] + [n for n, _, _ in items]
-    colours = np.array([BACKGROUND] + [c for _, c, _ in items])
+    names = ["background"] + [n for n, _, _, _ in items]
+    colours = np.array([BACKGROUND] + [c for _, c, _, _ in items])
+    albedo_of = _albedo_for(items, colours, cfg)
     lut = np.zeros(max(geom_label) + 2, dtype=np.int64)
     for gid, label in geom_label.items():
         lut[gid] = label
@@ -308,7 +379,7 @@ def generate(out: str | Path, cfg: SynthConfig = SynthConfig()) -> Path:
         depth = np.where(miss, 0.0, t)  # z-depth, because the camera-frame ray has z = 1
         pts = eye + dirs * np.where(miss, 0.0, t)[..., None]
         normals = hit["primitive_normals"].numpy().astype(np.float64)
-        albedo = _albedo(label, pts, colours, cfg.checker, cfg.preset == "cluttered")
+        albedo = albedo_of(label, pts)
         if wall_gid is not None:
             on_wall = ~miss & (gid == wall_gid)
             albedo[on_wall] = _wall_albedo(pts[on_wall], cfg.checker)
@@ -337,7 +408,7 @@ def generate(out: str | Path, cfg: SynthConfig = SynthConfig()) -> Path:
                 boxes[names[lab]] = [int(xs.min()), int(ys.min()), int(xs.max()), int(ys.max())]
         views.append({"file_path": f"images/{name}", "boxes_2d": boxes})
 
-    pts, cols = _surface_points(items, colours, cfg)
+    pts, cols = _surface_points(items, albedo_of, cfg)
     if wall is not None:
         wp, wn = _sample_surface(wall, cfg.points // 2, np.random.default_rng(cfg.seed + 1))
         wc = (_shade(_wall_albedo(wp, cfg.checker), wn) * 255 + 0.5).astype(np.uint8)
@@ -357,17 +428,21 @@ def generate(out: str | Path, cfg: SynthConfig = SynthConfig()) -> Path:
         "frames": frames,
     }
     objects = []
-    for label, (name, colour, mesh) in enumerate(items, start=1):
+    for label, (name, colour, mesh, _) in enumerate(items, start=1):
         bb = mesh.get_axis_aligned_bounding_box()
-        objects.append(
-            {
-                "label": label,
-                "name": name,
-                "colour": list(colour),
-                "aabb_min": bb.min_bound.tolist(),
-                "aabb_max": bb.max_bound.tolist(),
-            }
-        )
+        o = {
+            "label": label,
+            "name": name,
+            "colour": list(colour),
+            "aabb_min": bb.min_bound.tolist(),
+            "aabb_max": bb.max_bound.tolist(),
+        }
+        if cfg.preset == "world" and label >= 2:
+            from fmgs.synthworld import world_object
+
+            w = world_object(name)
+            o.update(colour_name=w.colour, texture=w.texture, shape=w.shape, novel=w.novel)
+        objects.append(o)
     scene_meta = {
         "generator": "fmgs.synth",
         "config": asdict(cfg),
@@ -382,17 +457,40 @@ def generate(out: str | Path, cfg: SynthConfig = SynthConfig()) -> Path:
     return out / "transforms.json"
 
 
-def _surface_points(items, colours, cfg: SynthConfig) -> tuple[np.ndarray, np.ndarray]:
+def _albedo_for(items, colours: np.ndarray, cfg: SynthConfig):
+    """The scene's albedo as a function of (label [...], surface points [...,3]) -> [...,3]: the classic
+    checker (and striped floor) of _albedo, or the world's named textures about each object's centre."""
+    striped = cfg.preset in ("cluttered", "world")
+    if cfg.preset != "world":
+        return lambda label, pts: _albedo(label, pts, colours, cfg.checker, striped)
+    from fmgs.synthworld import texture_shade
+
+    centres = [np.zeros(3)] + [m.get_axis_aligned_bounding_box().get_center() for _, _, m, _ in items]
+
+    def albedo(label: np.ndarray, pts: np.ndarray) -> np.ndarray:
+        out = _albedo(label, pts, colours, cfg.checker, striped)  # floor and background
+        for lab, (_, _, _, texture) in enumerate(items, start=1):
+            if lab < 2:
+                continue
+            on = label == lab
+            if on.any():
+                out[on] = colours[lab] * texture_shade(texture, pts[on] - centres[lab])[..., None]
+        return out
+
+    return albedo
+
+
+def _surface_points(items, albedo_of, cfg: SynthConfig) -> tuple[np.ndarray, np.ndarray]:
     """Area-uniform samples on every surface, coloured like the renderer colours them."""
     rng = np.random.default_rng(cfg.seed)
     pts, cols = [], []
-    areas = np.array([m.get_surface_area() for _, _, m in items])
+    areas = np.array([m.get_surface_area() for _, _, m, _ in items])
     counts = np.maximum(50, (cfg.points * areas / areas.sum()).astype(int))
-    for label, ((_, _, mesh), n) in enumerate(zip(items, counts, strict=True), start=1):
+    for label, ((_, _, mesh, _), n) in enumerate(zip(items, counts, strict=True), start=1):
         p, nrm = _sample_surface(mesh, int(n), rng)
         lab = np.full(len(p), label)
         pts.append(p)
-        cols.append(_shade(_albedo(lab, p, colours, cfg.checker, cfg.preset == "cluttered"), nrm))
+        cols.append(_shade(albedo_of(lab, p), nrm))
     return np.concatenate(pts), (np.concatenate(cols) * 255 + 0.5).astype(np.uint8)
 
 

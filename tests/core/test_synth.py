@@ -157,3 +157,53 @@ def test_walls_backdrop_is_textured_geometry_labelled_background(tmp_path):
     assert on_wall.sum() == cfg.points // 2 and pts["z"][on_wall].max() <= WALL_HEIGHT + 1e-6
     with pytest.raises(ValueError, match="backdrop"):
         generate(tmp_path / "bad", replace(cfg, backdrop="dome"))
+
+
+def test_world_preset_names_colours_textures_and_shapes(tmp_path):
+    """The wider world: distinct shapes, names made of colour, texture and shape, novel pairs only when
+    asked, and every object's texture visible as more than one brightness on its pixels."""
+    from fmgs.synthworld import COLOURS, HELD_OUT, SHAPES, TEXTURES, world_object
+
+    assert len(SHAPES) >= 10 and len(COLOURS) >= 10 and len(TEXTURES) - 1 >= 10  # "plain" has no name
+    assert len(set(HELD_OUT)) == len(HELD_OUT) and all(c in COLOURS and s in SHAPES for c, s in HELD_OUT)
+    metas = {}
+    for novel in (0, 3):
+        out = tmp_path / f"n{novel}"
+        cfg = SynthConfig(views=4, width=96, height=72, objects=10, seed=5, points=2000, preset="world")
+        generate(out, replace(cfg, novel=novel, backdrop="walls"))
+        metas[novel] = json.loads((out / "scene.json").read_text())
+    for novel, m in metas.items():
+        objs = [o for o in m["objects"] if o["label"] >= 2]
+        assert len(objs) == 10 and len({o["shape"] for o in objs}) == 10
+        for o in objs:
+            w = world_object(o["name"])
+            assert (w.colour, w.texture, w.shape) == (o["colour_name"], o["texture"], o["shape"])
+            assert o["colour"] == list(COLOURS[w.colour])
+        assert sum(o["novel"] for o in objs) == novel
+    # textured objects show their pattern: two brightness levels among their pixels in some view
+    out = tmp_path / "n3"
+    m = metas[3]
+    textured = {o["label"] for o in m["objects"] if o.get("texture") not in (None, "plain")}
+    seen = set()
+    for f in sorted((out / "images").iterdir()):
+        img = np.asarray(Image.open(f)).astype(float).sum(-1)
+        lab = np.asarray(Image.open(out / "labels" / f.name))
+        for t in textured:
+            px = img[lab == t]
+            if len(px) >= 30 and np.percentile(px, 90) > 1.3 * np.percentile(px, 10) + 10:
+                seen.add(t)
+    assert len(seen) >= len(textured) // 2
+    with pytest.raises(ValueError, match=r"objects must be in 1\.\.15"):
+        generate(tmp_path / "x", SynthConfig(views=1, objects=16, preset="world"))
+    with pytest.raises(ValueError, match="novel"):
+        generate(tmp_path / "y", SynthConfig(views=1, objects=2, novel=3, preset="world"))
+
+
+def test_world_object_names_round_trip():
+    from fmgs.synthworld import object_name, world_object
+
+    assert object_name("red", "plain", "cube") == "red cube"
+    assert world_object("red striped cube").texture == "striped"
+    assert world_object("red cube").texture == "plain"
+    with pytest.raises(ValueError, match="not a world object name"):
+        world_object("yellow pencil case")

@@ -229,6 +229,7 @@ BUILD_ALIASES = {
             "dino_model",
             "single_scale",
             "crop_stride",
+            "scale_blend",
             "labels",
             "names",
             "text_encoder",

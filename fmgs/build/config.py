@@ -7,7 +7,7 @@ import dataclasses
 from dataclasses import dataclass
 
 from fmgs.features.models import DEFAULT_CLIP_ID, DEFAULT_DINO_ID, MINILM_ID
-from fmgs.features.sizes import CROP_STRIDE, FEATURE_SIDE, check_feature_scale
+from fmgs.features.sizes import CROP_STRIDE, FEATURE_SIDE, SCALE_BLEND, SCALE_BLENDS, check_feature_scale
 from fmgs.scene.manifest import FIELD_DTYPES, MODELS
 from fmgs.sfm.config import SfMConfig
 from fmgs.train.config import FieldTrainConfig, GSTrainConfig
@@ -37,6 +37,10 @@ class TargetSpec:
     """Cap on the crop pyramid's stride, a fraction of the image's shorter side (kind "clip"): every
     scale's crops start at most this far apart; none: half the crop edge (the paper's, sparse at the
     coarse scales; fewer crops, small objects washed out)."""
+    scale_blend: str = SCALE_BLEND
+    """How the pyramid's scales become one target per pixel (kind "clip"; fmgs.features.scale_blend):
+    "mean" (the paper's equal mean), "coherence" or "dominant" (each scale weighed by how much of its
+    crop the DINO map groups with the pixel; need a dino_model)."""
     labels: str | None = None
     """Label image folder (kind "labels"); default DATA/labels."""
     names: str | None = None
@@ -55,6 +59,13 @@ class TargetSpec:
         check_feature_scale(self.feature_scale, self.feature_side)
         if self.crop_stride is not None and not 0.0 < self.crop_stride <= 1.0:
             raise ValueError(f"crop_stride must lie in (0, 1] or be none, got {self.crop_stride}")
+        if self.scale_blend not in SCALE_BLENDS:
+            raise ValueError(f"scale_blend must be one of {SCALE_BLENDS}, got {self.scale_blend!r}")
+        if self.kind == "clip" and self.scale_blend != "mean" and not self.dino_model:
+            raise ValueError(
+                f"scale_blend {self.scale_blend!r} weighs the scales by DINO coherence and needs a "
+                "dino_model; give one, or choose --scale-blend mean"
+            )
 
 
 @dataclass(frozen=True)

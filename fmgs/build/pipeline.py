@@ -103,12 +103,12 @@ def extract_features(ds, cache_dir: Path, spec: TargetSpec, device: str, progres
     if spec.kind != "clip":
         raise ValidationError("targets", f"unknown target kind {spec.kind!r}; choose 'clip' or 'labels'")
     from fmgs.features.clip import load_image_encoder
-    from fmgs.features.dino import DinoEncoder
+    from fmgs.features.dino import load_dense_encoder
     from fmgs.features.pyramid import pyramid_for
 
     clip = load_image_encoder(spec.clip_model, device=device)
-    dino = DinoEncoder.load(spec.dino_model, device=device) if spec.dino_model else None
-    pyr = pyramid_for(clip, spec.single_scale, spec.crop_stride)
+    dino = load_dense_encoder(spec.dino_model, device=device) if spec.dino_model else None
+    pyr = pyramid_for(clip, spec.single_scale, spec.crop_stride, spec.scale_blend)
     return extract_targets(ds, cache_dir, clip, dino, pyr, ecfg)
 
 

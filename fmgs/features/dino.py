@@ -120,3 +120,16 @@ class DinoEncoder:
         grid = tokens[0, self.skip :].float().reshape(gh, gw, self.dim).permute(2, 0, 1).unsqueeze(0)
         out = F.interpolate(grid, size=tuple(out_hw), mode="bilinear", align_corners=False)
         return out[0].permute(1, 2, 0).contiguous().to(image.device)
+
+
+def load_dense_encoder(model_id: str = DEFAULT_DINO_ID, device: str | torch.device = "cpu"):
+    """The dense regulariser of any id the registry knows: DINO or DINOv2 (``DinoEncoder.load``), or the
+    DINO stand-in (``standin-dino:FOLDER``, fmgs.features.standin_dino). Both offer ``dense``, ``id``,
+    ``dim`` and ``files``."""
+    from fmgs.features.registry import parse_encoder_id
+
+    if parse_encoder_id(model_id).family == "standin-dino":
+        from fmgs.features.standin_dino import load_standin_dino
+
+        return load_standin_dino(model_id, device)
+    return DinoEncoder.load(model_id, device=device)

@@ -59,12 +59,12 @@ class _Worker:
             self.targets = {"clip": TargetInfo(enc.id, enc.dim, True)}
         else:
             from fmgs.features.clip import load_image_encoder
-            from fmgs.features.dino import DinoEncoder
+            from fmgs.features.dino import load_dense_encoder
             from fmgs.features.pyramid import pyramid_for
 
             self.clip = load_image_encoder(spec.clip_model, device=device)
-            self.dino = DinoEncoder.load(spec.dino_model, device=device) if spec.dino_model else None
-            self.pyramid = pyramid_for(self.clip, spec.single_scale, spec.crop_stride)
+            self.dino = load_dense_encoder(spec.dino_model, device=device) if spec.dino_model else None
+            self.pyramid = pyramid_for(self.clip, spec.single_scale, spec.crop_stride, spec.scale_blend)
             self.targets = {"clip": TargetInfo(self.clip.id, self.clip.dim, True)}
             if self.dino is not None:
                 self.targets["dino"] = TargetInfo(self.dino.id, self.dino.dim, False)

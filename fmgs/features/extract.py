@@ -100,8 +100,8 @@ def image_targets(
     image, _ = ds.image(i, cfg.image_scale)
     image = image.to(cfg.device)
     hw = feature_size(frame.camera, cfg.feature_scale, cfg.feature_side)
-    clip = hybrid_map(clip_encoder, image, pyramid, hw)
     dino = dino_encoder.dense(image, hw) if dino_encoder is not None else None
+    clip = hybrid_map(clip_encoder, image, pyramid, hw, dense=dino)
     return {"image_name": frame.name, "clip": clip, "dino": dino}
 
 

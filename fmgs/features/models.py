@@ -111,7 +111,8 @@ def sha256_file(path: Path) -> str:
     return h.hexdigest()
 
 
-def _local_files(folder: Path) -> dict[str, str]:
+def local_weight_hashes(folder: Path) -> dict[str, str]:
+    """{file name: sha256} of the weights files (.safetensors, .bin) directly in ``folder``."""
     return {
         p.name: sha256_file(p)
         for p in sorted(folder.iterdir())
@@ -188,12 +189,12 @@ def fetch_model(
     if model_dir is not None:
         d = Path(model_dir).expanduser()
         if (d / "config.json").is_file():
-            return ModelFiles(model_id, d, "local", files=_local_files(d))
+            return ModelFiles(model_id, d, "local", files=local_weight_hashes(d))
         raise ModelNotFoundError(model_id, [f"model directory {d} (no config.json)"])
     as_dir = Path(model_id).expanduser()
     if as_dir.is_dir():
         if (as_dir / "config.json").is_file():
-            return ModelFiles(model_id, as_dir, "local", files=_local_files(as_dir))
+            return ModelFiles(model_id, as_dir, "local", files=local_weight_hashes(as_dir))
         raise ModelNotFoundError(model_id, [f"local directory {as_dir} (no config.json)"])
     cache = Path(cache_dir) if cache_dir is not None else hub_cache_dir()
     endpoint = os.environ.get("HF_ENDPOINT") or None

@@ -12,7 +12,8 @@ Geometry (pure, testable):
   ``[j, j+1)``, its centre is ``j + 0.5``). A scale's [ny, nx, D] grid is interpolated to the output
   pixels' centres bilinearly through the actual crop centres (piecewise linear per axis, clamped to the
   outermost centres, i.e. ``align_corners=True`` on the crop-centre lattice, border padding outside it).
-- The per-scale maps are averaged and each pixel renormalised to unit length.
+- The per-scale maps are blended per pixel (fmgs.features.scale_blend: the paper's equal mean, or weights
+  from the DINO map's coherence over each scale's crop) and each pixel renormalised to unit length.
 
 Scales default to 7 values spaced linearly from 0.05 to 0.5 of min(H, W) (the LERF/FMGS pyramid).
 
@@ -36,7 +37,6 @@ import torch.nn.functional as F
 
 from fmgs.errors import ValidationError
 from fmgs.features.sizes import CROP_STRIDE
-from fmgs.vecmath import safe_normalize
 
 
 @dataclass(frozen=True)
@@ -54,6 +54,9 @@ class PyramidConfig:
     """Edge in pixels each crop is resized to before embedding (the model's input size)."""
     batch_size: int = 64
     """Crops per call of the embedding function."""
+    blend: str = "mean"
+    """How the scales' maps become one (fmgs.features.scale_blend.BLENDS): "mean" (the paper's equal
+    mean), "coherence" or "dominant" (weights from the dense DINO map, which ``hybrid_map`` then needs)."""
 
     def __post_init__(self) -> None:
         if not self.scales or not all(0.0 < s <= 1.0 for s in self.scales):
@@ -64,17 +67,24 @@ class PyramidConfig:
             raise ValidationError("max_stride", f"must lie in (0, 1] or be None, got {self.max_stride}")
         if self.crop_px < 1 or self.batch_size < 1:
             raise ValidationError("crop_px/batch_size", "must be positive")
+        from fmgs.features.scale_blend import BLENDS
+
+        if self.blend not in BLENDS:
+            raise ValidationError("blend", f"must be one of {BLENDS}, got {self.blend!r}")
 
 
 def pyramid_for(
-    encoder, single_scale: bool = False, max_stride: float | None = PyramidConfig.max_stride
+    encoder,
+    single_scale: bool = False,
+    max_stride: float | None = PyramidConfig.max_stride,
+    blend: str = PyramidConfig.blend,
 ) -> PyramidConfig:
     """The build's pyramid for an image encoder: crops resized once, to the encoder's own input size (224
     for the default ViT-B/16); ``single_scale``: the ablation's one scale (0.25); ``max_stride``: the
-    crop lattice's stride cap (PyramidConfig.max_stride)."""
+    crop lattice's stride cap (PyramidConfig.max_stride); ``blend``: PyramidConfig.blend."""
     size = int(getattr(encoder, "image_size", PyramidConfig.crop_px))
     scales = (0.25,) if single_scale else PyramidConfig.scales
-    return PyramidConfig(scales=scales, crop_px=size, max_stride=max_stride)
+    return PyramidConfig(scales=scales, crop_px=size, max_stride=max_stride, blend=blend)
 
 
 class CropGrid(NamedTuple):
@@ -190,18 +200,7 @@ def scale_map(
     return torch.einsum("hy,ywd->hwd", ay, torch.einsum("yxd,wx->ywd", emb, ax))
 
 
-def hybrid_map(
-    embed_fn: Callable[[torch.Tensor], torch.Tensor],
-    image: torch.Tensor,
-    cfg: PyramidConfig,
-    out_hw: tuple[int, int],
-    progress: bool = False,
-) -> torch.Tensor:
-    """The hybrid multi-scale embedding map of one image.
-
-    image [H,W,3] float RGB in [0,1]; ``embed_fn`` maps crops [B,3,S,S] (S = cfg.crop_px, RGB in [0,1])
-    to embeddings [B,D]. Returns [h,w,D] float32 (out_hw = (h, w)) on image's device, unit-norm per pixel.
-    """
+def _check_image(image: torch.Tensor, out_hw: tuple[int, int]) -> tuple[int, int]:
     if image.ndim != 3 or image.shape[-1] != 3:
         raise ValidationError("image", f"expected [H,W,3], got {tuple(image.shape)}")
     if not torch.isfinite(image).all():
@@ -209,15 +208,66 @@ def hybrid_map(
     h, w = int(out_hw[0]), int(out_hw[1])
     if h < 1 or w < 1:
         raise ValidationError("out_hw", f"must be positive, got {out_hw}")
+    return h, w
+
+
+class ScaleMaps(NamedTuple):
+    """Every scale's map of one image."""
+
+    maps: list[torch.Tensor]
+    """One [h,w,D] float32 map per scale (cfg.scales order), not normalised."""
+    edges: list[float]
+    """Each scale's crop edge in map pixels (the crop's pixels times h / H)."""
+    crops: int
+    """Crops embedded."""
+
+
+def scale_maps(
+    embed_fn: Callable[[torch.Tensor], torch.Tensor],
+    image: torch.Tensor,
+    cfg: PyramidConfig,
+    out_hw: tuple[int, int],
+    progress: bool = False,
+) -> ScaleMaps:
+    """image [H,W,3] float RGB in [0,1] -> every scale's map at out_hw (``ScaleMaps``); ``embed_fn`` maps
+    crops [B,3,S,S] (S = cfg.crop_px, RGB in [0,1]) to embeddings [B,D]."""
+    h, w = _check_image(image, out_hw)
     H, W = image.shape[:2]
     img = image.permute(2, 0, 1).float()
     grids = [crop_grid(H, W, s, cfg.overlap, cfg.max_stride) for s in cfg.scales]
     from tqdm.auto import tqdm
 
     total = sum(g.boxes.shape[0] * g.boxes.shape[1] for g in grids)
-    acc = None
+    maps = []
     with tqdm(total=total, desc="clip crops", unit="crop", disable=not progress, leave=False) as bar:
         for g in grids:
-            m = scale_map(embed_fn, img, g, cfg, (h, w), bar)
-            acc = m if acc is None else acc + m
-    return safe_normalize(acc / len(grids))
+            maps.append(scale_map(embed_fn, img, g, cfg, (h, w), bar))
+    return ScaleMaps(maps, [g.size * h / H for g in grids], total)
+
+
+def hybrid_map(
+    embed_fn: Callable[[torch.Tensor], torch.Tensor],
+    image: torch.Tensor,
+    cfg: PyramidConfig,
+    out_hw: tuple[int, int],
+    progress: bool = False,
+    dense: torch.Tensor | None = None,
+) -> torch.Tensor:
+    """The hybrid multi-scale embedding map of one image.
+
+    image [H,W,3] float RGB in [0,1]; ``embed_fn`` maps crops [B,3,S,S] (S = cfg.crop_px, RGB in [0,1])
+    to embeddings [B,D]; ``dense`` [h,w,Dd]: the image's DINO map at out_hw, which the DINO-weighted
+    blends need (cfg.blend). Returns [h,w,D] float32 (out_hw = (h, w)) on image's device, unit-norm per
+    pixel.
+    """
+    from fmgs.features.scale_blend import blend_scales, scale_weights
+
+    h, w = _check_image(image, out_hw)
+    if dense is not None and tuple(dense.shape[:2]) != (h, w):
+        raise ValidationError("dense", f"map is {tuple(dense.shape[:2])}, the target is {(h, w)}")
+    weights_needed = cfg.blend != "mean"
+    if weights_needed and dense is None:  # before any crop is embedded
+        scale_weights(cfg.blend, None, [])
+    sm = scale_maps(embed_fn, image, cfg, (h, w), progress)
+    weights = scale_weights(cfg.blend, dense.to(image.device) if weights_needed else None, sm.edges)
+    return blend_scales(sm.maps, weights)

@@ -11,6 +11,8 @@ An id says where a model comes from; the model's own config says what it is.
   as the LAION models have; ``openclip-file+quickgelu:PATH`` for OpenAI-trained checkpoints.
 - ``standin:FOLDER``: the CLIP stand-in trained into MiniLM's text space (fmgs.features.standin): an
   image encoder whose scenes are queried with MiniLM.
+- ``standin-dino:FOLDER``: the DINO stand-in trained without labels (fmgs.features.standin_dino): a
+  dense regulariser.
 
 Scenes and feature caches record the id as given, so queries load the same model the same way.
 """
@@ -28,6 +30,7 @@ HF = "hf:"
 OPENCLIP_FILE = "openclip-file:"
 OPENCLIP_FILE_QUICKGELU = "openclip-file+quickgelu:"
 STANDIN = "standin:"
+STANDIN_DINO = "standin-dino:"
 TEXT_TYPES = ("clip", "siglip")
 """transformers ``model_type``s with a text tower our text encoder wraps."""
 IMAGE_TYPES = ("clip", "siglip")
@@ -41,7 +44,7 @@ class EncoderRef:
     """A parsed encoder id."""
 
     family: str
-    """"minilm", "hf", "openclip-file" or "standin"."""
+    """"minilm", "hf", "openclip-file", "standin" or "standin-dino"."""
     ref: str
     """The hub model id or folder (hf), the checkpoint path (openclip-file), or MiniLM's id."""
     quick_gelu: bool = False
@@ -60,11 +63,12 @@ def parse_encoder_id(encoder_id: str) -> EncoderRef:
             if not path:
                 raise ValidationError("encoder id", f"{encoder_id!r} names no checkpoint file")
             return EncoderRef("openclip-file", path, quick)
-    if encoder_id.startswith(STANDIN):
-        path = encoder_id[len(STANDIN) :]
-        if not path:
-            raise ValidationError("encoder id", f"{encoder_id!r} names no folder")
-        return EncoderRef("standin", path)
+    for prefix, family in ((STANDIN, "standin"), (STANDIN_DINO, "standin-dino")):
+        if encoder_id.startswith(prefix):
+            path = encoder_id[len(prefix) :]
+            if not path:
+                raise ValidationError("encoder id", f"{encoder_id!r} names no folder")
+            return EncoderRef(family, path)
     if encoder_id.startswith(HF):
         ref = encoder_id[len(HF) :]
         if not ref:

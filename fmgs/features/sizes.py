@@ -16,6 +16,12 @@ CROP_STRIDE = 0.05
 (fmgs.features.pyramid explains why)."""
 
 
+SCALE_BLENDS = ("mean", "coherence", "dominant")
+"""The pyramid's scale blends (fmgs.features.scale_blend; kept here so that configs need no torch)."""
+SCALE_BLEND = "mean"
+"""The build's default scale blend."""
+
+
 def check_feature_scale(feature_scale: float | None, feature_side: int) -> None:
     """ValidationError unless feature_scale is None or in (0, 1] and feature_side >= 1."""
     if feature_scale is not None and not 0.0 < feature_scale <= 1.0:

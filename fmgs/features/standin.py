@@ -18,13 +18,15 @@ from __future__ import annotations
 import json
 import os
 from pathlib import Path
+from typing import NamedTuple
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import nn
 
 from fmgs.errors import ValidationError
-from fmgs.features.models import MINILM_ID, ModelFiles, ModelNotFoundError
+from fmgs.features.models import MINILM_ID, ModelFiles, ModelNotFoundError, local_weight_hashes
 from fmgs.vecmath import safe_normalize
 
 CONFIG = "standin.json"
@@ -106,8 +108,6 @@ def load_standin(model_id: str, device: str | torch.device = "cpu") -> StandinIm
     """The encoder of a ``standin:FOLDER`` id."""
     from safetensors.torch import load_file
 
-    from fmgs.features.models import _local_files
-
     folder = Path(model_id.removeprefix(PREFIX)).expanduser()
     if not (folder / CONFIG).is_file() or not (folder / WEIGHTS).is_file():
         raise ModelNotFoundError(model_id, [f"{folder} (needs {CONFIG} and {WEIGHTS})"])
@@ -115,30 +115,63 @@ def load_standin(model_id: str, device: str | torch.device = "cpu") -> StandinIm
     net = StandinNet(int(config["dim"]), int(config["image_size"]), int(config["width"]))
     net.load_state_dict({k: v.float() for k, v in load_file(str(folder / WEIGHTS)).items()})
     enc = StandinImageEncoder(net, config, model_id, device)
-    enc.files = ModelFiles(model_id, folder, "local", files=_local_files(folder))
+    enc.files = ModelFiles(model_id, folder, "local", files=local_weight_hashes(folder))
     return enc
 
 
-def sample_crops(
+WALL = "wall"
+"""The name of backdrop geometry (label 0 with a depth: the world's room walls) in crop targets; label 0
+without geometry keeps its scene name ("background")."""
+WINDOW_SIGMA = 0.25
+"""A crop's content is weighed by a Gaussian window of this sigma (a fraction of the crop edge) about its
+centre: what a crop shows, with what lies at its middle counting most."""
+
+
+class CropSample(NamedTuple):
+    """Square crops of a generated scene and what each one shows."""
+
+    crops: torch.Tensor
+    """[N,3,S,S] float RGB in [0,1], cut and resized as the pyramid cuts them."""
+    centre: list[str]
+    """The name under each crop's centre pixel."""
+    shares: torch.Tensor
+    """[N,len(names)] float32: each name's share of the crop under the centre window (rows sum to 1)."""
+    names: list[str]
+    """The scene's label names, then WALL."""
+
+
+def _extended_labels(data: Path, stem: str, names: list[str]) -> np.ndarray:
+    """[H,W] label ids with backdrop geometry (label 0 with a depth) as len(names): WALL."""
+    from PIL import Image
+
+    lab = np.asarray(Image.open(data / "labels" / f"{stem}.png")).astype(np.int64)
+    depth = data / "depth" / f"{stem}.npy"
+    if depth.is_file():
+        z = np.load(depth, allow_pickle=False)
+        lab = np.where((lab == 0) & (z > 0), len(names), lab)
+    return lab
+
+
+def sample_crop_targets(
     data: str | os.PathLike, per_view: int, rng, image_size: int = 32, views: list[int] | None = None
-) -> tuple[torch.Tensor, list[str]]:
-    """Square crops of a generated scene's views (fmgs.synth: images/, labels/, scene.json) at the CLIP
-    pyramid's scales x the short side, centred at random pixels (``rng``: numpy Generator), each resized
-    as the pyramid resizes its crops; returns [N,3,S,S] in [0,1] and the label name under each centre.
-    ``views``: indices into the sorted images (default all)."""
-    import numpy as np
+) -> CropSample:
+    """Square crops of a generated scene's views (fmgs.synth: images/, labels/, depth/, scene.json) at the
+    CLIP pyramid's scales x the short side, centred at random pixels (``rng``: numpy Generator), each
+    resized as the pyramid resizes its crops, with the names they show (``CropSample``). ``views``:
+    indices into the sorted images (default all)."""
     from PIL import Image
 
     from fmgs.features.pyramid import PyramidConfig
 
     data = Path(data)
     names = json.loads((data / "scene.json").read_text())["label_names"]
+    L = len(names) + 1
     paths = sorted((data / "images").iterdir())
-    out, labels = [], []
+    out, centre, shares = [], [], []
     for k in views if views is not None else range(len(paths)):
         img_path = paths[k]
         img = torch.from_numpy(np.asarray(Image.open(img_path).convert("RGB"), np.float32) / 255.0)
-        lab = np.asarray(Image.open(data / "labels" / f"{img_path.stem}.png"))
+        lab = _extended_labels(data, img_path.stem, names)
         H, W = lab.shape
         for _ in range(per_view):
             side = max(4, round(float(rng.choice(PyramidConfig.scales)) * min(H, W)))
@@ -148,8 +181,23 @@ def sample_crops(
             c = img[y0 : y0 + side, x0 : x0 + side].permute(2, 0, 1).unsqueeze(0)
             # as the pyramid cuts crops (fmgs.features.pyramid._cut): bilinear, antialiased
             out.append(F.interpolate(c, size=(image_size, image_size), mode="bilinear", antialias=True))
-            labels.append(names[int(lab[y0 + side // 2, x0 + side // 2])])
-    return torch.cat(out).clamp(0, 1), labels
+            window = lab[y0 : y0 + side, x0 : x0 + side]
+            t = (np.arange(side) + 0.5 - side / 2) / (WINDOW_SIGMA * side)
+            w = np.exp(-0.5 * (t[:, None] ** 2 + t[None, :] ** 2))
+            sh = np.bincount(window.reshape(-1), w.reshape(-1), minlength=L)
+            shares.append(sh / sh.sum())
+            centre.append([*names, WALL][int(window[side // 2, side // 2])])
+    shares_t = torch.tensor(np.stack(shares), dtype=torch.float32)
+    return CropSample(torch.cat(out).clamp(0, 1), centre, shares_t, [*names, WALL])
+
+
+def sample_crops(
+    data: str | os.PathLike, per_view: int, rng, image_size: int = 32, views: list[int] | None = None
+) -> tuple[torch.Tensor, list[str]]:
+    """(crops [N,3,S,S], the name under each centre) of ``sample_crop_targets``, with backdrop geometry
+    named as the scene names it (label 0)."""
+    s = sample_crop_targets(data, per_view, rng, image_size, views)
+    return s.crops, [s.names[0] if n == WALL else n for n in s.centre]
 
 
 def crop_accuracy(encoder: StandinImageEncoder, text_table: torch.Tensor, crops: torch.Tensor,

@@ -266,9 +266,8 @@ def union_rows(pending: list[Pending], texts: list[int], num: int) -> torch.Tens
 
 
 def empty32(n: int, m: int) -> torch.Tensor:
-    """An uninitialised float32 [n,m] from numpy's allocator, which asks for huge pages on large arrays:
-    torch's large CPU allocations took 10K fresh 4 KB pages (13 ms) per query at 10M Gaussians, numpy's
-    152 huge pages for 8 x 10M (measured)."""
+    """An uninitialised float32 [n,m] from numpy's allocator, which asks for huge pages on large arrays
+    where torch's large CPU allocations take fresh 4 KB pages (benchmarks/results/TUNING.md)."""
     return torch.from_numpy(np.empty((n, m), np.float32))
 
 

@@ -61,9 +61,7 @@ def bench_text(out: Path, n: int, n_queries: int, top_k: int = 100) -> dict:
         res[f"{name}_open_s"] = time.perf_counter() - t0
         res[f"{name}_rss_gb"] = rss_gb() - rss0
         idx = engines[name].index
-        res[f"{name}_state_bytes_per_gaussian"] = (
-            idx.nbytes() - (idx.basis.numel() * 8 if idx.basis is not None else 0)
-        ) / n + 8
+        res[f"{name}_state_bytes_per_gaussian"] = (idx.nbytes() - idx.basis_nbytes()) / n + 8
     # Side by side, alternating, so both see the same machine load.
     times = {"exact": [], "compact": []}
     same_order = 0

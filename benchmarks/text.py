@@ -88,11 +88,12 @@ def measure(n: int, queries: int, tmp: Path, peers: bool = True) -> dict:
     res["fmgs_open_s"] = time.perf_counter() - t0
     res["fmgs_open_rss_gb"] = rss_gb() - rss0
     ix = eng.index
-    res["fmgs_bytes"] = (ix.nbytes() - (ix.basis.numel() * 8 if ix.basis is not None else 0)) / n + 8
+    res["fmgs_bytes"] = (ix.nbytes() - ix.basis_nbytes()) / n + 8
     res["fmgs_path"] = "exact float32" if ix.exact else f"compact rank {ix.state.rank}"
-    if ix.tier2 is not None:
-        head = f" (head {ix.tier2.head})" if ix.tier2.tail is not None else ""
-        res["fmgs_path"] += f", second tier rank {ix.tier2.rank}{head} memory-mapped"
+    t2 = ix.second_tier
+    if t2 is not None:
+        head = f" (head {t2.head})" if t2.tail is not None else ""
+        res["fmgs_path"] += f", second tier rank {t2.rank}{head} memory-mapped"
     res["fmgs_state_file_bytes"] = (pkg / "query_state.safetensors").stat().st_size / n
     sets = query_sets(emb, copies, queries)
     units = {name: eng.unit(sets[name]) for name in QUERY_SETS}  # the vectors the engine ranks by

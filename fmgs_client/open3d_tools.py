@@ -33,7 +33,8 @@ AABB_COLOR = (0.1, 0.45, 1.0)
 OBB_COLOR = (1.0, 0.2, 0.6)
 
 
-def _o3d() -> Any:
+def require_open3d() -> Any:
+    """The ``open3d`` module, imported on first use; ImportError naming the extra that installs it."""
     try:
         import open3d
     except ImportError as e:
@@ -62,7 +63,7 @@ def box_lines(box: Box, color: tuple[float, float, float]) -> tuple[np.ndarray, 
 def answer_geometries(answer: TextAnswer) -> list:
     """Open3D geometries: the Gaussians' means coloured by relevancy, then per instance its AABB and OBB
     as ``LineSet``s (blue and pink)."""
-    o3d = _o3d()
+    o3d = require_open3d()
     pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(_means(answer)))
     pc.colors = o3d.utility.Vector3dVector(answer_colors(answer))
     geoms: list = [pc]
@@ -79,7 +80,7 @@ def export_answer(answer: TextAnswer, path_ply: str | Path) -> list[Path]:
     """Write the point cloud to ``path_ply`` (with ``relevancy`` and ``gaussian`` properties) and, when
     the answer has instances, every box edge to ``<stem>_boxes.ply`` (an Open3D line set).
     Returns the paths written."""
-    o3d = _o3d()
+    o3d = require_open3d()
     path = Path(path_ply)
     scalars = {"relevancy": answer.relevancy, "gaussian": answer.index}
     if answer.instance is not None:
@@ -106,7 +107,7 @@ def export_answer(answer: TextAnswer, path_ply: str | Path) -> list[Path]:
 
 def show(answer: TextAnswer, window_name: str | None = None) -> None:
     """Open a desktop window with :func:`answer_geometries` (blocks until it is closed)."""
-    o3d = _o3d()
+    o3d = require_open3d()
     o3d.visualization.draw_geometries(answer_geometries(answer), window_name=window_name or answer.text)
 
 
@@ -204,7 +205,7 @@ def open3d_can_render() -> bool:
 
 
 def _render_open3d(answer: TextAnswer, camera: CameraSpec, point_size: float) -> np.ndarray:
-    o3d = _o3d()
+    o3d = require_open3d()
     rendering = o3d.visualization.rendering
     r = rendering.OffscreenRenderer(camera.width, camera.height)
     r.scene.set_background([1.0, 1.0, 1.0, 1.0])

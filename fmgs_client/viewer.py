@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 
 from fmgs_client.client import FmgsClient, FmgsError
-from fmgs_client.open3d_tools import _o3d, export_answer
+from fmgs_client.open3d_tools import export_answer, require_open3d
 from fmgs_client.picture_feed import PictureFeed
 from fmgs_client.types import CameraSpec, Geometry, RenderResult, SceneInfo, SegmentResult
 from fmgs_client.viewer_model import (
@@ -70,7 +70,7 @@ class Inspector:
         size: tuple[int, int] = (1280, 800),
         out_dir: str | Path = ".",
     ) -> None:
-        o3d = _o3d()
+        o3d = require_open3d()
         self.o3d, self.gui, self.rendering = o3d, o3d.visualization.gui, o3d.visualization.rendering
         gui = self.gui
         cfg = ViewerConfig() if cfg is None else cfg
@@ -555,7 +555,7 @@ def run(address: str, scene: str | None, client: FmgsClient, cfg: ViewerConfig, 
     """Open the window and run until it is closed."""
     if not has_display():
         raise OSError("no display: set DISPLAY (or run under xvfb-run) to open the inspector window")
-    o3d = _o3d()
+    o3d = require_open3d()
     app = o3d.visualization.gui.Application.instance
     app.initialize()
     Inspector(client, address, scene, cfg, out_dir=out_dir)

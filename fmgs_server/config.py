@@ -58,8 +58,9 @@ class ServerConfig:
     max_geometry: int = 2_000_000
     """Most Gaussians one geometry call may ask for (48 bytes each on the wire)."""
     point_chunk: int = POINT_CHUNK
-    """Points through the field at once: a point query's working memory is 25-32 KiB (measured) per point
-    of it (the paper's field), whatever the request's size; the deadline is checked between chunks."""
+    """Points through the field at once: a point query's working memory grows with it, not with the
+    request's size (the memory per point: benchmarks/results/TUNING.md); the deadline is checked between
+    chunks."""
     memory_budget_bytes: int = 0
     """Resident bytes for loaded scenes; least recently used scenes are unloaded beyond it (0: no limit)."""
     work_memory_bytes: int = 2048 * MiB

@@ -43,7 +43,7 @@ class FmgsService(pb_grpc.FmgsServicer):
         self.encoders = encoders
         self.slots = Slots(cfg.compute_slots, cfg.max_streams, cfg.queue_timeout_s)
         self.budget = budget.WorkBudget(cfg.work_memory_bytes, cfg.queue_timeout_s)
-        self.sharded = ShardedSceneService(cfg, self)
+        self.sharded = ShardedSceneService(cfg, encoders, self.slots)
         """Sharded scenes (folders with a shards.json): text queries and relevancy renders."""
 
     def _refuse_sharded(self, method: str, scene: str) -> None:

@@ -21,7 +21,9 @@ from fmgs.scene.manifest import Manifest
 from fmgs.scene.shards import SHARDS_FILE, ShardManifest, is_sharded, read_shard_ids
 from fmgs_server import convert, responses
 from fmgs_server.config import ServerConfig
+from fmgs_server.encoders import EncoderCache
 from fmgs_server.errors import FailedPrecondition
+from fmgs_server.slots import Slots
 from fmgs_wire.proto.fmgs.v1 import fmgs_pb2 as pb
 
 SHARDED_METHODS = ("ListScenes", "GetScene", "TextQuery", "Render", "StreamRender")
@@ -82,11 +84,16 @@ def not_supported(method: str, scene: str) -> FailedPrecondition:
 
 class ShardedSceneService:
     """The service's side for the repository's sharded scenes: lists them, holds their shards' engines,
-    and answers text queries and renders on them with the encoders and compute slots of ``service``."""
+    and answers text queries and renders on them with the service's text encoders and compute slots."""
 
-    def __init__(self, cfg: ServerConfig, service) -> None:
+    def __init__(self, cfg: ServerConfig, encoders: EncoderCache, slots: Slots) -> None:
+        """``encoders`` and ``slots``: the service's own (fmgs_server.service.FmgsService), shared with
+        its unsharded scenes."""
         self.cfg = cfg
-        self.service = service
+        self.encoders = encoders
+        """Embeds texts, presence names and canonical phrases with a scene's encoder."""
+        self.slots = slots
+        """Compute slots: a shard's part of a call holds one while it computes."""
         self._repos: dict[str, object] = {}
         self._ids: dict[tuple[str, str], tuple] = {}
         self._lock = threading.Lock()
@@ -155,7 +162,7 @@ class ShardedSceneService:
                 pass
 
     def _slot(self, context):
-        return self.service.slots.compute(context)
+        return self.slots.compute(context)
 
     # ------------------------------------------------------------------ text queries
 
@@ -166,7 +173,7 @@ class ShardedSceneService:
         from fmgs.query.presence import probes as probe_texts
         from fmgs.query.sharded import ShardQuery, shard_probes
 
-        cfg, svc = self.cfg, self.service
+        cfg, encoders = self.cfg, self.encoders
         sm = ShardManifest.read(cfg.models / scene)
         if req.HasField("embeddings") or req.canonical_phrases:
             raise FailedPrecondition(
@@ -181,9 +188,9 @@ class ShardedSceneService:
         first = Manifest.read(cfg.models / scene / sm.shards[0].folder)
         names = tuple(negative_names(first.label_names))
         t0 = time.perf_counter()
-        q = svc.encoders.embed(sm.encoder_id, values)
-        negs = svc.encoders.negatives(sm.encoder_id, names)
-        probes = probe_texts(values, q, lambda ts: svc.encoders.embed(sm.encoder_id, ts))
+        q = encoders.embed(sm.encoder_id, values)
+        negs = encoders.negatives(sm.encoder_id, names)
+        probes = probe_texts(values, q, lambda ts: encoders.embed(sm.encoder_id, ts))
         cols = tuple(n for f, n in responses.COLUMNS.items() if f in fields)
         sq = ShardQuery(
             q.float().numpy(), k, thr, None, negs.float().numpy().astype(np.float32), shard_probes(probes),
@@ -225,7 +232,7 @@ class ShardedSceneService:
     def plan_render(self, scene: str, req: pb.RenderRequest) -> RenderPlan:
         from fmgs.query.sharded import POSE_OUTPUTS, render_order
 
-        cfg, svc = self.cfg, self.service
+        cfg, encoders = self.cfg, self.encoders
         sm = ShardManifest.read(cfg.models / scene)
         cam = convert.camera(req.camera, cfg, req.HasField("camera"))
         outputs = convert.outputs(req.outputs)
@@ -239,10 +246,10 @@ class ShardedSceneService:
         q = canon = None
         if "relevancy" in outputs:
             values = convert.texts([req.text] if req.text else [], cfg, "text")
-            q = svc.encoders.embed(sm.encoder_id, values)[0]
+            q = encoders.embed(sm.encoder_id, values)[0]
         phrases = convert.texts(req.canonical_phrases, cfg, "canonical_phrases", allow_empty=True)
         if phrases:
-            canon = svc.encoders.embed(sm.encoder_id, phrases)
+            canon = encoders.embed(sm.encoder_id, phrases)
         order = tuple(sm.shards[i].folder for i in render_order(sm, cam))
         return RenderPlan(scene, order, cam, q, canon, outputs, encoding, req.sequence, t0)
 

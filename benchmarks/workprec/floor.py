@@ -65,7 +65,7 @@ def scan_cases(sz: FloorSizes, q: torch.Tensor):
     ix = random_compact_state(M)
     W = ix.compact.first_tier_weights(q[None])[0].numpy()
     out = np.empty((M, 1), np.float32)
-    shift, A = ix.canonical_max.numpy(), ix.coeffs.numpy()
+    shift, A = ix.canonical_max.numpy(), ix.state.codes.numpy()
     yield (
         f"int8 scan kernel, {M:,} x rank 64",
         lambda: int8_dots(A, W, shift, out),

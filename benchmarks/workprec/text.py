@@ -105,7 +105,7 @@ class CompactOnly:
 
 def first_tier_nbytes(index) -> int:
     """The index's resident bytes without its second tier (which the uncertified settings never read)."""
-    t2 = index.tier2
+    t2 = index.second_tier
     if t2 is None:
         return index.nbytes()
     held = [t2.basis, t2.scales] + ([] if t2.mapped else [t2.codes, t2.bounds])

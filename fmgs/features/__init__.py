@@ -26,7 +26,7 @@ _EXPORTS = {
     "PyramidConfig": "fmgs.features.pyramid",
     "TargetInfo": "fmgs.features.cache",
     "TextEncoder": "fmgs.features.text",
-    "clip_tokenizer_from_bpe_files": "fmgs.features.text",
+    "clip_tokenizer_from_bpe_files": "fmgs.features.clip_tokenizer",
     "crop_grid": "fmgs.features.pyramid",
     "extract_labels": "fmgs.features.extract",
     "extract_targets": "fmgs.features.extract",

@@ -24,6 +24,7 @@ from typing import Any
 import torch
 
 from fmgs.errors import ValidationError
+from fmgs.features.clip_tokenizer import load_clip_tokenizer
 from fmgs.features.models import ModelFiles, ModelNotFoundError, require_transformers, sha256_file
 from fmgs.features.registry import EncoderRef
 
@@ -156,8 +157,6 @@ def to_transformers(sd: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
 
 def load_openclip_file(ref: EncoderRef) -> tuple[Any, Any, ModelFiles]:
     """(``CLIPModel`` in eval mode, its tokenizer, the files) of an ``openclip-file:`` id."""
-    from fmgs.features.text import load_clip_tokenizer
-
     path = Path(ref.ref).expanduser()
     if not path.is_file():
         raise ModelNotFoundError(ref.ref, [f"open_clip checkpoint {path} (absent)"])

@@ -6,19 +6,17 @@ embedding space so a scene and the server embedding its queries can check they a
 
 from __future__ import annotations
 
-import json
 import os
-from pathlib import Path
 from typing import Any, Protocol
 
 import torch
 
 from fmgs.errors import ValidationError
+from fmgs.features.clip_tokenizer import load_clip_tokenizer
 from fmgs.features.models import (
     DEFAULT_CLIP_ID,
     MINILM_ID,
     ModelFiles,
-    ModelNotFoundError,
     fetch_model,
     require,
     require_transformers,
@@ -119,35 +117,6 @@ class MiniLMTextEncoder:
             mean = (hidden * m).sum(1) / m.sum(1).clamp_min(1e-9)
             out.append(safe_normalize(mean))
         return torch.cat(out)
-
-
-def clip_tokenizer_from_bpe_files(vocab_json: str | os.PathLike, merges_txt: str | os.PathLike) -> Any:
-    """A ``transformers.CLIPTokenizer`` from CLIP's ``vocab.json`` + ``merges.txt``, offline.
-
-    Only merges whose result is in the vocabulary are kept: CLIP uses the first
-    ``len(vocab) - 2*256 - 2`` merges and some distributions ship the untruncated list.
-    """
-    transformers = require_transformers()
-    vocab = json.loads(Path(vocab_json).read_text(encoding="utf-8"))
-    merges = []
-    with open(merges_txt, encoding="utf-8") as f:
-        for line in f:
-            parts = line.rstrip("\n").split(" ")
-            if line.startswith("#version") or len(parts) != 2:
-                continue
-            if parts[0] + parts[1] in vocab:
-                merges.append((parts[0], parts[1]))
-    return transformers.CLIPTokenizer(vocab=vocab, merges=merges)
-
-
-def load_clip_tokenizer(model_dir: str | os.PathLike) -> Any:
-    """The tokenizer saved beside a CLIP model: ``tokenizer.json`` if any, else vocab.json + merges.txt."""
-    d = Path(model_dir)
-    if (d / "tokenizer.json").is_file():
-        return require_transformers().AutoTokenizer.from_pretrained(str(d), local_files_only=True)
-    if (d / "vocab.json").is_file() and (d / "merges.txt").is_file():
-        return clip_tokenizer_from_bpe_files(d / "vocab.json", d / "merges.txt")
-    raise ModelNotFoundError(str(d), [f"{d} (no tokenizer.json, no vocab.json + merges.txt)"], "tokenizer")
 
 
 class ClipTextEncoder:

@@ -65,8 +65,8 @@ def kth_largest(x: torch.Tensor, k: int) -> float:
 
 def rows_at_least(x: torch.Tensor, cut: float) -> torch.Tensor:
     """Sorted rows [n] int64 of x [M] (CPU) with x >= cut. Contiguous float32 goes through a vector
-    kernel (kernels.at_least: 0.18 ms at 1M rows against 0.46 ms for numpy's compare and flatnonzero, and
-    2.3 ms for torch's; measured), which matters about twice per text; anything else through numpy."""
+    kernel (kernels.at_least, faster than numpy's compare and flatnonzero and than torch's:
+    benchmarks/results/TUNING.md), which matters about twice per text; anything else through numpy."""
     a = x.numpy()
     if a.dtype != np.float32 or not a.flags.c_contiguous or a.ndim != 1:
         return torch.from_numpy(np.flatnonzero(a >= np.float64(cut)))  # not rounded to a's type
@@ -108,7 +108,7 @@ def top_rows(x: torch.Tensor, n: int) -> torch.Tensor:
     """Sorted indices [n] of n largest values of x [M] (which of several equal values at the cut is taken
     is unspecified, as for torch.topk, its twin). A cut from a strided sample (twice the share of n it
     should hold) leaves a few thousand candidates to select from: one pass over x, not a full top-n
-    selection (6 ms at 1M rows)."""
+    selection (benchmarks/results/TUNING.md)."""
     n = min(int(n), len(x))
     found = _candidates(x, n)
     if found is None:

@@ -5,8 +5,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 POINT_CHUNK = 8192
-"""Points through the field at once in a point query: bounds its working memory (25-32 KiB measured per
-point in flight for the paper's field) whatever the number of points."""
+"""Points through the field at once in a point query: bounds its working memory whatever the number of
+points (the memory per point in flight: benchmarks/results/TUNING.md)."""
 
 
 @dataclass(frozen=True)
@@ -25,8 +25,7 @@ class IndexConfig:
     rerank: int = 4
     """The compact path first rescores the rerank * k candidates of highest upper bound (at least k, at
     most k + 2048: fmgs.query.tuning.REFINE_ABOVE), then as many more as the certificate needs: a speed
-    knob, the answer is exact for every value. 4: at 1M Gaussians and k = 100, 2.2 ms faster than 10 for
-    CLIP-like texts and 1.4 ms for typical ones, the same at k = 1 and 10,000 (measured)."""
+    knob, the answer is exact for every value (the figures that chose 4: benchmarks/results/TUNING.md)."""
     basis_sample: int = 100_000
     """Rows used to estimate the basis (a seeded sample; all rows when fewer)."""
     device: str = "cpu"

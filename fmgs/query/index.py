@@ -35,7 +35,7 @@ from fmgs.query.certify import threshold_margin
 from fmgs.query.config import IndexConfig
 from fmgs.query.plan import NO_PASS, Explanation
 from fmgs.query.relevancy import TEMPERATURE
-from fmgs.query.state import QueryState, build_state
+from fmgs.query.state import QueryState, Tier2, build_state
 
 if TYPE_CHECKING:
     from fmgs.query.bounds import CompactBounds, HalfRows
@@ -100,10 +100,13 @@ class EmbeddingIndex:
         ).contiguous()
         """[M] the largest canonical dot per Gaussian (float32, as stored)."""
         self.read_rows = read_rows
+        """Exact rows of the stored embeddings for rescoring on the compact path when ``half`` is None
+        (sorted unique rows [k] -> [k,D] float32); None on the exact path."""
         self.half = half
         """[M,D] uint16: the stored float16 embeddings' bits (None for float32 input), rescored by numba
         kernels on both paths."""
         self.cfg = cfg
+        """The settings the index was built with."""
         self.compact: CompactBounds | None = None
         """Bounds from the compact state's tiers (None on the exact path)."""
         self.half_rows: HalfRows | None = None
@@ -117,16 +120,10 @@ class EmbeddingIndex:
                 self.half_rows = HalfRows(half, self.canonical_max)
             if state is not None:
                 self.compact = CompactBounds(state, self.canonical_max, second_tier=cfg.rank2 > 0)
-        if state is not None:
-            self.coeffs = state.codes
-            self.basis = state.basis
-            self.scales = state.scales
-            self.tier2 = self.compact.tier2
-            """The state's second tier (None: rows the first leaves go to the float16 embeddings)."""
-            self.slack = self.compact.slack
-        else:
-            self.coeffs = table
-            self.basis = self.scales = self.tier2 = None
+        self.table_slack: float | None = None
+        """Bound on the float32 table's products on the exact path (None on the compact path, whose
+        bounds carry their own: ``compact.slack``)."""
+        if state is None:
             u = _U32
             if table.is_cuda and torch.backends.cuda.matmul.allow_tf32:
                 u = 2.0**-11  # TF32 matmuls keep 10 mantissa bits
@@ -134,7 +131,7 @@ class EmbeddingIndex:
                 (float(table[s : s + 65536].norm(dim=1).max()) for s in range(0, len(table), 65536)),
                 default=1.0,
             )
-            self.slack = 2 * (table.shape[1] + 8) * u * max(1.0, fmax) + 1e-6
+            self.table_slack = 2 * (table.shape[1] + 8) * u * max(1.0, fmax) + 1e-6
 
     @classmethod
     def build(
@@ -176,30 +173,53 @@ class EmbeddingIndex:
 
     @property
     def exact(self) -> bool:
+        """Whether this is the exact path (the float32 ``table``) rather than the compact one (``state``)."""
         return self.state is None
 
     @property
+    def _first_pass_rows(self) -> torch.Tensor:
+        """What every row's first pass reads: the [M,D] float32 table on the exact path, the state's [M,r]
+        int8 first-tier codes on the compact path."""
+        return self.table if self.state is None else self.state.codes
+
+    @property
+    def second_tier(self) -> Tier2 | None:
+        """The compact state's second tier as this index reads it (rank, head, tail, whether memory-mapped);
+        None on the exact path, when the state has none, or when the settings leave it out (``rank2`` 0)."""
+        return self.compact.tier2 if self.compact is not None else None
+
+    @property
     def num(self) -> int:
-        return int(self.coeffs.shape[0])
+        """Rows M: the embedded Gaussians."""
+        return int(self._first_pass_rows.shape[0])
 
     def nbytes(self) -> int:
         """Resident bytes per the query state: codes (or float32 table), bound norms, canonical maxima,
         basis; the second tier's codes and bounds only when not memory-mapped, and the resident sample the
         second-tier estimate reads (whether made yet or not). The canonical dots [M,C] are not counted when
         memory-mapped (pose renders page them in)."""
-        n = sum(x.numel() * x.element_size() for x in (self.coeffs, self.canonical_max))
+        n = sum(x.numel() * x.element_size() for x in (self._first_pass_rows, self.canonical_max))
         return n + (self.compact.nbytes() if self.compact is not None else 0)
+
+    def basis_nbytes(self) -> int:
+        """Bytes of the first tier's basis [r,D] float64 (0 on the exact path): a cost per scene, not per
+        Gaussian (benchmarks report the rest of ``nbytes`` per Gaussian)."""
+        return 0 if self.state is None else self.state.basis.numel() * self.state.basis.element_size()
 
     @property
     def device(self) -> torch.device:
-        return self.coeffs.device
+        """Where the first pass runs and answers live (a CUDA device only on the exact path)."""
+        return self._first_pass_rows.device
 
     def dots(self, vectors: torch.Tensor, shift: torch.Tensor | None = None) -> torch.Tensor:
-        """[M,n] f.v - shift for unit vectors [n,D] (the compact approximation on the compact path: pose
-        renders use it). shift [M] (default 0) is fused into the kernel. Lives on the index's device."""
+        """[M,n] f.v - shift for unit vectors [n,D], the first pass's scores: on the exact path the float32
+        table's products (the engine's render and segmentation channels there); on the compact path the
+        first tier's int8 approximation, which only ever chooses candidates (renders there use
+        ``exact_dots`` of the rows a view touches). shift [M] (default 0) is fused into the kernel. Lives on
+        the index's device."""
         v = vectors.float().to(self.device)
         if self.state is None:
-            d = self.coeffs @ v.T
+            d = self.table @ v.T
             return d if shift is None else d - shift[:, None]
         return self.compact.dots(v, shift)
 
@@ -207,7 +227,7 @@ class EmbeddingIndex:
         """Approximate f.v - shift [M,n] and the bound on its error [M,n] (or [1,n] when uniform)."""
         if self.state is None:
             a = self.dots(v, shift)
-            return a, torch.full((1, len(v)), self.slack, device=a.device)
+            return a, torch.full((1, len(v)), self.table_slack, device=a.device)
         return self.compact.first_tier_bounds(v, shift)
 
     def upper_bounds(self, q: torch.Tensor, canonical_vectors: torch.Tensor | None = None) -> torch.Tensor:

@@ -135,10 +135,8 @@ def at_least(x: np.ndarray, cut: float, out: np.ndarray) -> int:  # pragma: no c
 def pad_texts(*weights: np.ndarray) -> tuple[np.ndarray, ...]:
     """Weights [n,r] with zero rows appended up to a multiple of four when n % 4 is 3, or 2 with n > 2:
     the kernels' vector code then takes the last texts four at a time and writes only the first n.
-    1M rows, k = 100, one thread, padded against not (measured): 3 CLIP-like texts (the whole second
-    tier) 67 against 90 ms, 6 typical texts (first tier) 52 against 68 ms, 6 CLIP-like 129 against 144 ms;
-    but 2 texts alone 68 against 58 ms (CLIP-like) and 28 against 26 ms (typical): one or two texts'
-    pass is bound by reading the codes, and their own loops cost less than four texts' products."""
+    Two texts alone are not padded: their pass is bound by reading the codes, and their own loops cost
+    less than four texts' products (benchmarks/results/TUNING.md)."""
     n = weights[0].shape[0]
     if n % 4 < 2 or n == 2:
         return weights
@@ -260,8 +258,8 @@ def _sweep4(A, W, i, k, acc):  # pragma: no cover
 
 @numba.njit(inline="always", cache=True)
 def _dots8(A1, W1, A2, W2, A3, W3, i, k):  # pragma: no cover
-    """``_dots4`` for texts k..k+7: eight independent sums per sweep of the row (12% faster than two
-    sweeps of four for a batch of 8 at ranks 64 + 192, measured)."""
+    """``_dots4`` for texts k..k+7: eight independent sums per sweep of the row, not two sweeps of four
+    (benchmarks/results/TUNING.md)."""
     z = np.float32(0.0)
     acc = _sweep8(A1, W1, i, k, (z, z, z, z, z, z, z, z))
     return _sweep8(A3, W3, i, k, _sweep8(A2, W2, i, k, acc))
@@ -606,8 +604,8 @@ def half_dots64(A: np.ndarray, rows: np.ndarray, V: np.ndarray, out: np.ndarray)
 
     Rows are decoded exactly (``_decode_row``, then widened) and summed four at a time: the four ordered
     sums are independent chains, and the next rows' cache lines are read ahead so that their misses
-    overlap this group's sums (random rows of a memory-mapped table). 14K random rows of a 1M x 512
-    table: 5.7 ms against 9.4 ms for a scalar loop that decoded as it summed (measured)."""
+    overlap this group's sums (random rows of a memory-mapped table), rather than one scalar loop that
+    decodes as it sums (benchmarks/results/TUNING.md)."""
     _half_dots64(A, rows, V, out, np.zeros((len(rows) + 63) // 64, np.uint32))
 
 

@@ -21,7 +21,7 @@ For the texts of one request (queries q [n,D], top k):
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import TYPE_CHECKING, NamedTuple
+from typing import TYPE_CHECKING, NamedTuple, Protocol
 
 import numpy as np
 import torch
@@ -37,7 +37,9 @@ from fmgs.query.certify import (
 )
 
 if TYPE_CHECKING:
-    from fmgs.query.index import EmbeddingIndex
+    from fmgs.query.bounds import CompactBounds, HalfRows
+    from fmgs.query.config import IndexConfig
+    from fmgs.query.state import QueryState
 
 EXACT_TABLE = "float32 table"
 """The exact path's first pass: one float32 product with every stored row."""
@@ -49,6 +51,36 @@ SECOND_TIER = "second tier"
 """Both tiers whole over every row."""
 NO_PASS = "none"
 """Nothing to rank (top_k 0 or an empty index)."""
+
+
+class PlannedIndex(Protocol):
+    """What the plan reads of an index: fmgs.query.index.EmbeddingIndex, which calls the plan with itself
+    (a protocol, so this module does not import the index that imports it)."""
+
+    state: QueryState | None
+    """The compact state (None on the exact path)."""
+    cfg: IndexConfig
+    """The index's settings (``rerank``)."""
+    compact: CompactBounds | None
+    """Bounds from the compact state's tiers (None on the exact path)."""
+    half_rows: HalfRows | None
+    """The float16 kernels over the stored embeddings (None without them)."""
+    canonical_max: torch.Tensor
+    """[M] the largest stored canonical dot per row (float32)."""
+
+    @property
+    def exact(self) -> bool: ...
+
+    @property
+    def num(self) -> int: ...
+
+    def upper_bounds(self, q: torch.Tensor, canonical_vectors: torch.Tensor | None = None) -> torch.Tensor:
+        """[M,n] upper bounds on every row's margin from the cheap pass."""
+        ...
+
+    def exact_dots(self, rows: torch.Tensor, vectors: torch.Tensor) -> torch.Tensor:
+        """[k,n] float64 f.v for rows [k] from the stored embeddings."""
+        ...
 
 
 class FirstPass(NamedTuple):
@@ -87,7 +119,7 @@ class Explanation(NamedTuple):
     """Whether certify_start had a cut estimated from the sample (``hints``)."""
 
 
-def first_rescore_count(index: EmbeddingIndex, k: int) -> int:
+def first_rescore_count(index: PlannedIndex, k: int) -> int:
     """How many rows of highest bound certification rescores first for the top k: rerank * k, but at
     most REFINE_ABOVE beyond k (a large k would pay float64 rescoring for rows the refinement pass
     settles more cheaply); k on the exact path."""
@@ -96,7 +128,7 @@ def first_rescore_count(index: EmbeddingIndex, k: int) -> int:
     return min(index.num, max(k, min(index.cfg.rerank * k, k + tuning.REFINE_ABOVE)))
 
 
-def choose_first_pass(index: EmbeddingIndex, q: torch.Tensor, k: int, first: int) -> FirstPass:
+def choose_first_pass(index: PlannedIndex, q: torch.Tensor, k: int, first: int) -> FirstPass:
     """Texts whose first-tier bound would leave more than TIER2_FIRST_FRACTION of the rows (CLIP-like
     and absent queries): the head's take their first pass through the first tier and the second tier's
     head when that is estimated to leave at most HEAD_FRACTION of the rows (and no more than HEAD_TEXTS
@@ -141,7 +173,7 @@ def hints(est: torch.Tensor, low: torch.Tensor, first: int, num: int) -> np.ndar
 
 
 def first_pass_upper(
-    index: EmbeddingIndex, q: torch.Tensor, cv: torch.Tensor | None, fp: FirstPass
+    index: PlannedIndex, q: torch.Tensor, cv: torch.Tensor | None, fp: FirstPass
 ) -> torch.Tensor:
     """[n,M] upper bounds on every row's margin: ``index.upper_bounds`` (the first tier, or the float32
     table), or for the texts in ``fp.direct`` the whole second tier's, for those in ``fp.head`` the first
@@ -164,7 +196,7 @@ def first_pass_upper(
 
 
 def narrow_pending(
-    index: EmbeddingIndex, pending: list[Pending], q: torch.Tensor, k: int, skip: list[int] = ()
+    index: PlannedIndex, pending: list[Pending], q: torch.Tensor, k: int, skip: list[int] = ()
 ) -> list[Pending]:
     """The texts with more than REFINE_ABOVE rows left, narrowed by the second tier's bounds (one pass
     over the union of their rows for all of them); the others (and those in ``skip``) as they are.
@@ -200,7 +232,7 @@ def narrow_pending(
 
 
 def refine_pending(
-    index: EmbeddingIndex, pending: list[Pending], q: torch.Tensor, cv: torch.Tensor | None
+    index: PlannedIndex, pending: list[Pending], q: torch.Tensor, cv: torch.Tensor | None
 ) -> dict[int, Refined]:
     """Tighter bounds for the texts with more than REFINE_ABOVE rows left: one float32 pass over the
     union of those rows for all of them at once. Returns {text: Refined} over the union (a sorted
@@ -234,9 +266,8 @@ def union_rows(pending: list[Pending], texts: list[int], num: int) -> torch.Tens
 
 
 def empty32(n: int, m: int) -> torch.Tensor:
-    """An uninitialised float32 [n,m] from numpy's allocator, which asks for huge pages on large arrays:
-    torch's large CPU allocations took 10K fresh 4 KB pages (13 ms) per query at 10M Gaussians, numpy's
-    152 huge pages for 8 x 10M (measured)."""
+    """An uninitialised float32 [n,m] from numpy's allocator, which asks for huge pages on large arrays
+    where torch's large CPU allocations take fresh 4 KB pages (benchmarks/results/TUNING.md)."""
     return torch.from_numpy(np.empty((n, m), np.float32))
 
 
@@ -244,7 +275,7 @@ class Scorer:
     """A text's exact margins for rows (certify's ExactScorer), keeping the f.q it computed so the answer's
     similarities are not computed twice (10K float64 dots for k = 10,000)."""
 
-    def __init__(self, index: EmbeddingIndex, vecs: torch.Tensor, cmax: torch.Tensor | None) -> None:
+    def __init__(self, index: PlannedIndex, vecs: torch.Tensor, cmax: torch.Tensor | None) -> None:
         """vecs [1+C,D]: the query, then custom canonical vectors; cmax [M]: the stored canonical maxima
         (float32, widened exactly to float64 per row; None when custom vectors are given)."""
         self.index, self.vecs, self.cmax = index, vecs, cmax
@@ -277,7 +308,7 @@ class Scorer:
 
 
 def certify_texts(
-    index: EmbeddingIndex,
+    index: PlannedIndex,
     q: torch.Tensor,
     k: int,
     m_min: float,
@@ -319,7 +350,7 @@ def certify_texts(
 
 
 def _explain(
-    index: EmbeddingIndex,
+    index: PlannedIndex,
     fp: FirstPass,
     j: int,
     started: Pending,

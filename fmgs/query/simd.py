@@ -7,12 +7,11 @@ bound the kernel. Here the products run in 16-lane vectors (one accumulator per 
 accumulators are summed together by a transposing tree: pairs of vectors are interleaved and added
 until one vector holds each text's total in its own lane (two shuffles per text for eight texts, against
 four and a lane extract for a sum of its own).
-At 1M rows of rank 64 and eight texts the first-tier pass took 25 ms against 35 ms (measured).
 For eight texts the bound's other terms (shift, error and residual norms, slack) also run as one
-8-lane vector (``row_upper8``) rather than eight scalar epilogues: 24.5 -> 21.5 ms (medians, same run).
-The second tier's pass for eight texts likewise (``row_tier2_upper8``, its terms in float64): a batch of
-eight CLIP-like texts at 1M rows, 102 -> 85 ms. For the narrowing (sparse rows, kernels.tier2_bounds)
-the same change measured no gain (its rows' reads, not its arithmetic, bound it) and was not kept.
+8-lane vector (``row_upper8``) rather than eight scalar epilogues, and the second tier's likewise
+(``row_tier2_upper8``, its terms in float64). The narrowing (sparse rows, kernels.tier2_bounds) keeps its
+scalar terms: its rows' reads, not its arithmetic, bound it. The figures that chose each of these:
+benchmarks/results/TUNING.md.
 
 Ranks must be multiples of ``LANES`` (the callers keep their loop for other ranks). The sums differ from
 the loops' only in their order (float32, fused multiply-adds), which the kernels' slack already covers:
@@ -20,8 +19,8 @@ the twins in tests/query/test_kernels.py check both paths.
 
 Selections (``compress_at_least``): the rows of a float32 vector at or above a cut, sixteen values per
 compare, the positions of those that pass written by one masked compress store (AVX-512's vpcompressq;
-LLVM emulates it elsewhere) and counted by a popcount: no branch per value. At 1M values and 0.5% (2%)
-kept, 0.18 (0.20) ms against numpy's compare and flatnonzero's 0.46 (0.82) ms (measured).
+LLVM emulates it elsewhere) and counted by a popcount: no branch per value (against numpy's compare and
+flatnonzero: benchmarks/results/TUNING.md).
 
 numba caches the kernels' machine code keyed on fmgs/query/kernels.py alone: after a change here, clear
 fmgs/query/__pycache__ (or touch kernels.py) so they are compiled again.

@@ -1,6 +1,6 @@
 """Numba kernels of the differentiable CPU path: blending forward (with what backward needs) and backward.
 
-The twin is ``reference.py``'s ``_blend_chunk`` under autograd: same rule (alpha = min(alpha_max,
+The twin is ``reference.py``'s ``blend_chunk`` under autograd: same rule (alpha = min(alpha_max,
 o exp(-power/2)), skipped below alpha_min, a pixel stops before the Gaussian that would take its
 transmittance below t_min), float64 throughout, exact ``exp``. Tiles run in parallel; within a tile,
 Gaussians are the outer loop and only the pixels inside each one's box the inner loop (outside it

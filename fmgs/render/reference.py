@@ -49,7 +49,7 @@ def rasterize_reference(
     n_contrib = torch.zeros(N, dtype=torch.int64, device=dev)
     weight_sum = torch.zeros(N, dtype=torch.float64, device=dev)
 
-    for tiles, kmax in _tile_batches(counts, P, D, config.chunk_elems):
+    for tiles, kmax in tile_batches(counts, P, D, config.chunk_elems):
         tb = torch.tensor(tiles, device=dev)
         B = len(tiles)
         # Padded [B, kmax] list of Gaussian ids; padding points at Gaussian 0 with opacity 0.
@@ -89,9 +89,9 @@ def rasterize_reference(
             if needs_grad:
                 # Recompute the chunk in backward instead of keeping its [B,P,k] intermediates: the
                 # saved inputs are references to the shared tensors, so memory stays one chunk deep.
-                df, dw, dz, Tcar, stop, w = checkpoint(_blend_chunk, *args, config, use_reentrant=False)
+                df, dw, dz, Tcar, stop, w = checkpoint(blend_chunk, *args, config, use_reentrant=False)
             else:
-                df, dw, dz, Tcar, stop, w = _blend_chunk(*args, config)
+                df, dw, dz, Tcar, stop, w = blend_chunk(*args, config)
             acc_f = acc_f + df
             acc_w = acc_w + dw
             acc_z = acc_z + dz
@@ -137,9 +137,7 @@ def rasterize_reference(
     )
 
 
-def _blend_chunk(
-    pix_b, g, gv, means2d, conics, opacities, depths, features, Tcar, done, config: RasterConfig
-):
+def blend_chunk(pix_b, g, gv, means2d, conics, opacities, depths, features, Tcar, done, config: RasterConfig):
     """Blend one chunk of k Gaussians into B tiles of P pixels, front to back.
 
     pix_b [B,P,1,2] pixel centres; g [B,k] Gaussian ids (gv marks real entries, the rest is padding);
@@ -169,7 +167,7 @@ def _blend_chunk(
     return df, dw, dz, torch.where(keep.any(-1), last, Tcar), stop, w
 
 
-def _tile_batches(counts: list[int], P: int, D: int, budget: int):
+def tile_batches(counts: list[int], P: int, D: int, budget: int):
     """Group non-empty tiles into batches of similar list length so B * P * kmax stays near budget.
 
     Yields (tile indices, longest list in the batch). Sorting by length keeps padding small.

@@ -3,7 +3,7 @@
 ``project_gaussians``: projection.py's float64 projection, one launch.
 
 ``blend_tiles`` (the single pass): one program blends BP pixels of one tile into CB channels, walking the
-tile's front-to-back list BK Gaussians at a time with reference.py's rule (``_blend_chunk``) until every
+tile's front-to-back list BK Gaussians at a time with reference.py's rule (``blend_chunk``) until every
 pixel has terminated.
 
 The weights-once path, for many channels: ``tile_extents`` walks each tile's list with the same rule and

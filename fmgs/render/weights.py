@@ -16,7 +16,7 @@ import torch
 from fmgs.cameras import Camera
 from fmgs.render.binning import bin_tiles
 from fmgs.render.projection import project
-from fmgs.render.reference import _blend_chunk, _tile_batches
+from fmgs.render.reference import blend_chunk, tile_batches
 from fmgs.render.types import RasterConfig
 from fmgs.sparse import SparseMatrix
 
@@ -80,7 +80,7 @@ def view_weights(
     offsets = bins.offsets.tolist()
     dummy = torch.zeros(N, 1, dtype=torch.float64, device=dev)
     rows, cols, vals = [], [], []
-    for tiles, kmax in _tile_batches(counts, P, 1, config.chunk_elems):
+    for tiles, kmax in tile_batches(counts, P, 1, config.chunk_elems):
         tb = torch.tensor(tiles, device=dev)
         B = len(tiles)
         k = torch.arange(kmax, device=dev)
@@ -103,7 +103,7 @@ def view_weights(
             g = gid[:, k0 : k0 + kc]
             gv = valid[:, k0 : k0 + kc]
             args = (pix_b, g, gv, proj.means2d, proj.conics, proj.opacities, proj.depths, dummy, Tcar, done)
-            _, _, _, Tcar, stop, w = _blend_chunk(*args, config)
+            _, _, _, Tcar, stop, w = blend_chunk(*args, config)
             done = done | stop
             keep = (w > 0) & ok_pix[..., None]  # [B,P,k]
             b, p, j = torch.nonzero(keep, as_tuple=True)

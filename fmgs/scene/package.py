@@ -218,7 +218,7 @@ def load_scene(path: str | Path, device: str | torch.device = "cpu", mmap: bool 
     gaussians = load_gaussians(path / "gaussians.safetensors", device)
     gaussians.validate()
     efile = path / "embeddings.safetensors"
-    t = _read_tensors(efile, ("selected", *(() if mmap else ("canonical", "embeddings"))), device)
+    t = read_tensors(efile, ("selected", *(() if mmap else ("canonical", "embeddings"))), device)
     sel = t["selected"]
     if mmap:  # only the compact state is resident; pose renders page the canonical dots in
         from fmgs.io.mmap_tensors import mmap_torch
@@ -274,7 +274,7 @@ def _load_state(path: Path, M: int, D: int) -> QueryState | None:
         return None
 
 
-def _read_tensors(fpath: Path, keys: tuple[str, ...], device) -> dict[str, torch.Tensor]:
+def read_tensors(fpath: Path, keys: tuple[str, ...], device) -> dict[str, torch.Tensor]:
     """The named tensors of a safetensors file (only those are read)."""
     from safetensors import SafetensorError, safe_open
 

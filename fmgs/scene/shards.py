@@ -226,13 +226,13 @@ def write_shards(
     from safetensors.torch import save_file
 
     from fmgs.query.state import STATE_FILE, TIER2_RANK, build_state, fingerprint, load_state, save_state
-    from fmgs.scene.package import _read_tensors
+    from fmgs.scene.package import read_tensors
 
     source, out = Path(source), Path(out)
     man = Manifest.read(source)
     g = load_gaussians(source / "gaussians.safetensors")
     efile = source / "embeddings.safetensors"
-    t = _read_tensors(efile, ("selected", "embeddings", "canonical"), "cpu")
+    t = read_tensors(efile, ("selected", "embeddings", "canonical"), "cpu")
     sel, emb, canon = t["selected"], t["embeddings"], t["canonical"]
     if emb.dtype != torch.float16 or sel.dtype != torch.int64:
         raise ValidationError(str(efile), "expected float16 embeddings and int64 selected indices")
@@ -316,10 +316,10 @@ def read_shard_ids(
     folder: str | Path, num_gaussians: int, num_selected: int
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """The source indices of a shard's Gaussians [n] and embedded rows [m] (int64), checked."""
-    from fmgs.scene.package import _read_tensors
+    from fmgs.scene.package import read_tensors
 
     path = Path(folder) / IDS_FILE
-    t = _read_tensors(path, ("gaussians", "rows"), "cpu")
+    t = read_tensors(path, ("gaussians", "rows"), "cpu")
     gi, rows = t["gaussians"], t["rows"]
     if gi.dtype != torch.int64 or gi.shape != (num_gaussians,) or rows.dtype != torch.int64:
         raise ValidationError(str(path), f"expected int64 gaussians [{num_gaussians}] and rows")

@@ -17,7 +17,7 @@ REPO = "acme/tiny-clip"
 
 
 def test_a_build_downloads_its_encoder_then_builds_offline_from_the_cache(bpe_dir, tmp_path, monkeypatch):
-    from fmgs.features.text import clip_tokenizer_from_bpe_files
+    from fmgs.features.clip_tokenizer import clip_tokenizer_from_bpe_files
     from fmgs.synth import SynthConfig, generate
 
     bpe = bpe_dir

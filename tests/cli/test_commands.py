@@ -132,6 +132,24 @@ def test_render_reads_datasets_like_every_command(tmp_path, capsys):
     assert "no such file or folder" in capsys.readouterr().err
 
 
+def test_info_describes_a_scene_package_folder(tmp_path, capsys):
+    import shutil
+    from pathlib import Path
+
+    demo = Path(__file__).resolve().parents[2] / "models" / "demo"
+    assert main(["info", str(demo)]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert info["name"] == "demo" and info["encoder"]["dim"] == 384
+    assert info["gaussians"] > info["embedded"] > 0 and len(info["bounds_min"]) == 3
+    assert "red cube" in info["label_names"] and "source" in info["build"]
+    assert info["files"]["manifest.json"] > 0 and "gaussians.safetensors" in info["files"]
+    broken = tmp_path / "broken"
+    broken.mkdir()
+    shutil.copy(demo / "manifest.json", broken)
+    assert main(["info", str(broken)]) == 2
+    assert "scene package without gaussians.safetensors, embeddings.safetensors" in capsys.readouterr().err
+
+
 def test_folders_and_photo_folders_get_a_hint(tmp_path, capsys):
     _scene_file(tmp_path)
     assert main(["info", str(tmp_path)]) == 2

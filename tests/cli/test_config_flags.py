@@ -1,4 +1,4 @@
-"""Every setting of the build and training configs is a flag and a TOML key (fmgs/flags.py via fmgs.cli);
+"""Every setting of the build and training configs is a flag and a TOML key (fmgs/flags.py via fmgs.commands);
 fewer steps compress a stage's schedule before the other settings apply; bad settings exit 2 naming them."""
 
 from __future__ import annotations
@@ -11,6 +11,11 @@ import pytest
 
 from fmgs import cli
 from fmgs.build.config import BuildConfig, TargetSpec
+from fmgs.commands.build import build_config
+from fmgs.commands.common import settings
+from fmgs.commands.features import target_spec
+from fmgs.commands.train_field import field_config
+from fmgs.commands.train_gs import gs_config
 from fmgs.train.config import FieldTrainConfig, GSTrainConfig
 
 
@@ -25,7 +30,7 @@ def test_build_flags_reach_every_stage_with_compressed_schedules():
         *("--field-steps", "600", "--field-select-opacity-min", "0.4", "--field-field-grid-levels", "8"),
         *("--seed", "3", "--device", "cpu"),
     )
-    cfg = cli._build_config(a)
+    cfg = build_config(a)
     gs = GSTrainConfig.reduced(1200)
     assert cfg.gs == replace(
         gs, sh_degree=0, densify=replace(gs.densify, grad_threshold=0.001, reset_every=333)
@@ -46,9 +51,7 @@ def test_build_config_file_under_flags(tmp_path):
         'name = "fromfile"\nfield_dtype = "float16"\n[gs]\nsteps = 3000\nbackground = [0, 0, 0]\n'
         "[field]\nsteps = 2100\n[field.select]\nradius_min = 3.5\n[extra]\ndescription = 'x'\n"
     )
-    cfg = cli._build_config(
-        _args("build", "DATA", "--config", str(f), "--field-steps", "1000", "--device", "cpu")
-    )
+    cfg = build_config(_args("build", "DATA", "--config", str(f), "--field-steps", "1000", "--device", "cpu"))
     assert cfg.name == "fromfile" and cfg.field_dtype == "float16" and cfg.extra == {"description": "x"}
     assert cfg.gs == replace(GSTrainConfig.reduced(3000), background=(0.0, 0.0, 0.0))
     assert cfg.field.steps == 1000 and cfg.field.select.radius_min == 3.5  # the flag wins over the file
@@ -61,21 +64,21 @@ def test_a_schedule_compressed_to_its_own_length_is_the_default():
 
 
 def test_defaults_are_the_dataclasses():
-    cfg = cli._build_config(_args("build", "DATA", "--name", "n", "--device", "cpu"))
+    cfg = build_config(_args("build", "DATA", "--name", "n", "--device", "cpu"))
     assert cfg == BuildConfig(name="n")
-    assert cli._gs_config(_args("train-gs", "D", "--out", "O", "--device", "cpu")) == GSTrainConfig()
+    assert gs_config(_args("train-gs", "D", "--out", "O", "--device", "cpu")) == GSTrainConfig()
     tf = _args("train-field", "D", "--gaussians", "g", "--features", "f", "--out", "o", "--device", "cpu")
-    assert cli._field_config(tf) == FieldTrainConfig()
-    assert cli._target_spec(_args("features", "D", "--out", "O")) == TargetSpec()
-    spec = cli._target_spec(_args("features", "D", "--out", "O", "--feature-side", "640"))
+    assert field_config(tf) == FieldTrainConfig()
+    assert target_spec(_args("features", "D", "--out", "O")) == TargetSpec()
+    spec = target_spec(_args("features", "D", "--out", "O", "--feature-side", "640"))
     assert spec == TargetSpec(feature_side=640) and spec.feature_scale is None
-    spec = cli._target_spec(_args("features", "D", "--out", "O", "--feature-scale", "0.5"))
+    spec = target_spec(_args("features", "D", "--out", "O", "--feature-scale", "0.5"))
     assert spec.feature_scale == 0.5
-    assert cli._target_spec(_args("features", "D", "--out", "O", "--feature-scale", "none")) == TargetSpec()
+    assert target_spec(_args("features", "D", "--out", "O", "--feature-scale", "none")) == TargetSpec()
 
 
 def test_train_gs_short_flags_and_tuples():
-    cfg = cli._gs_config(
+    cfg = gs_config(
         _args(
             "train-gs",
             "D",
@@ -129,12 +132,12 @@ def test_help_shows_each_default_from_its_dataclass():
 def test_sfm_settings_from_fmgs_sfm_and_fmgs_build():
     from fmgs.sfm.config import SfMConfig
 
-    cfg = cli._settings(
+    cfg = settings(
         _args("sfm", "IMGS", "--out", "O", "--camera-model", "OPENCV", "--max-image-size", "800"), SfMConfig
     )
     assert cfg == SfMConfig(camera_model="OPENCV", max_image_size=800)
     known = ("--camera-model", "PINHOLE", "--camera-params", "400,401.5,240,180", "--refine-principal-point")
-    cfg = cli._settings(
+    cfg = settings(
         _args("sfm", "I", "--out", "O", *known, "--no-refine-focal", "--intrinsics-file", "k.json"), SfMConfig
     )
     assert cfg == SfMConfig(
@@ -144,7 +147,7 @@ def test_sfm_settings_from_fmgs_sfm_and_fmgs_build():
         refine_focal=False,
         intrinsics_file="k.json",
     )
-    b = cli._build_config(
+    b = build_config(
         _args(
             "build",
             "P",

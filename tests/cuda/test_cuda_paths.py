@@ -72,7 +72,7 @@ def test_engine_on_cuda_matches_the_cpu_engine(tmp_path):
         assert not b.index.is_cuda and not b.relevancy.is_cuda
         assert torch.equal(a.index, b.index)
         assert torch.allclose(a.relevancy, b.relevancy, atol=1e-6)
-        ref = rank_reference(cpu.index.coeffs, cpu.index.canonical, q, 50)
+        ref = rank_reference(cpu.index.table, cpu.index.canonical, q, 50)
         assert torch.equal(cpu.selected[ref.rows], b.index)
         ra, rb = render_pose(cpu, camera(), q), render_pose(gpu, camera(), q)
         assert rb.relevancy.device.type == "cpu"

@@ -13,9 +13,10 @@ import torch.nn.functional as F
 
 from fmgs.errors import ValidationError
 from fmgs.features.clip import CLIP_MEAN, CLIP_STD, ClipImageEncoder
+from fmgs.features.clip_tokenizer import clip_tokenizer_from_bpe_files
 from fmgs.features.dino import IMAGENET_MEAN, IMAGENET_STD, DinoEncoder
 from fmgs.features.registry import EncoderRef, parse_encoder_id
-from fmgs.features.text import ClipTextEncoder, clip_tokenizer_from_bpe_files, load_text_encoder
+from fmgs.features.text import ClipTextEncoder, load_text_encoder
 
 transformers = pytest.importorskip("transformers")
 TEXTS = ["a red cube", "something to sit on", "the floor"]

@@ -29,7 +29,7 @@ REPO = "acme/tiny-clip"
 def clip_repo(bpe_dir, tmp_path_factory):
     """A tiny random-weight CLIP in hub layout, plus an open_clip checkpoint and flax weights beside it
     (which a download must leave behind)."""
-    from fmgs.features.text import clip_tokenizer_from_bpe_files
+    from fmgs.features.clip_tokenizer import clip_tokenizer_from_bpe_files
 
     bpe = bpe_dir
     vocab = len(clip_tokenizer_from_bpe_files(bpe / "vocab.json", bpe / "merges.txt"))

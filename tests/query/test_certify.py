@@ -61,8 +61,12 @@ def _indexes(emb, canon):
     compact = EmbeddingIndex.build(emb.half(), canon, cfg)
     split = EmbeddingIndex.build(emb.half(), canon, cfg, state=build_state(emb.half(), 16, head=32))
     tier1 = EmbeddingIndex.build(emb.half(), canon, IndexConfig(rank=16, rank2=0, exact_below=0, rerank=2))
-    assert exact.exact and not compact.exact and compact.tier2 is not None and tier1.tier2 is None
-    assert compact.tier2.tail is None and split.tier2.tail is not None and split.tier2.head == 32
+    assert exact.exact and not compact.exact and compact.second_tier is not None and tier1.second_tier is None
+    assert (
+        compact.second_tier.tail is None
+        and split.second_tier.tail is not None
+        and split.second_tier.head == 32
+    )
     return {"exact": exact, "compact": compact, "split": split, "tier1": tier1}
 
 
@@ -213,7 +217,7 @@ def test_second_tier_bounds_hold_are_tight_and_match_their_twin(scene):
     emb, _, canon, _, sets = scene
     idx = _indexes(emb, canon)["compact"]
     b = idx.compact
-    t2 = idx.tier2
+    t2 = idx.second_tier
     q = torch.cat([sets[n] for n in QUERY_SETS])
     rows = torch.arange(M)
     lo, up = b.tier2_bounds(rows, q)
@@ -224,12 +228,12 @@ def test_second_tier_bounds_hold_are_tight_and_match_their_twin(scene):
     assert float((up - exact).median()) < float(first.median()) / 4
     # Against the float64 twin (the kernel sums in float32: within its slack).
     v64 = q.double()
-    w1, w2 = v64 @ idx.basis.T, v64 @ t2.basis.T
-    perp = v64 - w1 @ idx.basis - w2 @ t2.basis
+    w1, w2 = v64 @ idx.state.basis.T, v64 @ t2.basis.T
+    perp = v64 - w1 @ idx.state.basis - w2 @ t2.basis
     W1 = (v64 @ b.weighted_basis.T).float().numpy()
     W2 = (v64 @ b.weighted_basis2.T).float().numpy()
     rlo, rup = tier2_bounds_reference(
-        idx.coeffs.numpy(), W1, t2.codes.numpy(), W2, *_no_tail(M, len(q)), rows.numpy(),
+        idx.state.codes.numpy(), W1, t2.codes.numpy(), W2, *_no_tail(M, len(q)), rows.numpy(),
         idx.canonical_max.numpy(), b.err.numpy(), t2.bounds.numpy(), w1.norm(dim=1).numpy(),
         w2.norm(dim=1).numpy(), perp.norm(dim=1).numpy(), b.slack2,
     )  # fmt: skip
@@ -560,9 +564,9 @@ def test_second_tier_sample_holds_the_strided_rows(scene, monkeypatch):
     idx = _indexes(emb, canon)["compact"]
     b = idx.compact
     s, rows = b.sample, torch.arange(0, M, tuning.TIER2_FIRST_STEP)
-    assert np.array_equal(s.first_codes, idx.coeffs[rows].numpy())
-    assert np.array_equal(s.head_codes, idx.tier2.codes[rows].numpy())
-    assert np.array_equal(s.tier2_norms, idx.tier2.bounds[rows].numpy())
+    assert np.array_equal(s.first_codes, idx.state.codes[rows].numpy())
+    assert np.array_equal(s.head_codes, idx.second_tier.codes[rows].numpy())
+    assert np.array_equal(s.tier2_norms, idx.second_tier.bounds[rows].numpy())
     assert np.array_equal(s.shift, idx.canonical_max[rows].numpy())
     assert np.array_equal(s.first_err, b.err[rows].numpy()) and np.array_equal(
         s.first_res, b.res[rows].numpy()
@@ -570,8 +574,8 @@ def test_second_tier_sample_holds_the_strided_rows(scene, monkeypatch):
     assert s.tail_codes.shape == (len(rows), 0) and s.head_norms.shape == (len(rows), 0)  # stored whole
     split = _indexes(emb, canon)["split"]
     t = split.compact.sample
-    assert np.array_equal(t.tail_codes, split.tier2.tail[rows].numpy())
-    assert np.array_equal(t.head_norms, split.tier2.head_bounds[rows].numpy())
+    assert np.array_equal(t.tail_codes, split.second_tier.tail[rows].numpy())
+    assert np.array_equal(t.head_norms, split.second_tier.head_bounds[rows].numpy())
     # Counted as resident where the estimate runs (scenes of TIER2_FIRST_MIN_SAMPLE sample rows or more).
     without = idx.nbytes()
     monkeypatch.setattr(tuning, "TIER2_FIRST_MIN_SAMPLE", 0)

@@ -43,7 +43,7 @@ def test_compact_index_against_exact_ranking(rerank):
     canon = emb @ safe_normalize(torch.randn(4, 64, generator=g)).T
     cfg = IndexConfig(rank=12, exact_below=0, rerank=rerank)
     idx = EmbeddingIndex.build(emb, canon, cfg)
-    assert not idx.exact and idx.coeffs.shape == (M, 12)
+    assert not idx.exact and idx.state.codes.shape == (M, 12)
     for _ in range(20):
         q = safe_normalize(torch.randn(64, generator=g) @ torch.eye(64))
         q = safe_normalize(q[None] @ basis.T @ basis + 0.05 * q[None])[0]
@@ -206,13 +206,20 @@ def test_query_state_bytes_per_gaussian():
     emb = safe_normalize(torch.randn(M, 512, generator=g)).half()
     canon = torch.randn(M, 4, generator=g)
     idx = EmbeddingIndex.build(emb, canon, IndexConfig(rank=32, rank2=0, exact_below=0))
-    per = (idx.nbytes() - idx.basis.numel() * 8 - idx.scales.numel() * 4) / M + 8  # + int64 scene index
+    per = (
+        idx.nbytes() - idx.state.basis.numel() * 8 - idx.state.scales.numel() * 4
+    ) / M + 8  # + int64 scene index
     assert per <= 32 + 12 + 8, per  # codes, two bound norms and the canonical maximum, scene index
     # A second tier built in memory (no stored state to map) is resident, and counted.
     two = EmbeddingIndex.build(emb, canon, IndexConfig(rank=32, rank2=256, exact_below=0))
-    assert two.tier2 is not None and not two.tier2.mapped and two.tier2.rank == 256 - 32
-    small = two.basis.numel() * 8 + two.scales.numel() * 4 + two.tier2.basis.numel() * 8 + 224 * 4
-    assert two.tier2.head == 128 and two.tier2.tail.shape[1] == 224 - 128
+    assert two.second_tier is not None and not two.second_tier.mapped and two.second_tier.rank == 256 - 32
+    small = (
+        two.state.basis.numel() * 8
+        + two.state.scales.numel() * 4
+        + two.second_tier.basis.numel() * 8
+        + 224 * 4
+    )
+    assert two.second_tier.head == 128 and two.second_tier.tail.shape[1] == 224 - 128
     assert two.nbytes() - small == M * (32 + 12 + 224 + 8 + 8)  # ... and the head's two norms
 
 
@@ -228,10 +235,10 @@ def test_int8_kernel_matches_reference():
     g = torch.Generator().manual_seed(3)
     emb = safe_normalize(torch.randn(3000, 48, generator=g))
     idx = EmbeddingIndex.build(emb, torch.randn(3000, 4, generator=g), IndexConfig(rank=24, exact_below=0))
-    assert idx.coeffs.dtype == torch.int8 and idx.scales.shape == (24,)
+    assert idx.state.codes.dtype == torch.int8 and idx.state.scales.shape == (24,)
     v = safe_normalize(torch.randn(5, 48, generator=g))
     fast = idx.dots(v)
-    ref = int8_dots_reference(idx.coeffs, idx.scales, idx.basis, v)
+    ref = int8_dots_reference(idx.state.codes, idx.state.scales, idx.state.basis, v)
     assert (fast - ref).abs().max() < 1e-5
     shift = torch.randn(3000, generator=g)
     assert (idx.dots(v, shift) - (ref - shift[:, None])).abs().max() < 1e-5
@@ -239,15 +246,15 @@ def test_int8_kernel_matches_reference():
     for n in (1, 3, 4, 7, 8):
         w = safe_normalize(torch.randn(n, 48, generator=g))
         up = idx.compact.first_tier_upper(w).double()
-        r = int8_dots_reference(idx.coeffs, idx.scales, idx.basis, w).double()
+        r = int8_dots_reference(idx.state.codes, idx.state.scales, idx.state.basis, w).double()
         _, wn, vn = idx.compact.first_tier_weights(w)
         err, res = idx.compact.err.double()[:, None], idx.compact.res.double()[:, None]
         terms = err * wn.double()[None] + res * vn.double()[None]
-        want = r - idx.canonical_max.double()[:, None] + terms + idx.slack
+        want = r - idx.canonical_max.double()[:, None] + terms + idx.compact.slack
         assert up.shape == (3000, n) and (up - want).abs().max() < 1e-5, n
     # Quantisation error against the unquantised rank-24 projection stays at the int8 step size.
-    proj = ((emb.double() @ idx.basis.T) @ (v.double() @ idx.basis.T).T).float()
-    assert (ref - proj).abs().max() < 24 * float(idx.scales.max()) / 2
+    proj = ((emb.double() @ idx.state.basis.T) @ (v.double() @ idx.state.basis.T).T).float()
+    assert (ref - proj).abs().max() < 24 * float(idx.state.scales.max()) / 2
 
 
 def test_relevancy_channels_cache_is_exact_and_bounded(tmp_path):

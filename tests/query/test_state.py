@@ -126,7 +126,7 @@ def test_second_tier_is_stored_mapped_and_checked(tmp_path):
     st = load_state(f, M, D, src)
     assert st.tier2 is not None and st.tier2.mapped and R + st.tier2.rank < D
     eng = SceneEngine.open(p, COMPACT)
-    assert eng.index.tier2 is not None
+    assert eng.index.second_tier is not None
     # Its codes are memory-mapped: not counted as resident.
     assert eng.index.nbytes() < M * (R + 4 * 4 + 1) + 8 * D * (R + st.tier2.rank) + 4 * (R + st.tier2.rank)
     for q in sets["clip"]:
@@ -141,7 +141,7 @@ def test_second_tier_is_stored_mapped_and_checked(tmp_path):
     with pytest.raises(ValidationError, match=r"version '1', this build reads version 3 only: .*fmgs build"):
         load_state(f, M, D, src)
     eng = SceneEngine.open(p, COMPACT)
-    assert eng.index.tier2 is not None and not eng.index.tier2.mapped and not eng.index.exact
+    assert eng.index.second_tier is not None and not eng.index.second_tier.mapped and not eng.index.exact
     q = sets["absent"][0]
     assert torch.equal(eng.index.rank(q, 40).rows, rank_reference(emb, canon, q, 40).rows)
     # Declared but missing, or damaged.
@@ -161,7 +161,7 @@ def test_second_tier_is_stored_mapped_and_checked(tmp_path):
     # rank2 = 0 in the configuration: the stored second tier is not used.
     save_file(tensors, str(f), metadata=meta)
     eng = SceneEngine.open(p, EngineConfig(index=IndexConfig(rank=R, rank2=0, exact_below=0)))
-    assert eng.index.tier2 is None
+    assert eng.index.second_tier is None
 
 
 def test_split_second_tier_round_trips_and_version_2_is_refused(tmp_path):

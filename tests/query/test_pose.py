@@ -32,6 +32,7 @@ def large(tmp_path_factory):
     return engine, emb, query_sets(emb, copies, 1)
 
 
+@pytest.mark.slow
 def test_relevancy_images_at_the_default_compact_size_match_the_float64_reference_on_every_query_set(large):
     engine, emb, sets = large
     cam = cube_camera()

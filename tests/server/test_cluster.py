@@ -28,6 +28,7 @@ from fmgs_wire.tensors import from_tensor
 from tests.helpers.query_scenes import CENTRES, CLASS_NAMES, ENCODER_ID, FakeEncoder, blob_scene
 
 ray = pytest.importorskip("ray", reason="the fmgs[ray] extra is part of the CI install")
+pytestmark = pytest.mark.slow  # a Ray cluster and a Serve application
 ROOT = Path(__file__).resolve().parents[2]
 READ, ADMIN = "read-token", "admin-token"
 

@@ -6,6 +6,14 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+# OpenMP threads (torch's pool, and numba's: its threading layer here is OpenMP) wait for work by
+# spinning, so whenever they outnumber the idle cores (another job on the machine, or this suite's own
+# servers, Ray workers and client threads) they burn the CPU the work needs: on the 2-core CI machine
+# under another job, tests/render/test_grad.py, test_certify.py, tests/field, test_kernels.py and
+# test_sharded.py took 195 s with the default and 38 s passive. Results do not depend on it. libgomp
+# reads it when it loads, so it is set before torch is imported; child processes inherit it.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
 import pytest
 import torch
 from hypothesis import HealthCheck, settings

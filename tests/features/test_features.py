@@ -599,6 +599,7 @@ def test_map_size_is_a_resolution_in_pixels_by_default():
         ExtractConfig(feature_side=0)
 
 
+@pytest.mark.slow
 def test_extract_targets_clip_and_dino(synth_scene, tiny_clip, tiny_vit, tmp_path):
     from fmgs.data.dataset import load_dataset
 

@@ -52,15 +52,41 @@ def scene():
     return emb, copies, canon, canon_vecs, query_sets(emb, copies, 6)
 
 
+_STATES: dict = {}
+_REFERENCES: dict = {}
+
+
+def _state(emb, cfg: IndexConfig | None = None, **kw):
+    """build_state on the module's scene, once per setting: what EmbeddingIndex.build would build for
+    ``cfg`` (or build_state(emb.half(), 16, **kw)). A state is data an index only reads, so every index
+    built from it is still a fresh one (its own caches, the tuning in effect when it runs)."""
+    args = (cfg.rank, cfg.basis_sample, cfg.rank2) if cfg is not None else (16,)
+    key = (id(emb), args, tuple(sorted(kw.items())))
+    if key not in _STATES or _STATES[key][0] is not emb:
+        _STATES[key] = (emb, build_state(emb.half(), *args, **kw))
+    return _STATES[key][1]
+
+
+def _reference(emb, canon, q, k, threshold=None):
+    """rank_reference(emb, canon, q, k[, threshold]), computed once per query: the float64 brute force is
+    a pure function of its inputs, and the parametrised tests ask it the same questions on every path."""
+    key = (id(emb), id(canon), q.numpy().tobytes(), k, threshold)
+    if key not in _REFERENCES or _REFERENCES[key][0] is not emb or _REFERENCES[key][1] is not canon:
+        kw = {} if threshold is None else {"threshold": threshold}
+        _REFERENCES[key] = (emb, canon, rank_reference(emb, canon, q, k, **kw))
+    return _REFERENCES[key][2]
+
+
 def _indexes(emb, canon):
     """The paths on the same scene: the exact one (below exact_below), the compact one (two tiers), the
     compact one with its second tier split into a head and a tail, and the compact one with its first
     tier alone."""
     exact = EmbeddingIndex.build(emb, canon, IndexConfig(exact_below=M + 1))
     cfg = IndexConfig(rank=16, exact_below=M - 1, rerank=2)
-    compact = EmbeddingIndex.build(emb.half(), canon, cfg)
-    split = EmbeddingIndex.build(emb.half(), canon, cfg, state=build_state(emb.half(), 16, head=32))
-    tier1 = EmbeddingIndex.build(emb.half(), canon, IndexConfig(rank=16, rank2=0, exact_below=0, rerank=2))
+    compact = EmbeddingIndex.build(emb.half(), canon, cfg, state=_state(emb, cfg))
+    split = EmbeddingIndex.build(emb.half(), canon, cfg, state=_state(emb, head=32))
+    t1cfg = IndexConfig(rank=16, rank2=0, exact_below=0, rerank=2)
+    tier1 = EmbeddingIndex.build(emb.half(), canon, t1cfg, state=_state(emb, t1cfg))
     assert exact.exact and not compact.exact and compact.second_tier is not None and tier1.second_tier is None
     assert (
         compact.second_tier.tail is None
@@ -126,7 +152,7 @@ def test_top_k_equals_brute_force_on_every_query_set(scene, path, k, monkeypatch
     for name in QUERY_SETS:
         for q in sets[name]:
             a = idx.rank(q, k)
-            _same(a, rank_reference(emb, canon, q, k))
+            _same(a, _reference(emb, canon, q, k))
             assert k <= a.rescored <= M
 
 
@@ -141,11 +167,11 @@ def test_ties_at_the_kth_place_break_by_row(scene, path):
         if len(group) < 2:
             continue
         q = safe_normalize(emb[i][None])[0]
-        full = rank_reference(emb, canon, q, M).rows
+        full = _reference(emb, canon, q, M).rows
         pos = sorted(int((full == r).nonzero()[0, 0]) for r in group.tolist())
         assert pos == list(range(pos[0], pos[0] + len(group)))  # the copies sit together, by row
         for k in range(pos[0] + 1, pos[-1] + 2):
-            _same(idx.rank(q, k), rank_reference(emb, canon, q, k))
+            _same(idx.rank(q, k), _reference(emb, canon, q, k))
         groups += 1
     assert groups >= 5
 
@@ -158,10 +184,10 @@ def test_threshold_queries_are_certified(scene, path, monkeypatch):
     idx = _index(scene, path, monkeypatch)
     for name in ("clip", "typical", "absent"):
         for q in sets[name][:3]:
-            ref_all = rank_reference(emb, canon, q, M)
+            ref_all = _reference(emb, canon, q, M)
             for thr in (0.05, float(ref_all.relevancy[min(50, M - 1)]), 0.5, 0.9, 1.0):
                 a = idx.rank(q, M, threshold=thr)
-                _same(a, rank_reference(emb, canon, q, M, threshold=thr))
+                _same(a, _reference(emb, canon, q, M, thr))
                 assert bool((a.relevancy >= thr).all())
 
 
@@ -315,7 +341,7 @@ def test_texts_the_first_tier_cannot_settle_go_straight_to_the_second(scene, mon
     assert not {j for j in range(len(q)) if left[j] < 0.05} & chosen  # settled by the first tier
     # Each text of a mixed batch takes its own first pass; answers exact either way.
     for qi, a in zip(q, idx.rank_many(q, 10), strict=True):
-        _same(a, rank_reference(emb, canon, qi, 10))
+        _same(a, _reference(emb, canon, qi, 10))
     # Split: the same texts leave the first tier; those whose head pass is estimated to leave at most
     # HEAD_FRACTION of the rows take it (all of them at 2, none at -1), the others the whole tier.
     split = ix["split"]
@@ -337,7 +363,7 @@ def test_texts_the_first_tier_cannot_settle_go_straight_to_the_second(scene, mon
     assert choose_first_pass(split, q, 10, 40)[:2] == (sorted(chosen), [])
     monkeypatch.setattr(tuning, "HEAD_TEXTS", len(q))
     for qi, a in zip(q, split.rank_many(q, 10), strict=True):
-        _same(a, rank_reference(emb, canon, qi, 10))
+        _same(a, _reference(emb, canon, qi, 10))
 
 
 @pytest.mark.parametrize("path", ["exact", "compact", "compact-refined", "split-head", "tier1-refined"])
@@ -396,7 +422,7 @@ def test_hinted_selections_keep_answers_exact(scene, monkeypatch, hint):
         for k in (1, 10, 300):
             scans.clear()
             for qi, a in zip(q, idx.rank_many(q, k), strict=True):
-                _same(a, rank_reference(emb, canon, qi, k))
+                _same(a, _reference(emb, canon, qi, k))
             if hint == "below every row":  # one scan per text, which keeps every row
                 assert scans == [-1e30] * len(q)
             if hint == "above every row":  # the hint's scan, then the text's own two

@@ -16,20 +16,27 @@ from fmgs.query.segment import segment
 from fmgs.render import rasterize, visible
 from tests.helpers.pose_scenes import SETS, cube_camera, dot_then_render_reference, fieldlike_package
 
+LARGE = IndexConfig().exact_below
+"""The smallest scene the server's default settings put on the compact path (200K). Its Gaussians are
+sized for as many per pixel as 1M at scale 0.004 (where the CPU-vs-CUDA difference was found). The compact
+int8 scores rendered as colours miss the float64 reference by 0.06-0.08 on its CLIP-like and absent sets
+(the bar below is 1e-3), as at 1M."""
+
 
 @pytest.fixture(scope="module")
-def million(tmp_path_factory):
-    """1M embedded Gaussians, D = 128, opened as the server does: the compact path."""
-    path, emb, copies = fieldlike_package(tmp_path_factory.mktemp("pose") / "million", 1_000_000, 128, 0.004)
+def large(tmp_path_factory):
+    """LARGE embedded Gaussians, D = 128, opened as the server does: the compact path."""
+    path, emb, copies = fieldlike_package(tmp_path_factory.mktemp("pose") / "large", LARGE, 128, 0.009)
     engine = SceneEngine.open(path, EngineConfig())
     assert not engine.index.exact  # the compact path is what this module is about
     return engine, emb, query_sets(emb, copies, 1)
 
 
-def test_relevancy_images_at_1m_match_the_float64_reference_on_every_query_set(million):
-    engine, emb, sets = million
+@pytest.mark.slow
+def test_relevancy_images_at_the_default_compact_size_match_the_float64_reference_on_every_query_set(large):
+    engine, emb, sets = large
     cam = cube_camera()
-    assert int(visible(*engine.geometry, cam).sum()) > 900_000  # the view touches nearly every Gaussian
+    assert int(visible(*engine.geometry, cam).sum()) > 0.9 * LARGE  # the view touches nearly every Gaussian
     for name in SETS:
         q = sets[name][0]
         ref = dot_then_render_reference(engine, emb, q, cam)

@@ -124,6 +124,7 @@ def test_a_stalled_reader_holds_its_memory_and_others_are_shed(tmp_path):
         srv.stop(0)
 
 
+@pytest.mark.slow
 def test_a_large_point_query_stays_within_its_reserved_estimate():
     """Regression (issue 14): a large point query ran the whole batch through the field at once (13 KiB
     per point); now its peak RSS stays within what the budget reserves for it. Served from a subprocess

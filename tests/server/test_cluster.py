@@ -1,12 +1,13 @@
 """The service on a local Ray cluster answers as ``fmgs serve`` does, through Ray Serve's gRPC proxy.
 
-One Ray cluster for the module (CPU only, two scene replicas); the same repository served directly
-and through Ray; every RPC compared on the wire, answers and errors alike.
+The session's Ray cluster (tests/conftest.py: two nodes of one CPU each on this machine) with one Serve
+application for the module: two scene replicas of one CPU each, so one on each node; the same repository
+served directly and through Ray; every RPC compared on the wire, answers and errors alike. A client on
+the head's gRPC port is answered by replicas on either node, as by one process.
 """
 
 from __future__ import annotations
 
-import os
 import shutil
 from pathlib import Path
 
@@ -27,6 +28,7 @@ from fmgs_wire.tensors import from_tensor
 from tests.helpers.query_scenes import CENTRES, CLASS_NAMES, ENCODER_ID, FakeEncoder, blob_scene
 
 ray = pytest.importorskip("ray", reason="the fmgs[ray] extra is part of the CI install")
+pytestmark = pytest.mark.slow  # a Ray cluster and a Serve application
 ROOT = Path(__file__).resolve().parents[2]
 READ, ADMIN = "read-token", "admin-token"
 
@@ -69,20 +71,18 @@ def direct(models):
 
 
 @pytest.fixture(scope="module")
-def cluster(models):
+def cluster(models, ray_cluster):
     from ray import serve
 
     from fmgs_server.cluster.launch import start_ray_serve
 
-    env = {"env_vars": {"PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}}
-    cc = ClusterConfig(min_replicas=2, max_replicas=2, replica_cpus=0.5, scenes_per_replica=8)
-    ray.init(num_cpus=2, include_dashboard=False, runtime_env=env, log_to_driver=False)
+    # One CPU per replica on nodes of one CPU each: one replica on each node.
+    cc = ClusterConfig(min_replicas=2, max_replicas=2, replica_cpus=1.0, scenes_per_replica=8)
     try:
-        port = start_ray_serve(_cfg(models), cc, None, encoder_factory)
+        port = start_ray_serve(_cfg(models), cc, ray_cluster.address, encoder_factory)
         yield f"127.0.0.1:{port}"
     finally:
         serve.shutdown()
-        ray.shutdown()
 
 
 def _stub(address):
@@ -199,6 +199,37 @@ def _split_floats(result):
         walk(c)
         out.append(c)
     return (code, details, out), floats
+
+
+def test_replicas_on_two_nodes_answer_alike(direct, cluster, models):
+    """Replicas spread over both nodes, and scenes no replica holds yet go to the one holding the fewest:
+    four new scenes are answered from both nodes, each as fmgs serve answers it. (First in the module:
+    no other test has given a replica a scene yet.)"""
+    from ray import serve
+
+    details = serve.context._get_global_client().get_serve_details()
+    replicas = details["applications"]["fmgs"]["deployments"]["SceneHost"]["replicas"]
+    assert len({r["node_id"] for r in replicas}) == 2  # spread over both nodes
+    stub, one = _stub(cluster), _stub(direct)
+    names = [f"nodes{i}" for i in range(4)]
+    for i, name in enumerate(names):
+        blob_scene(models / name, seed=i)
+    try:
+        seen = set()
+        for name in names:
+            req = pb.TextQueryRequest(scene=name, texts=list(CLASS_NAMES), top_k=20)
+            call = stub.TextQuery(req, metadata=MD, timeout=120)
+            got = [(c.text_index, c.index.data, c.relevancy.data) for c in call]
+            seen |= {v for k, v in call.trailing_metadata() if k == REPLICA_KEY}
+            want = [
+                (c.text_index, c.index.data, c.relevancy.data)
+                for c in one.TextQuery(req, metadata=MD, timeout=120)
+            ]
+            assert got == want and len(got) >= 3
+        assert len(seen) == 2  # scenes go to the replica holding the fewest: both nodes answer
+    finally:
+        for name in names:
+            shutil.rmtree(models / name)
 
 
 def test_every_rpc_answers_as_fmgs_serve_does(direct, cluster):

@@ -42,6 +42,7 @@ def _fit(data, out, learn: bool = True):
     return r, evaluate(r.gaussians, ds, background=r.background)
 
 
+@pytest.mark.slow
 def test_an_undeclared_backdrop_is_learned_as_well_as_a_declared_one(grazing, tmp_path):
     declared, ev_declared = _fit(grazing / "declared", tmp_path / "declared")
     learned, ev_learned = _fit(grazing / "undeclared", tmp_path / "learned")

@@ -198,15 +198,16 @@ def _meshes(cfg: SynthConfig):
     return out
 
 
-def _put(mesh, rng, placed: list[tuple[float, float, float]], touch_p: float | bool):
+def _put(mesh, rng, placed: list[tuple[float, float, float]], touch_p: float | bool, extent: float = 1.6):
     """Turn ``mesh`` about z at random, place it on the floor apart from ``placed`` (touching a placed
-    one with probability ``touch_p``), record its footprint in ``placed``; returns the mesh."""
+    one with probability ``touch_p``; ``extent``: _place's), record its footprint in ``placed``; returns
+    the mesh."""
     mesh.translate(-mesh.get_axis_aligned_bounding_box().get_center())
     R = mesh.get_rotation_matrix_from_xyz((0.0, 0.0, float(rng.uniform(0, 2 * np.pi))))
     mesh.rotate(R, center=(0, 0, 0))
     r = mesh.get_axis_aligned_bounding_box().get_half_extent()[:2].max()
     touch = bool(touch_p) and bool(placed) and rng.uniform() < touch_p
-    x, y = _place(rng, placed, r, touch)
+    x, y = _place(rng, placed, r, touch, extent)
     placed.append((x, y, r))
     zmin = mesh.get_axis_aligned_bounding_box().min_bound[2]
     mesh.translate((x, y, -zmin))  # rest on the floor
@@ -214,9 +215,12 @@ def _put(mesh, rng, placed: list[tuple[float, float, float]], touch_p: float | b
     return mesh
 
 
-WORLD_SIZES = (0.3, 0.95)
-"""Range of the world preset's size factor s (a cube's edge; at the default ring about 9 to 30 pixels
-across at 128x96): small objects beside large ones."""
+WORLD_SIZES = (0.45, 1.15)
+"""Range of the world preset's size factor s (a cube's edge): small objects beside large ones, large
+enough at 128x96 from the default ring that their texture shows (stripes 3-5 pixels apart)."""
+WORLD_EXTENT = 2.1
+"""The world preset places objects within this distance of the centre in x and y (the classic presets:
+1.6), so that larger objects fit."""
 
 
 def _world_meshes(cfg: SynthConfig):
@@ -237,7 +241,7 @@ def _world_meshes(cfg: SynthConfig):
     meshes = {}
     for i in order:
         o = objs[i]
-        meshes[i] = _put(makers[o.shape](float(sizes[i])), rng, placed, 0.35)
+        meshes[i] = _put(makers[o.shape](float(sizes[i])), rng, placed, 0.35, WORLD_EXTENT)
     for i, o in enumerate(objs):
         out.append((o.name, COLOURS[o.colour], meshes[i], o.texture))
     return out
@@ -286,18 +290,21 @@ def _mug(g, s: float):
     return body + handle
 
 
-def _place(rng, placed: list[tuple[float, float, float]], r: float, touch: bool) -> tuple[float, float]:
-    """(x, y) for an object of footprint radius r: apart from every placed one by 0.1, or, when
-    ``touch``, with its footprint circle touching a random placed one's and apart from the others."""
+def _place(
+    rng, placed: list[tuple[float, float, float]], r: float, touch: bool, extent: float = 1.6
+) -> tuple[float, float]:
+    """(x, y) for an object of footprint radius r: apart from every placed one by 0.1, within ``extent``
+    of the centre in x and y, or, when ``touch``, with its footprint circle touching a random placed
+    one's (within extent + 0.2) and apart from the others."""
     for _ in range(1000):  # rejection sampling: no two objects overlap
         if touch:
             px, py, pr = placed[int(rng.integers(len(placed)))]
             a = rng.uniform(0, 2 * np.pi)
             x, y = px + (r + pr + 0.005) * np.cos(a), py + (r + pr + 0.005) * np.sin(a)
-            if abs(x) > 1.8 or abs(y) > 1.8:
+            if abs(x) > extent + 0.2 or abs(y) > extent + 0.2:
                 continue
         else:
-            x, y = rng.uniform(-1.6, 1.6, 2)
+            x, y = rng.uniform(-extent, extent, 2)
         gap = 0.0 if touch else 0.1
         if all(math.hypot(x - qx, y - qy) > r + qr + gap for qx, qy, qr in placed):
             return float(x), float(y)

@@ -1,10 +1,11 @@
 """Train the DINO stand-in (fmgs.features.standin_dino) without labels, once; its weights ship in
-benchmarks/standin_dino/ (under 1 MB).
+benchmarks/standin_dino/ (150 KB).
 
-    python scripts/train_standin_dino.py [--out benchmarks/standin_dino] [--seeds 9001-9040] [--steps 3000]
+    python scripts/train_standin_dino.py [--out benchmarks/standin_dino] [--seeds 9121-9160] [--steps 1500]
 
-Training data: the RGB renders of the same generated world scenes the CLIP stand-in trains on
-(scripts/train_standin.py: seeds 9001-9040, 128x96): images only; no label map, depth or pose is read.
+Training data: the RGB renders of generated world scenes like those the CLIP stand-in trains on
+(scripts/train_standin.py) but of other seeds (9121-9160), 128x96: images only; no label map, depth or
+pose is read.
 
 Objective (dense clustering across augmented views, in the manner of SwAV and PiCIE): two views of a
 random window of a render, each its own random resized crop, flip and colour jitter; at points both views
@@ -167,11 +168,11 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", default=str(ROOT / "benchmarks" / "standin_dino"))
     ap.add_argument("--work", default="/tmp/fmgs-standin")
-    ap.add_argument("--seeds", default="9001-9040")
-    ap.add_argument("--steps", type=int, default=3000)
-    ap.add_argument("--batch", type=int, default=32)
+    ap.add_argument("--seeds", default="9121-9160")
+    ap.add_argument("--steps", type=int, default=1500)
+    ap.add_argument("--batch", type=int, default=16)
     ap.add_argument("--dim", type=int, default=64)
-    ap.add_argument("--width", type=int, default=32)
+    ap.add_argument("--width", type=int, default=24)
     ap.add_argument("--prototypes", type=int, default=64)
     a = ap.parse_args()
 

@@ -153,12 +153,18 @@ def _extended_labels(data: Path, stem: str, names: list[str]) -> np.ndarray:
 
 
 def sample_crop_targets(
-    data: str | os.PathLike, per_view: int, rng, image_size: int = 32, views: list[int] | None = None
+    data: str | os.PathLike,
+    per_view: int,
+    rng,
+    image_size: int = 32,
+    views: list[int] | None = None,
+    object_share: float = 0.0,
 ) -> CropSample:
     """Square crops of a generated scene's views (fmgs.synth: images/, labels/, depth/, scene.json) at the
     CLIP pyramid's scales x the short side, centred at random pixels (``rng``: numpy Generator), each
     resized as the pyramid resizes its crops, with the names they show (``CropSample``). ``views``:
-    indices into the sorted images (default all)."""
+    indices into the sorted images (default all); ``object_share``: the fraction of crops centred on a
+    random object pixel (label >= 2) instead of any pixel (objects are a small part of most views)."""
     from PIL import Image
 
     from fmgs.features.pyramid import PyramidConfig
@@ -173,9 +179,14 @@ def sample_crop_targets(
         img = torch.from_numpy(np.asarray(Image.open(img_path).convert("RGB"), np.float32) / 255.0)
         lab = _extended_labels(data, img_path.stem, names)
         H, W = lab.shape
+        oy, ox = np.nonzero((lab >= 2) & (lab < len(names))) if object_share > 0 else (None, None)
         for _ in range(per_view):
             side = max(4, round(float(rng.choice(PyramidConfig.scales)) * min(H, W)))
-            cx, cy = int(rng.integers(0, W)), int(rng.integers(0, H))
+            if object_share > 0 and len(oy) and rng.uniform() < object_share:
+                i = int(rng.integers(len(oy)))
+                cx, cy = int(ox[i]), int(oy[i])
+            else:
+                cx, cy = int(rng.integers(0, W)), int(rng.integers(0, H))
             x0 = min(max(cx - side // 2, 0), W - side)
             y0 = min(max(cy - side // 2, 0), H - side)
             c = img[y0 : y0 + side, x0 : x0 + side].permute(2, 0, 1).unsqueeze(0)

@@ -22,6 +22,9 @@ from fmgs.features.standin import (
 
 ROOT = Path(__file__).resolve().parents[2]
 SHIPPED = ROOT / "benchmarks" / "standin"
+SHIPPED_CROP_ACCURACY = 0.85
+"""Floor of the shipped weights' crop accuracy on world seed 7 (0.887 when written; always naming the
+most common label: 0.392)."""
 
 
 def _config(**kw) -> dict:
@@ -64,7 +67,8 @@ def test_the_shipped_standin_places_unseen_crops_at_their_names(tmp_path):
     assert (SHIPPED / "standin.safetensors").stat().st_size < 5 * 2**20
     seed = 7  # no training or held-out seed of the stand-in
     assert seed not in cfg["train_seeds"] + cfg["heldout_seeds"]
-    generate(tmp_path, SynthConfig(views=6, width=128, height=96, preset="cluttered", objects=10, seed=seed))
+    cfg = SynthConfig(views=6, width=128, height=96, preset="world", objects=10, novel=2, seed=seed)
+    generate(tmp_path, cfg)
     enc = load_standin(f"standin:{SHIPPED}")
     names = json.loads((tmp_path / "scene.json").read_text())["label_names"]
     crops, labels = sample_crops(tmp_path, 100, np.random.default_rng(0), enc.image_size)
@@ -72,4 +76,4 @@ def test_the_shipped_standin_places_unseen_crops_at_their_names(tmp_path):
         table = MiniLMTextEncoder().encode_text(names)
     acc = crop_accuracy(enc, table, crops, labels, names)
     chance = max(labels.count(n) for n in set(labels)) / len(labels)  # always the most common label
-    assert acc >= 0.75 and acc > chance + 0.2, (acc, chance)
+    assert acc >= SHIPPED_CROP_ACCURACY and acc > chance + 0.2, (acc, chance)

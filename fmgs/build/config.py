@@ -37,10 +37,11 @@ class TargetSpec:
     """Cap on the crop pyramid's stride, a fraction of the image's shorter side (kind "clip"): every
     scale's crops start at most this far apart; none: half the crop edge (the paper's, sparse at the
     coarse scales; fewer crops, small objects washed out)."""
-    scale_blend: str = SCALE_BLEND
+    scale_blend: str | None = None
     """How the pyramid's scales become one target per pixel (kind "clip"; fmgs.features.scale_blend):
     "mean" (the paper's equal mean), "coherence" or "dominant" (each scale weighed by how much of its
-    crop the DINO map groups with the pixel; need a dino_model)."""
+    crop the DINO map groups with the pixel; need a dino_model); none (default): "dominant" with a
+    dino_model, "mean" without (set on construction)."""
     labels: str | None = None
     """Label image folder (kind "labels"); default DATA/labels."""
     names: str | None = None
@@ -59,6 +60,8 @@ class TargetSpec:
         check_feature_scale(self.feature_scale, self.feature_side)
         if self.crop_stride is not None and not 0.0 < self.crop_stride <= 1.0:
             raise ValueError(f"crop_stride must lie in (0, 1] or be none, got {self.crop_stride}")
+        if self.scale_blend is None:  # frozen: the default is resolved once, so manifests record it
+            object.__setattr__(self, "scale_blend", SCALE_BLEND if self.dino_model else "mean")
         if self.scale_blend not in SCALE_BLENDS:
             raise ValueError(f"scale_blend must be one of {SCALE_BLENDS}, got {self.scale_blend!r}")
         if self.kind == "clip" and self.scale_blend != "mean" and not self.dino_model:

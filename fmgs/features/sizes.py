@@ -18,8 +18,10 @@ CROP_STRIDE = 0.05
 
 SCALE_BLENDS = ("mean", "coherence", "dominant")
 """The pyramid's scale blends (fmgs.features.scale_blend; kept here so that configs need no torch)."""
-SCALE_BLEND = "mean"
-"""The build's default scale blend."""
+SCALE_BLEND = "dominant"
+"""The build's default scale blend when a DINO model is given (without one: "mean", the paper's). Chosen
+by the target maps' accuracy on generated dev scenes (benchmarks/clip_targets.py; docs/field.md says why
+it suits CLIP itself)."""
 
 
 def check_feature_scale(feature_scale: float | None, feature_side: int) -> None:

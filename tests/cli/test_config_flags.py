@@ -77,6 +77,17 @@ def test_defaults_are_the_dataclasses():
     assert target_spec(_args("features", "D", "--out", "O", "--feature-scale", "none")) == TargetSpec()
 
 
+def test_the_default_scale_blend_follows_the_dino_model():
+    """DINO-weighted ("dominant") with a DINO model, the paper's mean without; either given is kept."""
+    assert TargetSpec().scale_blend == "dominant"
+    assert TargetSpec(dino_model=None).scale_blend == "mean"
+    assert TargetSpec(scale_blend="mean").scale_blend == "mean"
+    spec = target_spec(_args("features", "D", "--out", "O", "--dino-model", "none"))
+    assert spec.dino_model is None and spec.scale_blend == "mean"
+    with pytest.raises(ValueError, match="needs a dino_model"):
+        TargetSpec(dino_model=None, scale_blend="dominant")
+
+
 def test_train_gs_short_flags_and_tuples():
     cfg = gs_config(
         _args(
@@ -107,6 +118,7 @@ def test_train_gs_short_flags_and_tuples():
         ('name = "n"\n[targets]\nkind = "pixels"\n', "targets kind must be one of"),
         ('name = "n"\nfield_dtype = "int8"\n', "field_dtype must be one of"),
         ("[gs\n", "cannot read config file"),
+        ('name = "n"\n[targets]\nscale_blend = "median"\n', "scale_blend must be one of"),
     ],
 )
 def test_bad_settings_exit_2_naming_the_setting(tmp_path, toml, message):

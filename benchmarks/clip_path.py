@@ -1,16 +1,19 @@
-"""The CLIP-target path on meaning: scenes built with ``--targets clip`` through the full hybrid pyramid
-from the CLIP stand-in (fmgs.features.standin, trained into MiniLM's space by scripts/train_standin.py),
-side by side with label targets on the same scenes and the same geometry.
+"""The CLIP-target path on meaning: scenes of the wider generated world built with ``--targets clip`` through
+the full hybrid pyramid, with the CLIP stand-in (fmgs.features.standin) and the DINO stand-in
+(fmgs.features.standin_dino), side by side with label targets on the same scenes and the same geometry.
 
-    python -m benchmarks.clip_path --out OUT [--seeds 104,105,106] [--report]
+    python -m benchmarks.clip_path --out OUT [--seeds 201,202,203] [--variants ...] [--report]
     python -m benchmarks.clip_path --out OUT --quick      # a smoke run: one 64x48 scene, short stages
 
-Per unseen seed (no setting and no stand-in training used it): ``fmgs build --targets labels`` at the
-defaults (benchmarks.unseen.build_scene), then ``fmgs build --targets clip --clip-model standin:...
---dino-model none --ply`` on that build's 3DGS, each scored on the held-out views as served (2D and 3D
-localisation, mIoU, presence), with the stand-in's own crop accuracy on the same held-out views (the
-ceiling its targets set). Writes clip_path.json and CLIP_PATH.md (with --report, also into
-benchmarks/results/).
+Per unseen seed (no setting and no stand-in training used it; odd seeds open, even ones in a room):
+``fmgs synth --preset world --objects 10 --novel 3`` (three objects with colour-shape pairs no stand-in
+saw), ``fmgs build --targets labels`` at the defaults (benchmarks.unseen.build_scene), then one
+``fmgs build --targets clip --clip-model standin:... --dino-model standin-dino:... --ply`` per variant
+(VARIANTS: the paper's equal mean of the scales, the DINO-weighted blends, the default without the
+dot-product similarity loss and without DINO) on that build's 3DGS, each scored on the held-out views as
+served (2D and 3D localisation, mIoU, presence), the three novel objects also on their own. Then the
+target maps alone, before distillation, per candidate (benchmarks.clip_targets). Writes clip_path.json
+and CLIP_PATH.md (with --report, also into benchmarks/results/). Builds already in OUT are kept.
 """
 
 from __future__ import annotations
@@ -28,32 +31,96 @@ from benchmarks.unseen import PRESENT_KINDS, _quality, build_scene, presence_rat
 
 ROOT = Path(__file__).resolve().parents[1]
 STANDIN = ROOT / "benchmarks" / "standin"
+STANDIN_DINO = ROOT / "benchmarks" / "standin_dino"
+NOVEL = 3
+"""Objects per scene with a held-out colour-shape pair."""
+
+VARIANTS: dict[str, dict] = {
+    "paper": {"blend": "mean", "dino": True, "dotsim": True},
+    "dominant": {"blend": "dominant", "dino": True, "dotsim": True},
+    "dominant, no dotsim": {"blend": "dominant", "dino": True, "dotsim": False},
+    "coherence": {"blend": "coherence", "dino": True, "dotsim": True},
+    "paper, no dotsim": {"blend": "mean", "dino": True, "dotsim": False},
+    "paper, no DINO": {"blend": "mean", "dino": False, "dotsim": False},
+}
+"""The CLIP builds: scale blend (fmgs.features.scale_blend), DINO targets and the dotsim loss. "dominant"
+with DINO and dotsim is the build's default."""
+DESCRIBE = {
+    "paper": "the paper's equal mean of the 7 scales, DINO head and dotsim (the FMGS recipe)",
+    "dominant": "the default: the scales whose crop is at least half the pixel's DINO region, equally",
+    "coherence": "each scale weighed by its crop's DINO coherence with the pixel",
+}
 
 
-def clip_build(out: Path, seed: int, data: Path, standin: Path, field_steps: int | None) -> Path:
-    """``fmgs build --targets clip`` with the stand-in on the label build's 3DGS; returns the package."""
+def synth_flags(seed: int) -> tuple[str, ...]:
+    return ("--novel", str(NOVEL), "--backdrop", "constant" if seed % 2 else "walls")
+
+
+def variant_name(seed: int, variant: str) -> str:
+    return f"s{seed}-" + variant.replace(", ", "-").replace(" ", "-")
+
+
+def clip_build(
+    out: Path, seed: int, data: Path, variant: str, field_steps: int | None, standin: Path, dino: Path
+) -> Path:
+    """``fmgs build --targets clip`` of ``variant`` on the label build's 3DGS; returns the package."""
     from fmgs.cli import main as fmgs
 
+    v = VARIANTS[variant]
+    name = variant_name(seed, variant)
     ply = out / "models" / ".work" / f"s{seed}" / "gs" / "point_cloud.ply"
-    name = f"s{seed}-clip"
     cmd = ["build", str(data), "--name", name, "--models", str(out / "models"), "--targets", "clip",
-           "--clip-model", f"standin:{standin}", "--dino-model", "none", "--ply", str(ply)]  # fmt: skip
+           "--clip-model", f"standin:{standin}", "--ply", str(ply), "--scale-blend", v["blend"],
+           "--dino-model", f"standin-dino:{dino}" if v["dino"] else "none"]  # fmt: skip
+    if not v["dotsim"]:
+        cmd.append("--no-dotsim")
     if field_steps is not None:
         cmd += ["--field-steps", str(field_steps)]
+    record = out / f"build-{name}.json"
+    if record.is_file() and json.loads(record.read_text())["command"] == cmd:
+        return out / "models" / name
     t0 = time.perf_counter()
     assert fmgs(cmd) == 0
-    (out / f"build-{seed}-clip.json").write_text(
-        json.dumps({"seconds": time.perf_counter() - t0, "command": cmd})
-    )
+    record.write_text(json.dumps({"seconds": time.perf_counter() - t0, "command": cmd}))
     return out / "models" / name
 
 
-def score(out: Path, seed: int, data: Path, standin: Path) -> dict:
-    import torch
+def package_bytes(package: Path) -> dict:
+    """Bytes of the language part per embedded Gaussian (stored embeddings and the compact query state),
+    and of the whole package per Gaussian."""
+    from fmgs.scene.manifest import Manifest
 
+    m = Manifest.read(package)
+    size = {p.name: p.stat().st_size for p in package.iterdir() if p.is_file()}
+    lang = size.get("embeddings.safetensors", 0) + size.get("query_state.safetensors", 0)
+    return {
+        "language_per_embedded": lang / max(m.counts["embedded"], 1),
+        "package_per_gaussian": sum(size.values()) / max(m.counts["gaussians"], 1),
+        "package": sum(size.values()),
+    }
+
+
+def novel_scores(q: dict, data: Path) -> dict:
+    """The held-out-name objects' own 2D hits and queries, 3D hits, IoU and presence (found / asked)."""
+    meta = json.loads((data / "scene.json").read_text())
+    novel = [o["name"] for o in meta["objects"] if o.get("novel")]
+    h2 = sum(q["per_object_2d"].get(n, [0, 0])[0] for n in novel)
+    n2 = sum(q["per_object_2d"].get(n, [0, 0])[1] for n in novel)
+    found = [r for r in q["presence"] if r["kind"] == "name" and r["text"] in novel]
+    return {
+        "names": novel,
+        "hits_2d": h2,
+        "queries_2d": n2,
+        "hits_3d": sum(bool(q["per_object_3d"].get(n)) for n in novel),
+        "objects": len(novel),
+        "iou": [q["class_iou"][n] for n in novel if n in q["class_iou"]],
+        "found": sum(r["found"] for r in found),
+    }
+
+
+def score(out: Path, seed: int, data: Path, variants: list[str]) -> dict:
     from fmgs.data import HOLDOUT_EVERY
     from fmgs.data.dataset import load_dataset
-    from fmgs.features.standin import crop_accuracy, load_standin, sample_crops
     from fmgs.features.text import MiniLMTextEncoder
     from fmgs.query.engine import SceneEngine
 
@@ -61,234 +128,239 @@ def score(out: Path, seed: int, data: Path, standin: Path) -> dict:
     enc = MiniLMTextEncoder()
     _, test = ds.split(HOLDOUT_EVERY)
     names = json.loads((data / "scene.json").read_text())["label_names"]
-    row = {"seed": seed, "views_test": len(test)}
-    for kind, pkg in (("labels", f"s{seed}"), ("clip", f"s{seed}-clip")):
-        engine = SceneEngine.open(out / "models" / pkg)
-        row[kind] = _quality(engine, ds, enc, test, data, names)
-        row[kind]["embedded"] = engine.num_embedded
-    standin_enc = load_standin(f"standin:{standin}")
-    crops, labels = sample_crops(data, 200, np.random.default_rng(seed), standin_enc.image_size, views=test)
-    with torch.inference_mode():
-        table = enc.encode_text(names)
-    row["crop_accuracy"] = crop_accuracy(standin_enc, table, crops, labels, names)
-    row["crops"] = len(crops)
-    row["build_seconds"] = {
-        k: json.loads((out / f"build-{seed}{s}.json").read_text())["seconds"]
-        for k, s in (("labels", ""), ("clip", "-clip"))
-    }
+    row: dict = {"seed": seed, "views_test": len(test), "objects": names[2:], "kinds": {}}
+    for kind in ["labels", *variants]:
+        pkg = out / "models" / (f"s{seed}" if kind == "labels" else variant_name(seed, kind))
+        if not (pkg / "manifest.json").is_file():  # --no-build: a variant not built for this seed
+            continue
+        engine = SceneEngine.open(pkg)
+        q = _quality(engine, ds, enc, test, data, names)
+        q["novel"] = novel_scores(q, data)
+        q["embedded"] = engine.num_embedded
+        q["bytes"] = package_bytes(pkg)
+        rec = out / ("build-" + (f"{seed}" if kind == "labels" else variant_name(seed, kind)) + ".json")
+        q["build_seconds"] = json.loads(rec.read_text())["seconds"]
+        row["kinds"][kind] = q
     return row
 
 
-def _presence(q: dict) -> tuple[str, str]:
-    """(present queries found, absent queries rejected) as "k/n"."""
+def presence_accuracy(q: dict) -> tuple[int, int, int, int]:
+    """(present found, present, absent not found, absent)."""
     sums = [[0, 0], [0, 0]]
     for kind, (ok, n) in presence_rates(q["presence"]).items():
         s = sums[0 if kind in PRESENT_KINDS else 1]
         s[0] += ok
         s[1] += n
-    return f"{sums[0][0]}/{sums[0][1]}", f"{sums[1][0]}/{sums[1][1]}"
+    return sums[0][0], sums[0][1], sums[1][0], sums[1][1]
 
 
-def report(
-    rows: list[dict], info: dict, cmd: str, standin_cfg: dict, knob: list[dict], knob_seed: int
-) -> str:
-    cfg = standin_cfg
-    trained = (
-        f"trained into MiniLM's space on crops of {len(cfg['train_seeds'])} other generated scenes "
-        f"(`{cfg['command']}`; held-out crop accuracy {cfg['heldout_crop_accuracy']:.3f} on seeds "
-        f"{', '.join(map(str, cfg['heldout_seeds']))})"
-    )
+def summary(rows: list[dict], kind: str) -> dict:
+    """Means over the scenes of one kind's scores, presence pooled, novel objects pooled."""
+    qs = [r["kinds"][kind] for r in rows if kind in r["kinds"]]
+    pf, pn, af, an = (sum(x) for x in zip(*(presence_accuracy(q) for q in qs), strict=True))
+    nov = [q["novel"] for q in qs]
+    ious = [i for n in nov for i in n["iou"]]
+    return {
+        "scenes": len(qs),
+        "localisation_2d": float(np.mean([q["localisation_2d"] for q in qs])),
+        "localisation_3d": float(np.mean([q["localisation_3d"] for q in qs])),
+        "miou": float(np.mean([q["miou"] for q in qs])),
+        "present_found": pf / max(pn, 1),
+        "absent_rejected": af / max(an, 1),
+        "presence": (pf + af) / max(pn + an, 1),
+        "build_seconds": float(np.mean([q["build_seconds"] for q in qs])),
+        "language_bytes": float(np.mean([q["bytes"]["language_per_embedded"] for q in qs])),
+        "package_bytes": float(np.mean([q["bytes"]["package_per_gaussian"] for q in qs])),
+        "novel_2d": sum(n["hits_2d"] for n in nov) / max(sum(n["queries_2d"] for n in nov), 1),
+        "novel_3d": sum(n["hits_3d"] for n in nov) / max(sum(n["objects"] for n in nov), 1),
+        "novel_iou": float(np.mean(ious)) if ious else float("nan"),
+        "novel_found": sum(n["found"] for n in nov) / max(sum(n["objects"] for n in nov), 1),
+    }
+
+
+def report(d: dict) -> str:
+    rows, info, cmd = d["rows"], d["machine"], d["command"]
+    kinds = ["labels", *d["variants"]]
+    s = {k: summary(rows, k) for k in kinds}
+    clip_cfg, dino_cfg = d["standin"], d["standin_dino"]
     lines = [
-        "# The CLIP-target path on meaning",
+        "# The CLIP-target path on meaning, in the wider world",
         "",
         f"Measured {info['date']} on {machine_words(info)}, one run of `{cmd}`.",
         "",
-        "Each unseen generated scene is built twice on the same 3DGS: with label targets (`--targets "
-        "labels`, the names' MiniLM embeddings painted by the label masks) and with CLIP targets "
-        "(`--targets clip`: the full hybrid crop pyramid at its defaults, every crop embedded by the CLIP "
-        "stand-in, blended across scales, interpolated to the target maps, distilled). The stand-in, a "
-        f"1M-parameter CNN, was {trained}. Both scenes are queried with MiniLM and scored on the held-out "
-        "views as served. The stand-in's crop accuracy on each scene's own held-out views (crops at the "
-        "pyramid's scales, top-1 among the scene's names) bounds what its targets can carry.",
+        f"Scenes: `fmgs synth --preset world --objects 10 --novel {NOVEL}` (fmgs.synthworld: objects of "
+        'distinct shapes from 15, each in one of 12 colours and one of 11 surface textures, named "<colour> '
+        '<texture> <shape>", sizes from small to large; odd seeds open, even seeds in a room of textured '
+        f"walls), {NOVEL} objects per scene with a colour-shape pair held out of every stand-in's training. "
+        "No setting and no stand-in training used these seeds. Each scene is built with label targets "
+        "(`--targets labels`: the names' MiniLM embeddings painted by the label masks) and with CLIP "
+        "targets once per variant below, all on the label build's 3DGS: the full hybrid crop pyramid at "
+        "its defaults, every crop embedded by the CLIP stand-in, blended across scales as the variant "
+        "says, the DINO stand-in's dense map as the DINO target. Every scene is queried with MiniLM and "
+        "scored on the held-out views as served.",
         "",
-        "| seed | targets | 2D loc. | 3D loc. | mIoU | present found | absent rejected | crop acc. | s |",
-        "|---|---|---|---|---|---|---|---|---|",
+        f"The CLIP stand-in (a 1M-parameter CNN, `{clip_cfg['command']}`) is trained into MiniLM's space on "
+        f"crops of {len(clip_cfg['train_seeds'])} other world scenes, against what each crop shows (each "
+        "name's share under a centre-weighted window, over captions of varying detail); held-out crop "
+        f"accuracy {clip_cfg['heldout_crop_accuracy']:.3f}, {clip_cfg['heldout_novel_crop_accuracy']:.3f} on "
+        "crops of held-out names. The DINO stand-in (a small CNN, "
+        f"`{dino_cfg['command']}`) is trained without labels (dense clustering across augmented views); on "
+        "held-out scenes the cosine of two pixels' features is "
+        f"{dino_cfg['heldout']['trained']['within_object_cosine']:.2f} within one object and "
+        f"{dino_cfg['heldout']['trained']['across_object_cosine']:.2f} across two, and a pixel's nearest "
+        "neighbour in feature space has its label "
+        f"{dino_cfg['heldout']['trained']['nearest_neighbour_label_agreement']:.0%} of the time (random "
+        f"weights: {dino_cfg['heldout']['random_weights']['nearest_neighbour_label_agreement']:.0%}; raw "
+        f"colour: {dino_cfg['heldout']['raw_colour']['nearest_neighbour_label_agreement']:.0%}).",
+        "",
+        "Variants: " + "; ".join(f"**{k}**: {v}" for k, v in DESCRIBE.items() if k in kinds) + "; "
+        "*no dotsim*: without the dot-product similarity loss (the paper's ablation); *no DINO*: no DINO "
+        "target at all (language loss only).",
+        "",
+        "## Means over the scenes",
+        "",
+        "| targets | scenes | 2D loc. | 3D loc. | mIoU | presence | present found | absent rejected | "
+        "build s | language B / embedded Gaussian | package B / Gaussian |",
+        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
-    for r in rows:
-        for kind in ("labels", "clip"):
-            q = r[kind]
-            found, rejected = _presence(q)
-            acc = f"{r['crop_accuracy']:.3f}" if kind == "clip" else ""
-            loc = f"{q['localisation_2d']:.3f} | {q['localisation_3d']:.3f} | {q['miou']:.3f}"
-            secs = r["build_seconds"][kind]
-            lines.append(f"| {r['seed']} | {kind} | {loc} | {found} | {rejected} | {acc} | {secs:.0f} |")
-    keys = ("localisation_2d", "localisation_3d", "miou")
-    for kind in ("labels", "clip"):
-        m = [float(np.mean([r[kind][k] for r in rows])) for k in keys]
-        lines.append(f"| mean | {kind} | {m[0]:.3f} | {m[1]:.3f} | {m[2]:.3f} | | | | |")
-    mi = {k: float(np.mean([r[k]["miou"] for r in rows])) for k in ("labels", "clip")}
-    acc = float(np.mean([r["crop_accuracy"] for r in rows]))
-    hyb = {r["max_stride"]: r["object_pixels"] for r in knob if r["scales"] == "hybrid"}
+    for k in kinds:
+        v = s[k]
+        lines.append(
+            f"| {k} | {v['scenes']} | {v['localisation_2d']:.3f} | {v['localisation_3d']:.3f} | "
+            f"{v['miou']:.3f} | "
+            f"{v['presence']:.3f} | {v['present_found']:.3f} | {v['absent_rejected']:.3f} | "
+            f"{v['build_seconds']:.0f} | {v['language_bytes']:.0f} | {v['package_bytes']:.0f} |"
+        )
     lines += [
         "",
-        f"Reading: the CLIP path's mIoU ({mi['clip']:.3f}) stays below the label path's ({mi['labels']:.3f}) "
-        f"by more than the stand-in's crop accuracy ({acc:.3f}) explains. The table below finds where: "
-        f"before distillation its hybrid targets put {hyb.get(0.05, float('nan')):.0%} of object pixels "
-        "nearest their own name at the default stride cap, because the equal mean of seven scales weighs "
-        "the coarse crops (a quarter to half of the image, around objects a tenth of it) as much as the fine "
-        "ones: that is the method's hybrid feature, not a misplaced crop. The paper's lattice put only "
-        f"{hyb.get(None, float('nan')):.0%} there; the stride cap is the pipeline's fix (on one 128x96 "
-        "scene before it (surface geometry, 300 field steps), the CLIP path localised 12% of held-out "
-        "queries in 2D against the label path's 65%). A denser cap buys more for more crops (the 0.025 row).",
+        "Build seconds: the label build includes the 3DGS fit (the CLIP builds reuse it); language bytes: "
+        "the stored float16 embedding and the compact query state of each embedded Gaussian.",
         "",
-        "## Where the targets lose meaning: the crop lattice",
+        f"## Held-out names ({NOVEL} objects per scene, colour-shape pairs no stand-in saw)",
         "",
-        f"Before any distillation, the CLIP targets of seed {knob_seed}'s first 4 views, per crop-stride "
-        "cap (`--crop-stride`): the share of pixels, and of object pixels (neither floor nor background), "
-        "whose target is nearest their own label's name; the hybrid (what the build distils) and each "
-        "scale alone. Every crop is embedded by the stand-in; only the crops' spacing changes. With the "
-        "paper's lattice (half the crop edge) a coarse scale's map interpolates crops centred far from "
-        "the pixel, so on small objects it names the neighbours, and the equal mean of 7 scales follows "
-        "the coarse majority. The build's default caps every scale's stride at 0.05 of the shorter side "
-        "(the finest crop's edge); the scenes above were built with it.",
+        "| targets | 2D loc. | 3D loc. | IoU | name found |",
+        "|---|---:|---:|---:|---:|",
+    ]
+    for k in kinds:
+        v = s[k]
+        cells = " | ".join(f"{v[m]:.3f}" for m in ("novel_2d", "novel_3d", "novel_iou", "novel_found"))
+        lines.append(f"| {k} | {cells} |")
+    lines += [
         "",
-        *knob_table(knob),
+        "## Per scene",
         "",
-        "What this shows and what it cannot: the stand-in gives the CLIP path meaning (a crop's embedding "
-        "lands near its centre label's name), so a misaligned crop, a wrong scale blend or a shifted "
-        "interpolation would move each phrase's relevancy off its object and cost localisation here. It "
-        "cannot show how CLIP's own embeddings of real photos behave: its open vocabulary, its narrow "
-        "similarity range (best cosines 0.2-0.35), its response to context around an object. Those need "
-        "pretrained weights.",
+        "| seed | targets | 2D loc. | 3D loc. | mIoU | present found | absent rejected | s |",
+        "|---|---|---:|---:|---:|---:|---:|---:|",
+    ]
+    for r in rows:
+        for k in (k for k in kinds if k in r["kinds"]):
+            q = r["kinds"][k]
+            pf, pn, af, an = presence_accuracy(q)
+            lines.append(
+                f"| {r['seed']} | {k} | {q['localisation_2d']:.3f} | {q['localisation_3d']:.3f} | "
+                f"{q['miou']:.3f} | {pf}/{pn} | {af}/{an} | {q['build_seconds']:.0f} |"
+            )
+    lines += ["", "Objects: " + "; ".join(f"seed {r['seed']}: {', '.join(r['objects'])}" for r in rows)]
+    if d.get("target_maps"):
+        from benchmarks.clip_targets import table
+
+        lines += [
+            "",
+            "## The targets alone, before distillation",
+            "",
+            f"The CLIP targets of the first {d['target_views']} views of every scene, per candidate, scored "
+            "as segmentation is (argmax over the scene's names but the background, on pixels with "
+            "geometry), pixels pooled over the scenes, mIoU averaged: each scale alone, the blends, each "
+            "blend pooled within DINO-coherent neighbourhoods (`pool_regions`), and LERF's query-time scale "
+            "selection (each name scored by its best scale: what a field with a map per scale answers).",
+            "",
+            *table(d["target_maps"]),
+        ]
+    lines += [
+        "",
+        "## What the stand-ins can and cannot show",
+        "",
+        "The stand-ins give the CLIP path meaning: a crop's embedding lands near the names of what it shows, "
+        "and DINO's features group what looks alike, so a misplaced crop, a wrong blend of scales, a shifted "
+        "interpolation or a regulariser that blurs boundaries would cost localisation and IoU here. They "
+        "cannot show how CLIP's own embeddings of real photos behave: its open vocabulary beyond a world of "
+        "15 shapes, 12 colours and 11 textures, its narrow similarity range (best cosines 0.2-0.35), its "
+        "response to context; nor DINO's own semantics (parts of one object that look different grouped "
+        "together). Those need pretrained weights.",
         "",
     ]
     return "\n".join(lines)
 
 
-STRIDE_CAPS = (None, 0.1, 0.05, 0.025)
-"""The crop-stride caps the knob table compares (None: the paper's lattice, half the crop edge)."""
-
-
-def target_map_accuracy(
-    data: Path, standin: Path, views: int = 4, caps: tuple[float | None, ...] = STRIDE_CAPS
-) -> list[dict]:
-    """How well the CLIP targets themselves place each name, before any distillation, on the first
-    ``views`` views of a generated scene: for each crop-stride cap (``caps``), each pyramid scale alone
-    and the hybrid of all, the share of pixels (all, and object pixels: label >= 2) whose target is
-    nearest their own label's name, and the crops embedded per view. Each scale's crops are embedded
-    once per cap; the hybrid is their equal mean, renormalised, as fmgs.features.pyramid.hybrid_map."""
-    import torch
-    from PIL import Image
-
-    from fmgs.features.pyramid import PyramidConfig, crop_grid, scale_map
-    from fmgs.features.standin import load_standin
-    from fmgs.features.text import MiniLMTextEncoder
-    from fmgs.vecmath import safe_normalize
-
-    names = json.loads((data / "scene.json").read_text())["label_names"]
-    enc = load_standin(f"standin:{standin}")
-    with torch.inference_mode():
-        table = MiniLMTextEncoder().encode_text(names)
-    rows = []
-    for cap in caps:
-        cfg = PyramidConfig(crop_px=enc.image_size, max_stride=cap)
-        keys = ["hybrid", *map(str, cfg.scales)]
-        hits = {k: np.zeros(4) for k in keys}
-        crops = 0
-        for p in sorted((data / "images").iterdir())[:views]:
-            img = torch.from_numpy(np.asarray(Image.open(p).convert("RGB"), np.float32) / 255.0)
-            lab = torch.from_numpy(np.asarray(Image.open(data / "labels" / p.name)).astype(np.int64))
-            H, W = lab.shape
-            maps = []
-            for s in cfg.scales:
-                g = crop_grid(H, W, s, cfg.overlap, cap)
-                crops += g.boxes.shape[0] * g.boxes.shape[1]
-                with torch.inference_mode():
-                    maps.append(scale_map(enc, img.permute(2, 0, 1), g, cfg, (H, W)))
-            # The hybrid exactly as hybrid_map blends it: the mean of the scales' maps, renormalised.
-            for k, m in zip(keys, [safe_normalize(sum(maps) / len(maps)), *maps], strict=True):
-                ok = (m @ table.T).argmax(-1) == lab
-                hits[k] += [float(ok.sum()), ok.numel(), float(ok[lab >= 2].sum()), float((lab >= 2).sum())]
-        for k in keys:
-            h = hits[k]
-            acc = {"pixels": h[0] / h[1], "object_pixels": h[2] / max(h[3], 1.0)}
-            rows.append({"max_stride": cap, "scales": k, **acc, "crops_per_view": crops / views})
-    return rows
-
-
-def knob_table(rows: list[dict]) -> list[str]:
-    """Markdown: per stride cap, crops per view and the hybrid's accuracy, then each scale alone."""
-    scales = [r["scales"] for r in rows if r["max_stride"] is None and r["scales"] != "hybrid"]
-    head = "| crop stride cap | crops / view | hybrid: pixels | hybrid: object pixels | "
-    head += " | ".join(f"{s} alone" for s in scales) + " |"
-    lines = [head, "|" + "---|" * (4 + len(scales))]
-    for cap in STRIDE_CAPS:
-        rs = {r["scales"]: r for r in rows if r["max_stride"] == cap}
-        h = rs["hybrid"]
-        name = "none (paper: crop edge / 2)" if cap is None else f"{cap} of the shorter side"
-        cells = " | ".join(f"{rs[s]['object_pixels']:.3f}" for s in scales)
-        lines.append(
-            f"| {name} | {h['crops_per_view']:.0f} | {h['pixels']:.3f} | {h['object_pixels']:.3f} | {cells} |"
-        )
-    return lines
-
-
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--out", required=True)
-    ap.add_argument("--seeds", default="104,105,106")
+    ap.add_argument("--seeds", default="201,202,203")
+    ap.add_argument("--variants", default=",".join(VARIANTS), help="CLIP variants to build (VARIANTS)")
     ap.add_argument("--views", type=int, default=48)
     ap.add_argument("--size", default="128x96")
     ap.add_argument("--gs-steps", type=int, default=3000)
-    ap.add_argument("--field-steps", type=int, default=1500, help="field steps of both builds (default 1500)")
+    ap.add_argument("--field-steps", type=int, default=1500, help="field steps of every build (default 1500)")
     ap.add_argument(
         "--grad-threshold", type=float, default=0.001, help="3DGS densification threshold (default 0.001)"
     )
-    ap.add_argument("--standin", default=str(STANDIN), help="the stand-in's folder (standin.json, weights)")
+    ap.add_argument("--target-views", type=int, default=6, help="views per scene of the target-map table")
+    ap.add_argument("--standin", default=str(STANDIN), help="the CLIP stand-in's folder")
+    ap.add_argument("--standin-dino", default=str(STANDIN_DINO), help="the DINO stand-in's folder")
     ap.add_argument("--quick", action="store_true", help="smoke run: one 64x48 scene, short stages")
     ap.add_argument("--from-json", metavar="JSON", help="only write the report again from a clip_path.json")
     ap.add_argument("--report", action="store_true", help="also write benchmarks/results/CLIP_PATH.md")
     ap.add_argument(
-        "--target-maps",
-        metavar="DATA",
-        help="only print, for a generated scene DATA, how well the CLIP targets alone place each name, per "
-        "pyramid scale and for their hybrid (pixel accuracy, all and object pixels)",
+        "--no-build",
+        action="store_true",
+        help="build nothing: score the builds already in OUT (a variant "
+        "missing for a seed is left out of that seed's rows; the tables say over how many scenes)",
     )
     a = ap.parse_args()
     if a.from_json:
-        d = json.loads(Path(a.from_json).read_text())
-        standin_cfg = json.loads((Path(a.standin) / "standin.json").read_text())
-        text = report(
-            d["rows"], d["machine"], d["command"], standin_cfg, d["target_maps"], d["rows"][0]["seed"]
-        )
+        text = report(json.loads(Path(a.from_json).read_text()))
         save_report(text, Path(a.out), "CLIP_PATH.md", a.report)
         print(text)
         return 0
-    if a.target_maps:
-        print("\n".join(knob_table(target_map_accuracy(Path(a.target_maps), Path(a.standin)))))
-        return 0
+    variants = [v for v in a.variants.split(",") if v]
+    unknown = [v for v in variants if v not in VARIANTS]
+    if unknown:
+        ap.error(f"unknown variants {unknown}; known: {list(VARIANTS)}")
     if a.quick:
-        a.seeds, a.views, a.size, a.gs_steps, a.field_steps = "7", 24, "64x48", 300, 150
+        a.seeds, a.views, a.size, a.gs_steps, a.field_steps, a.target_views = "7", 24, "64x48", 300, 150, 2
+        variants = variants[:2]
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
-    standin = Path(a.standin).resolve()
-    standin_cfg = json.loads((standin / "standin.json").read_text())
-    rows = []
+    standin, dino = Path(a.standin).resolve(), Path(a.standin_dino).resolve()
+    rows, datas = [], []
     for seed in (int(s) for s in a.seeds.split(",")):
-        data = build_scene(out, seed, a.views, a.size, a.gs_steps, a.field_steps, a.grad_threshold)
-        clip_build(out, seed, data, standin, a.field_steps)
-        rows.append(score(out, seed, data, standin))
+        data = out / f"scene-{seed}"
+        label_pkg = out / "models" / f"s{seed}" / "manifest.json"
+        if not label_pkg.is_file() and not a.no_build:
+            build_scene(out, seed, a.views, a.size, a.gs_steps, a.field_steps, a.grad_threshold,
+                        synth_flags(seed), preset="world")  # fmt: skip
+        for v in variants if not a.no_build else ():
+            clip_build(out, seed, data, v, a.field_steps, standin, dino)
+        rows.append(score(out, seed, data, variants))
+        datas.append(data)
         (out / "clip_path.json").write_text(json.dumps({"rows": rows}, indent=1, default=float))
-    first = out / f"scene-{rows[0]['seed']}"
-    knob = target_map_accuracy(first, standin)
+    from benchmarks.clip_targets import rates, target_candidates
+
+    maps = rates([target_candidates(d, standin, dino, a.target_views) for d in datas])
     info = {**machine(), "date": time.strftime("%Y-%m-%d")}
     cmd = "python -m benchmarks.clip_path " + " ".join(sys.argv[1:])
-    text = report(rows, info, cmd, standin_cfg, knob, rows[0]["seed"])
-    (out / "clip_path.json").write_text(
-        json.dumps(
-            {"rows": rows, "target_maps": knob, "machine": info, "command": cmd}, indent=1, default=float
-        )
-    )
+    d = {
+        "rows": rows,
+        "variants": variants,
+        "target_maps": maps,
+        "target_views": a.target_views,
+        "machine": info,
+        "command": cmd,
+        "standin": json.loads((standin / "standin.json").read_text()),
+        "standin_dino": json.loads((dino / "standin_dino.json").read_text()),
+    }
+    (out / "clip_path.json").write_text(json.dumps(d, indent=1, default=float))
+    text = report(d)
     save_report(text, out, "CLIP_PATH.md", a.report)
     print(text)
     return 0

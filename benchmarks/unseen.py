@@ -66,10 +66,33 @@ TARGETS = {"miou": 0.80, "class_iou_min": 0.5, "localisation_2d": 0.95, "localis
 PRESENCE_TARGET = 0.95
 
 
+def world_presence_queries(label_names: list[str]) -> list[tuple[str, str]]:
+    """(kind, text) for a world scene (fmgs.synthworld names), by fixed rules: each name; its colour and
+    shape synonym ("red block" for "red striped cube"); each absent shape in the colour of its index; each
+    placed object in the next colour of COLOURS (a colour swap: one object per shape, so never present);
+    the unrelated things."""
+    from fmgs.synthworld import COLOURS, SHAPES, SYNONYMS, object_name, world_object
+
+    placed = [world_object(n) for n in label_names[2:]]
+    colours = list(COLOURS)
+    shapes = {o.shape for o in placed}
+    out = [("name", o.name) for o in placed]
+    out += [("paraphrase", f"{o.colour} {SYNONYMS[o.shape]}") for o in placed]
+    absent = [(i, s) for i, s in enumerate(SHAPES) if s not in shapes]
+    out += [("absent object", f"{colours[i % len(colours)]} {s}") for i, s in absent]
+    swap = lambda o: colours[(colours.index(o.colour) + 1) % len(colours)]  # noqa: E731
+    out += [("colour swap", object_name(swap(o), o.texture, o.shape)) for o in placed]
+    out += [("unrelated", t) for t in UNRELATED]
+    return out
+
+
 def presence_queries(label_names: list[str]) -> list[tuple[str, str]]:
-    """(kind, text) for a scene whose label names are given (background and floor first)."""
+    """(kind, text) for a scene whose label names are given (background and floor first): the classic
+    catalogue's rules, or ``world_presence_queries`` for a world scene."""
     from fmgs.synth import OBJECTS
 
+    if label_names[2] not in {n for n, _ in OBJECTS}:
+        return world_presence_queries(label_names)
     placed = label_names[2:]
     out = [("name", n) for n in placed]
     out += [("paraphrase", p) for n in placed for p in PARAPHRASES[n]]
@@ -115,6 +138,7 @@ def build_scene(
     field_steps: int | None,
     grad: float | None,
     synth_flags: tuple[str, ...] = (),
+    preset: str = "cluttered",
 ) -> Path:
     """Generate and build one scene through the command line (``synth_flags``: more ``fmgs synth``
     flags, e.g. the camera rig); returns the data folder."""
@@ -122,7 +146,7 @@ def build_scene(
 
     data = out / f"scene-{seed}"
     if not (data / "scene.json").is_file():
-        cmd = ["synth", "--out", str(data), "--preset", "cluttered", "--objects", "10", "--seed", str(seed)]
+        cmd = ["synth", "--out", str(data), "--preset", preset, "--objects", "10", "--seed", str(seed)]
         assert fmgs([*cmd, "--views", str(views), "--size", size, *synth_flags]) == 0
     build = ["build", str(data), "--name", f"s{seed}", "--models", str(out / "models"), "--targets", "labels"]
     build += ["--gs-steps", str(gs_steps)]
@@ -173,6 +197,8 @@ def _quality(engine, ds, enc, test: list[int], data: Path, names: list[str]) -> 
         "class_iou": q.per_class_iou,
         "failures": q.failures,
         "per_view_2d": q.per_view_2d,
+        "per_object_2d": q.per_object_2d,
+        "per_object_3d": q.per_object_3d,
         "presence": score_presence(engine, enc, names),
     }
 

@@ -48,6 +48,10 @@ class FieldQuality:
     """Which queries failed, for reading the report."""
     per_view_2d: dict[str, list[int]] = field(default_factory=dict)
     """View name -> [2D hits, 2D queries] in that view (a mean can hide one view where every query fails)."""
+    per_object_2d: dict[str, list[int]] = field(default_factory=dict)
+    """Object name -> [2D hits, 2D queries] over the views."""
+    per_object_3d: dict[str, bool] = field(default_factory=dict)
+    """Object name -> whether its top Gaussian's mean lies inside its 3D box."""
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -69,6 +73,8 @@ def evaluate_field(
     classes = list(range(1, len(names)))  # label 0 is background (no geometry)
     failures: list[str] = []
     per_view: dict[str, list[int]] = {}
+    per_object: dict[str, list[int]] = {}
+    per_object_3d: dict[str, bool] = {}
 
     hit2d = n2d = 0
     inter = np.zeros(len(names))
@@ -84,6 +90,9 @@ def evaluate_field(
             n2d += 1
             here[0] += int(ok)
             here[1] += 1
+            mine = per_object.setdefault(name, [0, 0])
+            mine[0] += int(ok)
+            mine[1] += 1
             if not ok:
                 failures.append(f"2d {fr.name} {name!r}: peak at ({x},{y}) outside {[x0, y0, x1, y1]}")
         label_path = ds.root / "labels" / Path(fr.name).name
@@ -107,6 +116,7 @@ def evaluate_field(
         reach = float(engine.gaussians.scales[top].max())
         hit3d += dist == 0
         near3d += dist <= reach
+        per_object_3d[name] = dist == 0
         if dist > 0:
             failures.append(
                 f"3d {name!r}: top Gaussian's mean {dist:.3f} outside its box (its largest scale {reach:.3f})"
@@ -123,4 +133,6 @@ def evaluate_field(
         per_class_iou=ious,
         failures=failures,
         per_view_2d=per_view,
+        per_object_2d=per_object,
+        per_object_3d=per_object_3d,
     )

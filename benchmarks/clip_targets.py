@@ -1,0 +1,152 @@
+"""How well CLIP target maps place names before any distillation, per way of blending the pyramid's scales.
+
+    python -m benchmarks.clip_targets DATA [DATA ...] [--views 6] [--standin DIR] [--standin-dino DIR]
+
+For generated scenes (fmgs synth, with labels): every crop of the hybrid pyramid (the build's defaults)
+embedded by the CLIP stand-in, the DINO stand-in's dense map, then each candidate target map, scored
+against the label maps as segmentation is scored (argmax over the scene's names but the background, on
+pixels with geometry): pixel accuracy on all of them and on object pixels, object pixels of novel objects
+(held-out colour-shape pairs), and mIoU. Candidates: every scale alone, the blends of
+fmgs.features.scale_blend, each blend pooled within DINO-coherent neighbourhoods (pool_regions), and
+LERF's query-time scale selection (each name's score the best over the scales' maps: what a multi-scale
+field would answer, with a map per scale).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+STANDIN = ROOT / "benchmarks" / "standin"
+STANDIN_DINO = ROOT / "benchmarks" / "standin_dino"
+POOL_RADIUS = 0.1
+"""pool_regions' window half-edge, a fraction of the map's shorter side (the scale of the median crop)."""
+
+
+def _novel_labels(data: Path) -> set[int]:
+    meta = json.loads((data / "scene.json").read_text())
+    return {o["label"] for o in meta["objects"] if o.get("novel")}
+
+
+def candidate_scores(maps: dict[str, torch.Tensor | list[torch.Tensor]], table: torch.Tensor) -> dict:
+    """{candidate: [h,w,C] scores of each name} from unit target maps, or from a list of per-scale maps
+    (LERF: the best score over the scales)."""
+    out = {}
+    for k, m in maps.items():
+        if isinstance(m, list):
+            out[k] = torch.stack([torch.nn.functional.normalize(s, dim=-1) @ table.T for s in m]).amax(0)
+        else:
+            out[k] = m @ table.T
+    return out
+
+
+def target_candidates(
+    data: Path, standin: Path = STANDIN, standin_dino: Path = STANDIN_DINO, views: int = 6
+) -> dict[str, dict]:
+    """{candidate: scores} over the first ``views`` views of scene ``data`` (see the module docstring):
+    hits and totals, to be pooled over scenes by ``rates``."""
+    from PIL import Image
+
+    from fmgs.features.dino import load_dense_encoder
+    from fmgs.features.pyramid import PyramidConfig, scale_maps
+    from fmgs.features.scale_blend import BLENDS, blend_scales, pool_regions, scale_weights
+    from fmgs.features.standin import load_standin
+    from fmgs.features.text import MiniLMTextEncoder
+
+    names = json.loads((data / "scene.json").read_text())["label_names"]
+    novel = _novel_labels(data)
+    enc = load_standin(f"standin:{standin}")
+    dino = load_dense_encoder(f"standin-dino:{standin_dino}")
+    with torch.inference_mode():
+        table = MiniLMTextEncoder().encode_text(names[1:])  # floor and objects: segmentation's classes
+    cfg = PyramidConfig(crop_px=enc.image_size)
+    C = len(names)
+    acc: dict[str, np.ndarray] = {}
+    for p in sorted((data / "images").iterdir())[:views]:
+        img = torch.from_numpy(np.asarray(Image.open(p).convert("RGB"), np.float32) / 255.0)
+        lab = torch.from_numpy(np.asarray(Image.open(data / "labels" / p.name)).astype(np.int64))
+        H, W = lab.shape
+        with torch.inference_mode():
+            sm = scale_maps(enc, img, cfg, (H, W))
+            dense = dino.dense(img, (H, W))
+            radius = max(1, round(POOL_RADIUS * min(H, W)))
+            maps: dict = {f"{s} alone": torch.nn.functional.normalize(m, dim=-1)
+                          for s, m in zip(cfg.scales, sm.maps, strict=True)}  # fmt: skip
+            for b in BLENDS:
+                t = blend_scales(sm.maps, scale_weights(b, dense, sm.edges))
+                maps[b] = t
+                maps[f"{b} + pooled"] = pool_regions(t, dense, radius)
+            maps["lerf (max over scales)"] = list(sm.maps)
+            scores = candidate_scores(maps, table)
+        valid = lab >= 1
+        obj = lab >= 2
+        nov = torch.zeros_like(lab, dtype=torch.bool)
+        for n in novel:
+            nov |= lab == n
+        for k, s in scores.items():
+            pred = s.argmax(-1) + 1
+            ok = (pred == lab) & valid
+            row = [ok.sum(), valid.sum(), (ok & obj).sum(), obj.sum(), (ok & nov).sum(), nov.sum()]
+            inter = [((pred == c) & (lab == c) & valid).sum() for c in range(1, C)]
+            union = [(((pred == c) | (lab == c)) & valid).sum() for c in range(1, C)]
+            acc[k] = acc.get(k, 0) + np.array([float(v) for v in row + inter + union])
+    return {k: {"counts": v.tolist(), "classes": C - 1} for k, v in acc.items()}
+
+
+def rates(per_scene: list[dict[str, dict]]) -> dict[str, dict[str, float]]:
+    """Pooled pixel accuracies and the mean of per-scene mIoUs, per candidate."""
+    out = {}
+    for k in per_scene[0]:
+        tot = np.zeros(6)
+        mious = []
+        for sc in per_scene:
+            c = np.array(sc[k]["counts"])
+            n = sc[k]["classes"]
+            tot += c[:6]
+            inter, union = c[6 : 6 + n], c[6 + n :]
+            mious.append(float(np.mean(inter[union > 0] / union[union > 0])))
+        out[k] = {
+            "pixels": tot[0] / tot[1],
+            "object_pixels": tot[2] / tot[3],
+            "novel_object_pixels": tot[4] / max(tot[5], 1.0),
+            "miou": float(np.mean(mious)),
+        }
+    return out
+
+
+def table(r: dict[str, dict[str, float]]) -> list[str]:
+    lines = [
+        "| targets | pixels | object pixels | novel-object pixels | mIoU |",
+        "|---|---:|---:|---:|---:|",
+    ]
+    for k, v in r.items():
+        lines.append(
+            f"| {k} | {v['pixels']:.3f} | {v['object_pixels']:.3f} | {v['novel_object_pixels']:.3f} | "
+            f"{v['miou']:.3f} |"
+        )
+    return lines
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("data", nargs="+", help="generated scene folders")
+    ap.add_argument("--views", type=int, default=6)
+    ap.add_argument("--standin", default=str(STANDIN))
+    ap.add_argument("--standin-dino", default=str(STANDIN_DINO))
+    ap.add_argument("--json", help="also write the rates here")
+    a = ap.parse_args()
+    per = [target_candidates(Path(d), Path(a.standin), Path(a.standin_dino), a.views) for d in a.data]
+    r = rates(per)
+    print("\n".join(table(r)))
+    if a.json:
+        Path(a.json).write_text(json.dumps({"rates": r, "scenes": a.data, "views": a.views}, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

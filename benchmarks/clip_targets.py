@@ -132,19 +132,70 @@ def table(r: dict[str, dict[str, float]]) -> list[str]:
     return lines
 
 
+def report(d: dict) -> str:
+    """CLIP_TARGETS.md from the figures ``main`` stores (rates, scenes, views, command, machine)."""
+    from benchmarks.common import machine_words
+
+    return "\n".join(
+        [
+            "# CLIP target maps before distillation, per blend of the scales",
+            "",
+            f"Measured {d['machine']['date']} on {machine_words(d['machine'])}, one run of `{d['command']}`.",
+            "",
+            f"Scenes: {', '.join(Path(x).name for x in d['scenes'])} (`fmgs synth --preset world "
+            "--objects 10 --novel 3 --views 12 --size 128x96`, odd seeds open, even seeds in a room; no "
+            f"stand-in training or benchmark seed), the first {d['views']} views of each. The CLIP stand-in "
+            "embeds every crop of the hybrid pyramid at the build's defaults, the DINO stand-in gives the "
+            "dense map; each "
+            "candidate's target map is scored as segmentation is (argmax over the scene's names but the "
+            "background, on pixels with geometry): pixel accuracy on all of them, on object pixels and on "
+            "the held-out-name objects' pixels, pooled over the scenes; mIoU averaged over the scenes. "
+            "These are the dev scenes the build's default blend was chosen on.",
+            "",
+            *table(d["rates"]),
+            "",
+        ]
+    )
+
+
 def main() -> int:
+    import sys
+    import time
+
+    from benchmarks.common import machine, save_report
+
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("data", nargs="+", help="generated scene folders")
+    ap.add_argument("data", nargs="*", help="generated scene folders")
     ap.add_argument("--views", type=int, default=6)
     ap.add_argument("--standin", default=str(STANDIN))
     ap.add_argument("--standin-dino", default=str(STANDIN_DINO))
-    ap.add_argument("--json", help="also write the rates here")
+    ap.add_argument("--json", help="also write the figures here")
+    ap.add_argument(
+        "--report", metavar="OUT", help="also write CLIP_TARGETS.md into OUT and benchmarks/results/"
+    )
+    ap.add_argument("--from-json", metavar="JSON", help="only write the report again from --json's figures")
     a = ap.parse_args()
-    per = [target_candidates(Path(d), Path(a.standin), Path(a.standin_dino), a.views) for d in a.data]
-    r = rates(per)
-    print("\n".join(table(r)))
-    if a.json:
-        Path(a.json).write_text(json.dumps({"rates": r, "scenes": a.data, "views": a.views}, indent=1))
+    if a.from_json:
+        d = json.loads(Path(a.from_json).read_text())
+    else:
+        if not a.data:
+            ap.error("give generated scene folders (or --from-json)")
+        per = [target_candidates(Path(x), Path(a.standin), Path(a.standin_dino), a.views) for x in a.data]
+        d = {
+            "rates": rates(per),
+            "scenes": a.data,
+            "views": a.views,
+            "command": "python -m benchmarks.clip_targets " + " ".join(sys.argv[1:]),
+            "machine": {**machine(), "date": time.strftime("%Y-%m-%d")},
+        }
+        print("\n".join(table(d["rates"])))
+        if a.json:
+            Path(a.json).write_text(json.dumps(d, indent=1, default=float))
+    if a.report:
+        save_report(report(d), Path(a.report), "CLIP_TARGETS.md", True)
+        (ROOT / "benchmarks" / "results" / "CLIP_TARGETS.json").write_text(
+            json.dumps(d, indent=1, default=float)
+        )
     return 0
 
 

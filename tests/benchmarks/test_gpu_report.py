@@ -34,3 +34,16 @@ def test_committed_report_is_written_from_the_committed_figures(tmp_path):
     for failure in tests["failures"]:
         name = failure.split("::")[-1].split(":")[0]
         assert name in notes, f"{failure} is not explained in GPU.json's notes"
+
+
+def test_readme_quotes_the_committed_gpu_figures():
+    parts = json.loads((ROOT / "benchmarks" / "results" / "GPU.json").read_text())["parts"]
+    readme = " ".join((ROOT / "README.md").read_text().split())
+    quoted = (
+        f"relevancy images at {parts['pose']['engine_cuda_cached_images_per_s']:.1f}/s",
+        f"text query in {parts['text10m']['cuda_ms_median']:.2f} ms",
+        f"render at {parts['paper']['480x270_stored_one_call_fps']:.1f} FPS (480x270)",
+        f"the paper's {parts['paper']['paper_fps']}",
+    )
+    for q in quoted:
+        assert q in readme, q

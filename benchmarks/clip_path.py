@@ -13,13 +13,15 @@ saw), ``fmgs build --targets labels`` at the defaults (benchmarks.unseen.build_s
 dot-product similarity loss and without DINO) on that build's 3DGS, each scored on the held-out views as
 served (2D and 3D localisation, mIoU, presence), the three novel objects also on their own. Then the
 target maps alone, before distillation, per candidate (benchmarks.clip_targets). Writes clip_path.json
-and CLIP_PATH.md (with --report, also into benchmarks/results/). Builds already in OUT are kept.
+and CLIP_PATH.md (with --report, both into benchmarks/results/ as CLIP_PATH.json and CLIP_PATH.md). Builds
+already in OUT are kept.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import shlex
 import sys
 import time
 from pathlib import Path
@@ -38,10 +40,10 @@ NOVEL = 3
 VARIANTS: dict[str, dict] = {
     "paper": {"blend": "mean", "dino": True, "dotsim": True},
     "dominant": {"blend": "dominant", "dino": True, "dotsim": True},
-    "dominant, no dotsim": {"blend": "dominant", "dino": True, "dotsim": False},
+    "dominant no-dotsim": {"blend": "dominant", "dino": True, "dotsim": False},
     "coherence": {"blend": "coherence", "dino": True, "dotsim": True},
-    "paper, no dotsim": {"blend": "mean", "dino": True, "dotsim": False},
-    "paper, no DINO": {"blend": "mean", "dino": False, "dotsim": False},
+    "paper no-dotsim": {"blend": "mean", "dino": True, "dotsim": False},
+    "paper no-DINO": {"blend": "mean", "dino": False, "dotsim": False},
 }
 """The CLIP builds: scale blend (fmgs.features.scale_blend), DINO targets and the dotsim loss. "dominant"
 with DINO and dotsim is the build's default."""
@@ -94,8 +96,8 @@ def package_bytes(package: Path) -> dict:
     size = {p.name: p.stat().st_size for p in package.iterdir() if p.is_file()}
     lang = size.get("embeddings.safetensors", 0) + size.get("query_state.safetensors", 0)
     return {
-        "language_per_embedded": lang / max(m.counts["embedded"], 1),
-        "package_per_gaussian": sum(size.values()) / max(m.counts["gaussians"], 1),
+        "language_per_embedded": lang / max(m.num_selected, 1),
+        "package_per_gaussian": sum(size.values()) / max(m.num_gaussians, 1),
         "package": sum(size.values()),
     }
 
@@ -213,9 +215,14 @@ def report(d: dict) -> str:
         f"weights: {dino_cfg['heldout']['random_weights']['nearest_neighbour_label_agreement']:.0%}; raw "
         f"colour: {dino_cfg['heldout']['raw_colour']['nearest_neighbour_label_agreement']:.0%}).",
         "",
-        "Variants: " + "; ".join(f"**{k}**: {v}" for k, v in DESCRIBE.items() if k in kinds) + "; "
-        "*no dotsim*: without the dot-product similarity loss (the paper's ablation); *no DINO*: no DINO "
-        "target at all (language loss only).",
+        "Variants: "
+        + "; ".join(
+            [f"**{k}**: {v}" for k, v in DESCRIBE.items() if k in kinds]
+            + ["*no-dotsim*: without the dot-product similarity loss (the paper's ablation)"]
+            * any("no-dotsim" in k for k in kinds)
+            + ["*no-DINO*: no DINO target at all (language loss only)"] * any("no-DINO" in k for k in kinds)
+        )
+        + ".",
         "",
         "## Means over the scenes",
         "",
@@ -276,6 +283,8 @@ def report(d: dict) -> str:
             "",
             *table(d["target_maps"]),
         ]
+    if d.get("notes"):
+        lines += ["", "## Notes on this run", "", *(f"- {n}" for n in d["notes"])]
     lines += [
         "",
         "## What the stand-ins can and cannot show",
@@ -310,6 +319,7 @@ def main() -> int:
     ap.add_argument("--quick", action="store_true", help="smoke run: one 64x48 scene, short stages")
     ap.add_argument("--from-json", metavar="JSON", help="only write the report again from a clip_path.json")
     ap.add_argument("--report", action="store_true", help="also write benchmarks/results/CLIP_PATH.md")
+    ap.add_argument("--note", action="append", default=[], help="a line for the report's notes (repeatable)")
     ap.add_argument(
         "--no-build",
         action="store_true",
@@ -348,7 +358,9 @@ def main() -> int:
 
     maps = rates([target_candidates(d, standin, dino, a.target_views) for d in datas])
     info = {**machine(), "date": time.strftime("%Y-%m-%d")}
-    cmd = "python -m benchmarks.clip_path " + " ".join(sys.argv[1:])
+    argv = sys.argv[1:]
+    argv = [x for i, x in enumerate(argv) if x != "--note" and (i == 0 or argv[i - 1] != "--note")]
+    cmd = "python -m benchmarks.clip_path " + shlex.join(argv)
     d = {
         "rows": rows,
         "variants": variants,
@@ -358,8 +370,13 @@ def main() -> int:
         "command": cmd,
         "standin": json.loads((standin / "standin.json").read_text()),
         "standin_dino": json.loads((dino / "standin_dino.json").read_text()),
+        "notes": a.note,
     }
     (out / "clip_path.json").write_text(json.dumps(d, indent=1, default=float))
+    if a.report:  # the report's figures, committed beside it (tests/benchmarks/test_clip_path_report.py)
+        figures = json.dumps(d, indent=1, default=float)
+        (ROOT / "benchmarks" / "results" / "CLIP_PATH.json").write_text(figures)
+    d = json.loads((out / "clip_path.json").read_text())  # the report is written from what is stored
     text = report(d)
     save_report(text, out, "CLIP_PATH.md", a.report)
     print(text)

@@ -173,6 +173,7 @@ def main() -> int:
     text = MiniLMTextEncoder()
     table = text.encode_text(vocab_list).clone()  # [V, 384] unit (a normal tensor: autograd uses it)
     x = torch.cat([s.crops for s in train])
+
     def weights(s):
         w = salient(s.shares, s.names)
         if a.target == "dominant":  # all of a crop's weight on its most salient label

@@ -59,7 +59,7 @@ def synth_flags(seed: int) -> tuple[str, ...]:
 
 
 def variant_name(seed: int, variant: str) -> str:
-    return f"s{seed}-" + variant.replace(", ", "-").replace(" ", "-")
+    return f"s{seed}-" + variant.replace(" ", "-")
 
 
 def clip_build(
@@ -132,7 +132,8 @@ def score(out: Path, seed: int, data: Path, variants: list[str]) -> dict:
     names = json.loads((data / "scene.json").read_text())["label_names"]
     row: dict = {"seed": seed, "views_test": len(test), "objects": names[2:], "kinds": {}}
     for kind in ["labels", *variants]:
-        pkg = out / "models" / (f"s{seed}" if kind == "labels" else variant_name(seed, kind))
+        name = f"s{seed}" if kind == "labels" else variant_name(seed, kind)
+        pkg = out / "models" / name
         if not (pkg / "manifest.json").is_file():  # --no-build: a variant not built for this seed
             continue
         engine = SceneEngine.open(pkg)
@@ -140,7 +141,7 @@ def score(out: Path, seed: int, data: Path, variants: list[str]) -> dict:
         q["novel"] = novel_scores(q, data)
         q["embedded"] = engine.num_embedded
         q["bytes"] = package_bytes(pkg)
-        rec = out / ("build-" + (f"{seed}" if kind == "labels" else variant_name(seed, kind)) + ".json")
+        rec = out / f"build-{seed if kind == 'labels' else name}.json"  # build_scene names the label one
         q["build_seconds"] = json.loads(rec.read_text())["seconds"]
         row["kinds"][kind] = q
     return row

@@ -69,13 +69,20 @@ def scene(work: Path, seed: int, novel: int = 0, views: int = VIEWS) -> Path:
     return data
 
 
-def captions(name: str) -> list[tuple[str, float]]:
-    """(caption, weight) of one label name: world objects get captions of varying detail."""
+def world(name: str):
+    """The WorldObject a label name names, or None for stuff (floor, wall, background)."""
     from fmgs.synthworld import world_object
 
     try:
-        o = world_object(name)
-    except ValueError:  # floor, wall, background
+        return world_object(name)
+    except ValueError:
+        return None
+
+
+def captions(name: str) -> list[tuple[str, float]]:
+    """(caption, weight) of one label name: world objects get captions of varying detail."""
+    o = world(name)
+    if o is None:
         return [(name, 1.0)]
     out: dict[str, float] = {}
     for cap, w in zip((name, f"{o.colour} {o.shape}", o.shape), CAPTION_WEIGHTS, strict=True):
@@ -85,16 +92,7 @@ def captions(name: str) -> list[tuple[str, float]]:
 
 def salient(shares: torch.Tensor, names: list[str]) -> torch.Tensor:
     """[N,L] label weights: shares with stuff (floor, wall, backdrop) down-weighted, rows summing to 1."""
-    from fmgs.synthworld import world_object
-
-    def is_object(n: str) -> bool:
-        try:
-            world_object(n)
-        except ValueError:
-            return False
-        return True
-
-    w = shares * torch.tensor([1.0 if is_object(n) else STUFF_SALIENCE for n in names])
+    w = shares * torch.tensor([STUFF_SALIENCE if world(n) is None else 1.0 for n in names])
     return w / w.sum(1, keepdim=True)
 
 
@@ -123,13 +121,10 @@ def dataset(work: Path, seed_list: list[int], per_view: int, rng, novel: int = 0
 def accuracy(encoder, text, samples, which: str = "all") -> float:
     """Top-1 among each scene's names (and WALL) against the largest salient weight, over the crops whose
     largest weight is ``which``: "all", "objects" (seen colour-shape pairs) or "novel" (held-out ones)."""
-    from fmgs.synthworld import world_object
 
     def kind(n: str) -> str:
-        try:
-            return "novel" if world_object(n).novel else "objects"
-        except ValueError:
-            return "stuff"
+        o = world(n)
+        return "stuff" if o is None else "novel" if o.novel else "objects"
 
     hits = total = 0
     for s in samples:

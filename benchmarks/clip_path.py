@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks.common import machine, machine_words, save_report
-from benchmarks.unseen import PRESENT_KINDS, _quality, build_scene, presence_rates
+from benchmarks.unseen import PRESENT_KINDS, build_scene, presence_rates, scene_quality
 
 ROOT = Path(__file__).resolve().parents[1]
 STANDIN = ROOT / "benchmarks" / "standin"
@@ -137,7 +137,7 @@ def score(out: Path, seed: int, data: Path, variants: list[str]) -> dict:
         if not (pkg / "manifest.json").is_file():  # --no-build: a variant not built for this seed
             continue
         engine = SceneEngine.open(pkg)
-        q = _quality(engine, ds, enc, test, data, names)
+        q = scene_quality(engine, ds, enc, test, data, names)
         q["novel"] = novel_scores(q, data)
         q["embedded"] = engine.num_embedded
         q["bytes"] = package_bytes(pkg)

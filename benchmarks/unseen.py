@@ -184,7 +184,7 @@ def neighbours_of(package: Path) -> int:
     return stored_neighbours(Manifest.read(package).extra)
 
 
-def _quality(engine, ds, enc, test: list[int], data: Path, names: list[str]) -> dict:
+def scene_quality(engine, ds, enc, test: list[int], data: Path, names: list[str]) -> dict:
     """Localisation, segmentation and presence of one opened package on held-out views ``test``."""
     from fmgs.train.evaluate_field import evaluate_field
 
@@ -223,7 +223,7 @@ def evaluate_scene(out: Path, seed: int, data: Path, ablate: int | None = None) 
         vpath = repackage(package, out / "models" / f"s{seed}-k{ablate}", ablate, enc)
         variant = {
             "embedding_neighbours": ablate,
-            **_quality(SceneEngine.open(vpath), ds, enc, test, data, names),
+            **scene_quality(SceneEngine.open(vpath), ds, enc, test, data, names),
         }
     return {
         "seed": seed,
@@ -231,7 +231,7 @@ def evaluate_scene(out: Path, seed: int, data: Path, ablate: int | None = None) 
         "views_test": len(test),
         "psnr": gs_eval.get("psnr"),
         "geometry": {k: gs_eval.get(k) for k in ("worst", "below", "floaters", "per_view")},
-        **_quality(engine, ds, enc, test, data, names),
+        **scene_quality(engine, ds, enc, test, data, names),
         "embedding_neighbours": neighbours_of(package),
         "variant": variant,
         "build_seconds": json.loads((out / f"build-{seed}.json").read_text())["seconds"],

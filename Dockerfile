@@ -63,17 +63,26 @@ FROM ${RUNTIME_BASE}
 ENV DEBIAN_FRONTEND=noninteractive PATH=/opt/venv/bin:$PATH PYTHONUNBUFFERED=1
 COPY requirements/apt.txt /tmp/apt.txt
 # wget: KubeRay's default liveness/readiness probes of Ray pods run `wget` in the container.
+# NUMBA_CACHE_DIR: numba's compiled kernels, written by the fmgs user (site-packages is root's).
+ENV NUMBA_CACHE_DIR=/var/cache/fmgs/numba
 RUN apt-get update && apt-get install -y --no-install-recommends python3.11 wget \
         $(grep -v '^#' /tmp/apt.txt) \
     && rm -rf /var/lib/apt/lists/* /tmp/apt.txt \
-    && useradd --create-home --uid 10001 fmgs
+    && useradd --create-home --uid 10001 fmgs \
+    && mkdir -p "$NUMBA_CACHE_DIR" && chown fmgs "$NUMBA_CACHE_DIR"
 COPY --from=build /opt/venv /opt/venv
 # The flavour's settings (device = "cuda" or "cpu"); flags given to `docker run` override them.
 COPY --from=build /etc/fmgs/image.toml /etc/fmgs/image.toml
 COPY models/ /models/
 USER fmgs
+# The kernels compiled once, here, into NUMBA_CACHE_DIR: a start on a CPU of the build machine's model
+# compiles nothing; on another model numba compiles once more into the same folder (mount a volume there
+# to keep that across containers). On the CPU whatever the flavour: the kernels are CPU code.
+RUN fmgs-server --models /models --device cpu --backend cpu --precompile
 EXPOSE 50051
 VOLUME ["/models"]
 HEALTHCHECK --interval=30s --timeout=5s --start-period=120s --retries=3 \
     CMD ["fmgs-client", "--address", "127.0.0.1:50051", "--timeout", "4", "health"]
-ENTRYPOINT ["fmgs-server", "--config", "/etc/fmgs/image.toml", "--models", "/models", "--host", "0.0.0.0", "--port", "50051"]
+# --preload: health says NOT_SERVING until every scene, its text encoder and its kernels are warm. No
+# admin token file: LoadScene/UnloadScene/ReloadScene are refused (mount one and pass --admin-token-file).
+ENTRYPOINT ["fmgs-server", "--config", "/etc/fmgs/image.toml", "--models", "/models", "--host", "0.0.0.0", "--port", "50051", "--preload"]

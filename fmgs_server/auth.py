@@ -7,6 +7,7 @@ from pathlib import Path
 
 import grpc
 
+from fmgs_server.config import ADMIN_CLOSED
 from fmgs_wire.tokens import read_token_file
 
 ADMIN_METHODS = frozenset(
@@ -30,28 +31,43 @@ def _matches(token: bytes, allowed: list[bytes]) -> bool:
 
 
 class TokenAuth(grpc.ServerInterceptor):
-    """Queries need a read or admin token; admin RPCs need an admin token; health may stay open.
+    """Queries need a read or admin token when tokens are set; admin RPCs need an admin token, and are
+    refused outright without admin tokens unless ``admin_open``; health may stay open.
 
-    With ``health_open``, the server's health (service "" and "fmgs.v1.Fmgs") needs no token; a scene's
-    health ("fmgs.v1.Fmgs/<scene>") still does unless ``scene_health_open``, so scene names cannot be
-    probed without a token.
+    With ``admin_open`` (and no admin tokens) admin RPCs follow the query rules. With ``health_open``,
+    the server's health (service "" and "fmgs.v1.Fmgs") needs no token; a scene's health
+    ("fmgs.v1.Fmgs/<scene>") still does unless ``scene_health_open``, so scene names cannot be probed
+    without a token.
     """
 
     def __init__(
-        self, read: list[bytes], admin: list[bytes], health_open: bool = True, scene_health_open: bool = False
+        self,
+        read: list[bytes],
+        admin: list[bytes],
+        health_open: bool = True,
+        scene_health_open: bool = False,
+        admin_open: bool = False,
     ) -> None:
         self.read, self.admin = read, admin
         self.health_open, self.scene_health_open = health_open, scene_health_open
+        self.admin_open = admin_open and not admin
+
+    @property
+    def admin_closed(self) -> bool:
+        """Admin RPCs are refused whatever the token: no admin tokens, and not opened."""
+        return not self.admin and not self.admin_open
 
     def refusal(self, method: str, token: bytes) -> tuple[grpc.StatusCode, str] | None:
         """Why a call of ``method`` (full name) with bearer ``token`` (b"" for none) is refused, or None.
         Health calls are checked by ``health_refusal`` (it needs the service asked about)."""
+        if method in ADMIN_METHODS and self.admin_closed:
+            return grpc.StatusCode.PERMISSION_DENIED, ADMIN_CLOSED
         if not (self.read or self.admin):
             return None
-        if method in ADMIN_METHODS:
+        if method in ADMIN_METHODS and not self.admin_open:
             if not token:
                 return grpc.StatusCode.UNAUTHENTICATED, "missing bearer token"
-            if not self.admin or not _matches(token, self.admin):
+            if not _matches(token, self.admin):
                 known = _matches(token, self.read)
                 code = grpc.StatusCode.PERMISSION_DENIED if known else grpc.StatusCode.UNAUTHENTICATED
                 return code, "admin token required" if known else "invalid bearer token"
@@ -79,6 +95,8 @@ class TokenAuth(grpc.ServerInterceptor):
             return None
         method = details.method
         if not (self.read or self.admin):
+            if method in ADMIN_METHODS and self.admin_closed:
+                return _deny(handler, grpc.StatusCode.PERMISSION_DENIED, ADMIN_CLOSED)
             return handler
         token = bearer_token(details.invocation_metadata)
         if self.health_open and method.startswith(HEALTH_PREFIX):

@@ -28,6 +28,12 @@ def build_parser(prog: str = "fmgs-server") -> argparse.ArgumentParser:
     )
     add_flags(p, ServerConfig)
     p.add_argument(
+        "--precompile",
+        action="store_true",
+        help="compile the kernels on every scene into numba's cache (NUMBA_CACHE_DIR) and exit, serving "
+        "nothing and loading no text encoder (image builds fill their cache with it)",
+    )
+    p.add_argument(
         "--ray",
         nargs="?",
         const="local",
@@ -66,6 +72,12 @@ def main(argv: list[str] | None = None, prog: str = "fmgs-server") -> int:
         return 2
     import logging
 
+    log_format = "%(asctime)s %(levelname)s %(name)s: %(message)s"
+    if a.precompile:
+        logging.basicConfig(level=a.log_level.upper(), format=log_format)
+        from fmgs_server.server import precompile
+
+        return 0 if precompile(cfg) else 1
     if a.ray is not None:
         logging.basicConfig(
             level=a.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s"

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import ipaddress
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -70,7 +71,9 @@ class ServerConfig:
     """How often a scene's files are checked for changes (on access)."""
     preload: bool = False
     """Load every scene (and its text encoder) at start instead of on first use, and warm up the render
-    kernels on each (numba compiles them on first use and caches them on disk), so no request pays it."""
+    kernels on each (numba compiles them on first use and caches them on disk), so no request pays it.
+    Health is NOT_SERVING until then: a scene's own name until that scene is warm, the server's ("" and
+    fmgs.v1.Fmgs) until every scene's warm-up has ended (docs/serving.md#health-and-readiness)."""
     index: IndexConfig = field(default_factory=IndexConfig)
     """Per-Gaussian query state of every scene (flags --index-rank, --index-exact-below, ...)."""
     device: str = "cpu"
@@ -93,7 +96,12 @@ class ServerConfig:
     token_file: Path | None = None
     """Bearer tokens allowed to query, one per line (absent: no token needed)."""
     admin_token_file: Path | None = None
-    """Bearer tokens allowed to load, unload and reload scenes, one per line."""
+    """Bearer tokens allowed to load, unload and reload scenes, one per line. Without it admin calls are
+    refused (PERMISSION_DENIED) unless admin_open, or unless the server binds loopback only and has no
+    token file at all."""
+    admin_open: bool = False
+    """Answer admin calls (LoadScene, UnloadScene, ReloadScene) without an admin token (they then need
+    what queries need: a read token when token_file is set). For trusted networks only."""
     health_open: bool = True
     """The server's health checks need no token (orchestrators)."""
     scene_health_open: bool = False
@@ -109,6 +117,14 @@ class ServerConfig:
             value = getattr(self, name)
             if value is not None and not isinstance(value, Path):
                 object.__setattr__(self, name, Path(value))
+
+    @property
+    def admin_without_token(self) -> bool:
+        """Whether admin calls are answered without an admin token: admin_open, or a server bound to
+        loopback only with no token file at all (a developer's own machine)."""
+        if self.admin_token_file is not None:
+            return False
+        return self.admin_open or (self.token_file is None and loopback_only(self.host))
 
     @property
     def compute_slots(self) -> int:
@@ -138,3 +154,22 @@ class ServerConfig:
             raise ValueError("tls_cert and tls_key go together")
         if self.client_ca is not None and self.tls_cert is None:
             raise ValueError("client_ca (mutual TLS) needs tls_cert and tls_key")
+        if self.admin_open and self.admin_token_file is not None:
+            raise ValueError("admin_open and admin_token_file contradict each other: choose one")
+
+
+ADMIN_CLOSED = (
+    "admin calls are closed: set --admin-token-file (admin_token_file), or --admin-open (admin_open) to "
+    "answer them without a token"
+)
+"""The PERMISSION_DENIED text of an admin call on a server whose admin calls are closed."""
+
+
+def loopback_only(host: str) -> bool:
+    """Whether binding ``host`` accepts connections from this machine only (127.0.0.0/8, ::1, localhost)."""
+    if host.strip("[]").lower() == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host.strip("[]")).is_loopback
+    except ValueError:
+        return False  # a host name: it may resolve to any interface

@@ -25,7 +25,7 @@ def start_subprocess(
         p.kill()
         err = p.stderr.read() if p.stderr else ""
         raise RuntimeError(f"fmgs-server did not start: {line!r} {err[-2000:]}")
-    return p, line.rsplit(" ", 1)[1].strip()
+    return p, line.rsplit(" ", 1)[1].strip().rstrip(")")  # the line ends with the address to connect to
 
 
 @contextmanager

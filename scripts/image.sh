@@ -1,9 +1,12 @@
 #!/usr/bin/env bash
 # Build the FMGS image without a daemon (buildah), run it (podman), and check it from outside with the
-# thin client: health SERVING, list, a text query and a render of the bundled demo scene, the server
-# running as the image's non-root user, and the image's own HEALTHCHECK command. Writes a report.
+# thin client: health SERVING, list, a text query and a render of the bundled demo scene (each timed from
+# SERVING), an unauthenticated UnloadScene refused, the server running as the image's non-root user, and
+# the image's own HEALTHCHECK command. Writes a report only when asked (--report FILE, e.g.
+# benchmarks/results/IMAGE.md); removes the untagged build-stage image it made unless --keep-build-stage.
 #
 #   bash scripts/image.sh [--flavour cpu|cuda] [--base IMAGE] [--tag NAME] [--no-run] [--report FILE]
+#                         [--keep-build-stage]
 #
 # --flavour cpu (default): Debian 12 bases, CPU torch, no gsplat. The base is pulled from a registry
 #   when one answers, else made with debootstrap from the Debian mirror (FMGS_DEBIAN_MIRROR) and kept in
@@ -25,7 +28,8 @@ t_start=$(date +%s)
 flavour=cpu
 tag=""
 run=1
-report=benchmarks/results/IMAGE.md
+report=""
+keep_build_stage=0
 while [ $# -gt 0 ]; do
   case "$1" in
     --flavour) flavour=$2; shift 2 ;;
@@ -33,7 +37,8 @@ while [ $# -gt 0 ]; do
     --base) FMGS_IMAGE_BASE=$2; shift 2 ;;
     --no-run) run=0; shift ;;
     --report) report=$2; shift 2 ;;
-    -h|--help) sed -n '2,22p' "$0"; exit 0 ;;
+    --keep-build-stage) keep_build_stage=1; shift ;;
+    -h|--help) sed -n '2,25p' "$0"; exit 0 ;;
     *) echo "image.sh: unknown argument '$1' (see --help)" >&2; exit 2 ;;
   esac
 done
@@ -121,8 +126,14 @@ fi
 base_s=$(( $(date +%s) - t_base ))
 say "building $tag ($flavour, base: $base)"
 t0=$(date +%s)
+dangling_before=$(bah images --filter dangling=true --quiet --no-trunc | sort)
 bah bud --format docker --layers "${vols[@]}" "${args[@]}" -t "$tag" -f Dockerfile . >&2
 build_s=$(( $(date +%s) - t0 ))
+# The build stage is left behind untagged (several GB): remove the untagged images this build made.
+if [ "$keep_build_stage" = 0 ]; then
+  made=$(comm -13 <(echo "$dangling_before") <(bah images --filter dangling=true --quiet --no-trunc | sort))
+  for id in $made; do bah rmi "$id" >/dev/null 2>&1 || say "could not remove the untagged image $id"; done
+fi
 size=$(pod image inspect --format '{{.Size}}' "$tag")
 say "built $tag in ${build_s}s, $(( size / 1024 / 1024 )) MiB"
 
@@ -153,7 +164,7 @@ if [ "$run" = 1 ]; then
   out=$(mktemp -d)
   pod rm -f "$name" >/dev/null 2>&1 || true
   # Own network namespace, the gRPC port published on loopback only. Explicit ulimits: podman's defaults
-  # for root raise them past what some hosts allow. No health timer (it needs systemd): the image's
+  # for root raise them past what some hosts allow ("error setting rlimit type 7" without them). No health timer (it needs systemd): the image's
   # HEALTHCHECK runs below with `podman healthcheck run`, as the timer would run it.
   # (podman still logs that it found no systemd for health timers: kept in $out/podman.log.)
   pod run -d --name "$name" -p "127.0.0.1:$port:50051" --ulimit nofile=4096:4096 --ulimit nproc=4096:4096 \
@@ -173,8 +184,28 @@ if [ "$run" = 1 ]; then
   [ "$health" = SERVING ] || { echo "image.sh: health answered '$health'" >&2; exit 1; }
   client list | tee "$out/list.txt" >&2
   grep -q demo "$out/list.txt" || { echo "image.sh: list lacks the demo scene" >&2; exit 1; }
+  # First answers after SERVING, timed from outside (the server is warm by then: --preload).
+  ms() { echo $(( ($(date +%s%N) - $1) / 1000000 )); }
+  t=$(date +%s%N)
   client query demo "red cube" "blue ball" --top-k 50 --instances --rows 3 | tee "$out/query.txt" >&2
+  query_ms=$(ms "$t")
+  t=$(date +%s%N)
   client render demo "red cube" --out "$out/relevancy.png" --rgb "$out/rgb.png" >&2
+  render_ms=$(ms "$t")
+  # Admin calls are closed in the image (no admin token file): an unauthenticated UnloadScene is refused.
+  "$cvenv/bin/python" - "127.0.0.1:$port" <<'PY' >&2 || { echo "image.sh: UnloadScene was not refused" >&2; exit 1; }
+import sys
+from fmgs_client import FmgsClient, FmgsError
+with FmgsClient(sys.argv[1], timeout=30) as c:
+    try:
+        c.unload("demo")
+    except FmgsError as e:
+        assert e.code == "PERMISSION_DENIED", e
+        print(f"UnloadScene refused: {e}")
+    else:
+        sys.exit("UnloadScene answered without a token")
+    assert [s.state for s in c.list_scenes() if s.name == "demo"] == ["ready"], "demo not loaded"
+PY
   python3 - "$out/relevancy.png" <<'PY'
 import struct, sys
 data = open(sys.argv[1], "rb").read()
@@ -189,10 +220,14 @@ PY
   # The image's own health check (HEALTHCHECK CMD, run inside the container).
   pod healthcheck run "$name" >&2 2>>"$out/podman.log" \
     || { cat "$out/podman.log" >&2; echo "image.sh: the image's health check failed" >&2; exit 1; }
-  checks="health SERVING after ${ready_s}s, list, query, render, uid $uid (process user ${proc_user:-?}), HEALTHCHECK passed"
+  checks="health SERVING after ${ready_s}s (run to SERVING, polled each second), then first text query ${query_ms} ms and first render ${render_ms} ms (each a fresh client process), list, unauthenticated UnloadScene refused, uid $uid (process user ${proc_user:-?}), HEALTHCHECK passed"
   say "checks: $checks"
 fi
 
+if [ -z "$report" ]; then
+  say "no report written (--report FILE writes one)"
+  exit 0
+fi
 mkdir -p "$(dirname "$report")"
 cat >"$report" <<EOF
 # The container image

@@ -31,7 +31,8 @@ from fmgs_server.config import ServerConfig
 from fmgs_server.sharded import sharded_scene
 from fmgs_wire.proto.fmgs.v1 import fmgs_pb2 as pb
 
-log = logging.getLogger("fmgs_server")
+log = logging.getLogger("ray.serve")
+"""Serve's logger: its lines land in the replica's own log (Serve configures no other logger there)."""
 
 SERVICE = "fmgs.v1.Fmgs"
 SERVICER_FUNCTIONS = [
@@ -105,6 +106,8 @@ def build_app(cfg: ServerConfig, cc: ClusterConfig, encoder_factory=None):
     class SceneHost:
         def __init__(self) -> None:
             self.core = HostCore(cfg, encoder_factory)
+            if cfg.preload:  # Serve routes nothing here until the constructor returns
+                self.core.warm_up()
             self.replica = serve.get_replica_context().replica_id.unique_id
             """Sent back as trailing metadata (REPLICA_KEY): which replica answered."""
 
@@ -163,7 +166,8 @@ def build_app(cfg: ServerConfig, cc: ClusterConfig, encoder_factory=None):
         def __init__(self, host) -> None:
             self.host = host
             read, admin = read_tokens(cfg.token_file), read_tokens(cfg.admin_token_file)
-            self.auth = TokenAuth(read, admin, cfg.health_open, cfg.scene_health_open)
+            # Serve's gRPC proxy listens on every interface: admin calls are open only when told.
+            self.auth = TokenAuth(read, admin, cfg.health_open, cfg.scene_health_open, cfg.admin_open)
 
         # -------------------------------------------------------------- plumbing
 
@@ -200,6 +204,7 @@ def build_app(cfg: ServerConfig, cc: ClusterConfig, encoder_factory=None):
                     status = _logged(method, attempt, e)
                     if attempt == cc.read_attempts or not retryable(method, status):
                         raise Failed(status) from None
+                    _retrying(method, attempt, status)
                 await asyncio.sleep(RETRY_PAUSE_S * attempt)
 
         async def _unary(self, method: str, request, grpc_context, scene: str = ""):
@@ -259,6 +264,7 @@ def build_app(cfg: ServerConfig, cc: ClusterConfig, encoder_factory=None):
                     if sent or attempt == cc.read_attempts or not retryable(method, status):
                         self._fail(status, grpc_context)
                         raise CallFailed(status.details) from None
+                    _retrying(method, attempt, status)
                 await asyncio.sleep(RETRY_PAUSE_S * attempt)
 
         async def _sharded_text(self, scene: str, request) -> list:
@@ -417,6 +423,12 @@ def _logged(method: str, attempt: int, exc: Exception) -> Status:
     status = failure_status(exc)
     log.warning("%s try %d: %s (%s: %s)", method, attempt, status.code, type(exc).__name__, exc)
     return status
+
+
+def _retrying(method: str, attempt: int, status: Status) -> None:
+    log.warning(
+        "%s: replica lost (%s), trying again on another replica (try %d)", method, status.code, attempt + 1
+    )
 
 
 async def _aiter(items):

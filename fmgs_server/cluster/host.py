@@ -12,16 +12,20 @@ TextQuery, the caller scatters the ShardQuery to the replicas holding the shards
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Callable
 from typing import NamedTuple
 
 import grpc
 
+from fmgs.scene.manifest import Manifest
 from fmgs_server.calls import status_of
 from fmgs_server.config import ServerConfig
 from fmgs_server.errors import NotFound
-from fmgs_server.server import make_service
+from fmgs_server.server import make_service, warm_scene
 from fmgs_wire.proto.fmgs.v1 import fmgs_pb2 as pb
+
+log = logging.getLogger("ray.serve")
 
 REQUEST_TYPES = {m.name: m.input_type.name for m in pb.DESCRIPTOR.services_by_name["Fmgs"].methods}
 """RPC name -> request message name."""
@@ -79,6 +83,24 @@ class HostCore:
     def __init__(self, cfg: ServerConfig, encoder_factory=None) -> None:
         self.cfg = cfg
         self.service = make_service(cfg, encoder_factory)
+
+    def warm_up(self, warm=warm_scene) -> None:
+        """What ``preload`` means on a replica (called before it takes traffic): the text encoder of every
+        scene loaded, and the kernels compiled on the first scene that loads (``warm``), which is then
+        unloaded again: Ray's multiplexer decides which scenes a replica holds, so each scene's first call
+        on a replica still pays its load, but neither a compile nor an encoder's load."""
+        compiled = False
+        repo, encoders = self.service.repo, self.service.encoders
+        for slot in repo.scan():
+            try:
+                if not compiled:
+                    log.info("scene %s: warmed up in %.1f s", slot.name, warm(self.service, slot.name))
+                    repo.unload(slot.name)
+                    compiled = True
+                else:
+                    encoders.encoder(Manifest.read(repo.root / slot.name).encoder_id)
+            except Exception as e:  # the scene's calls report it; the others are warm
+                log.warning("scene %s: warm-up failed: %s", slot.name, e)
 
     # ------------------------------------------------------------------ whole scenes
 

@@ -13,6 +13,15 @@ from fmgs_server.config import ServerConfig
 
 log = logging.getLogger("fmgs_server")
 
+PROXY_HEALTH_ENV = {
+    "RAY_SERVE_PROXY_HEALTH_CHECK_PERIOD_S": "1",
+    "RAY_SERVE_PROXY_HEALTH_CHECK_TIMEOUT_S": "2",
+}
+"""Serve's controller checks each proxy every PERIOD s and replaces it after 3 failed checks in a row
+(fixed in Ray 2.60): 10 s by default, so a lost proxy cost about 30 s; 1 s makes it about 3-5 s. Read by
+the controller when it starts: set for a cluster that --ray starts, and in the environment of `ray start`
+for one started separately (deploy/kuberay/rayservice.yaml does)."""
+
 
 def free_port() -> int:
     with socket.socket() as s:
@@ -41,6 +50,8 @@ def start_ray_serve(cfg: ServerConfig, cc: ClusterConfig, address: str | None, e
     os.environ.setdefault(
         "RAY_SERVE_GRPC_MAX_MESSAGE_SIZE", str(max(cfg.max_send_bytes, cfg.max_receive_bytes))
     )
+    for key, value in PROXY_HEALTH_ENV.items():
+        os.environ.setdefault(key, value)
     import ray
     from ray import serve
     from ray.serve.config import HTTPOptions, gRPCOptions

@@ -145,3 +145,29 @@ def test_image_carries_ray_serve_for_the_cluster_deployment():
     assert any(op == "COPY" and rest.split()[-2:] == ["/opt/venv", "/opt/venv"] for op, rest in runtime)
     apt = next(rest for op, rest in runtime if op == "RUN" and "apt-get install" in rest)
     assert "wget" in shlex.split(apt.split("apt-get install", 1)[1])
+
+
+def test_image_serves_warm_with_admin_calls_closed_and_its_kernels_compiled():
+    """The entrypoint preloads (health NOT_SERVING until warm) and names no admin token file (admin calls
+    refused on 0.0.0.0); the build compiles the kernels into a NUMBA_CACHE_DIR the fmgs user can write."""
+    from fmgs_server.cli import build_parser, config_from_args
+
+    ins = _instructions()
+    entry = json.loads(dict(ins)["ENTRYPOINT"])
+    argv = [a for a in entry[1:] if a not in ("--config", "/etc/fmgs/image.toml")]
+    cfg = config_from_args(build_parser().parse_args(argv))
+    assert cfg.preload and cfg.admin_token_file is None and not cfg.admin_without_token
+    stage = _runtime_stage()
+    env = " ".join(rest for op, rest in stage if op == "ENV")
+    cache = re.search(r"NUMBA_CACHE_DIR=(\S+)", env)
+    assert cache, "the runtime stage sets no NUMBA_CACHE_DIR"
+    runs = [rest for op, rest in stage if op == "RUN"]
+    assert any("chown fmgs" in r and "NUMBA_CACHE_DIR" in r for r in runs), "the cache is not the user's"
+    precompile = [r for r in runs if "--precompile" in r]
+    assert precompile, "the build compiles no kernels"
+    argv = shlex.split(precompile[0])
+    assert argv[0] == entry[0]
+    a = build_parser().parse_args(argv[1:])
+    assert a.precompile and str(config_from_args(a).models) == "/models"
+    users = [rest for op, rest in stage if op == "USER"]
+    assert users and stage.index(("USER", users[-1])) < stage.index(("RUN", precompile[0])), "run as fmgs"

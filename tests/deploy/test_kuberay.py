@@ -322,3 +322,22 @@ def test_workers_hold_the_scene_replicas_asked_for():
     if cfg.memory_budget_bytes:
         need = per_pod * (cfg.memory_budget_bytes + cfg.work_memory_bytes)
         assert need < _quantity(limits["memory"]), "scene budgets exceed the worker's memory limit"
+
+
+def test_replicas_warm_before_traffic_admin_closed_and_proxies_replaced_fast():
+    """preload: a scene replica's constructor warms it, and Serve routes to it (and the gRPC readiness
+    probe sees SERVING) only after; admin calls closed (Serve's proxy listens on every interface); the
+    controller (on the head) checks proxies often enough to replace a lost one within seconds."""
+    from fmgs_server.cluster.launch import PROXY_HEALTH_ENV
+
+    cfg = _server_config()
+    assert cfg.preload
+    assert not cfg.admin_open and cfg.admin_token_file is None
+    head = _ray_containers()["head"]
+    env = {e["name"]: e.get("value") for e in head.get("env", [])}
+    for key, value in PROXY_HEALTH_ENV.items():
+        assert env.get(key) == value, f"head: {key} is not {value}"
+    assert float(env["RAY_SERVE_PROXY_HEALTH_CHECK_PERIOD_S"]) * 3 <= 5.0
+    for group, c in _ray_containers().items():
+        if group != "head":
+            assert c["readinessProbe"]["grpc"]["port"] == _grpc_port(), group

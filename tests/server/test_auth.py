@@ -12,6 +12,7 @@ import pytest
 from grpc_health.v1 import health, health_pb2, health_pb2_grpc
 
 from fmgs_server.auth import ADMIN_METHODS, TokenAuth, read_tokens
+from fmgs_server.config import ADMIN_CLOSED
 from fmgs_wire.proto.fmgs.v1 import fmgs_pb2 as pb
 from fmgs_wire.proto.fmgs.v1 import fmgs_pb2_grpc as pb_grpc
 
@@ -119,12 +120,27 @@ def test_read_and_admin_tokens():
 
 
 def test_read_only_tokens_have_no_admin():
+    closed = (C.PERMISSION_DENIED, ADMIN_CLOSED)
     with _served(TokenAuth([READ], [])) as ch:
         calls = _calls(ch)
         assert _outcome(calls["list"], READ) == "OK"
-        assert _outcome(calls["load"], READ) == (C.PERMISSION_DENIED, "admin token required")
+        assert {_outcome(calls["load"], t) for t in (READ, ADMIN, None)} == {closed}
+    with _served(TokenAuth([READ], [], admin_open=True)) as ch:  # opened: admin calls as queries
+        calls = _calls(ch)
+        assert _outcome(calls["load"], READ) == "OK"
         assert _outcome(calls["load"], ADMIN) == (C.UNAUTHENTICATED, "invalid bearer token")
         assert _outcome(calls["load"], None) == (C.UNAUTHENTICATED, "missing bearer token")
+
+
+def test_without_tokens_admin_calls_are_closed_unless_opened():
+    with _served(TokenAuth([], [])) as ch:
+        calls = _calls(ch)
+        got = {name: _outcome(call, None) for name, call in calls.items()}
+        assert got == {**dict.fromkeys(calls, "OK"), "load": (C.PERMISSION_DENIED, ADMIN_CLOSED)}
+        assert "--admin-token-file" in ADMIN_CLOSED and "--admin-open" in ADMIN_CLOSED
+    # admin_open does not weaken admin tokens: with them, an admin token is still needed.
+    with _served(TokenAuth([READ], [ADMIN], admin_open=True)) as ch:
+        assert _outcome(_calls(ch)["load"], READ) == (C.PERMISSION_DENIED, "admin token required")
 
 
 def test_health_can_need_a_token():
@@ -137,7 +153,7 @@ def test_health_can_need_a_token():
 
 
 def test_no_tokens_means_open_and_unknown_methods_stay_unimplemented():
-    with _served(TokenAuth([], [])) as ch:
+    with _served(TokenAuth([], [], admin_open=True)) as ch:
         calls = _calls(ch)
         assert {name: _outcome(call, None) for name, call in calls.items()} == dict.fromkeys(calls, "OK")
     with _served(TokenAuth([READ], [ADMIN])) as ch:

@@ -89,12 +89,14 @@ def ingress(tmp_path, monkeypatch):
     import fmgs_server.cluster.app as app_module
 
     monkeypatch.setattr(app_module, "RETRY_PAUSE_S", 0.0)
-    cfg = ServerConfig(models=tmp_path)
     cc = ClusterConfig(read_attempts=3, health_timeout_s=0.3)
-    cls = app_module.build_app(cfg, cc)._bound_deployment.func_or_class
+    classes = {}
 
-    def make(host):
-        return cls(host)
+    def make(host, admin_open=True):
+        if admin_open not in classes:
+            cfg = ServerConfig(models=tmp_path, admin_open=admin_open)
+            classes[admin_open] = app_module.build_app(cfg, cc)._bound_deployment.func_or_class
+        return classes[admin_open](host)
 
     return make
 
@@ -108,11 +110,32 @@ def _unary(ingress, host, method, request):
     return ctx, out
 
 
-def test_a_read_is_tried_again_until_a_replica_answers(ingress):
+def test_a_read_is_tried_again_until_a_replica_answers(ingress, caplog):
     host = Host(rx.ActorDiedError(), rx.ActorUnavailableError(SECRET, None), ("r2", INFO))
-    ctx, out = _unary(ingress, host, "GetScene", pb.SceneRequest(scene="demo"))
+    with caplog.at_level("WARNING", logger="ray.serve"):
+        ctx, out = _unary(ingress, host, "GetScene", pb.SceneRequest(scene="demo"))
     assert ctx.code is None and out.SerializeToString() == INFO
     assert host.calls == ["unary"] * 3 and ("fmgs-replica", "r2") in ctx.trailing
+    retries = [r.getMessage() for r in caplog.records if "trying again on another replica" in r.getMessage()]
+    assert retries == [
+        "GetScene: replica lost (UNAVAILABLE), trying again on another replica (try 2)",
+        "GetScene: replica lost (UNAVAILABLE), trying again on another replica (try 3)",
+    ]
+
+
+def test_admin_calls_are_closed_unless_opened(ingress):
+    """Serve's proxy listens on every interface: without an admin token file or admin_open, the ingress
+    refuses admin calls itself and no replica is asked."""
+    from fmgs_server.config import ADMIN_CLOSED
+
+    for method in ("LoadScene", "UnloadScene", "ReloadScene"):
+        host = Host(("r1", INFO))
+        ctx = Context()
+        asyncio.run(getattr(ingress(host, admin_open=False), method)(pb.SceneRequest(scene="demo"), ctx))
+        assert (ctx.code, ctx.details()) == (grpc.StatusCode.PERMISSION_DENIED, ADMIN_CLOSED)
+        assert host.calls == []
+    ctx, out = _unary(ingress, Host(("r1", INFO)), "UnloadScene", pb.SceneRequest(scene="demo"))
+    assert ctx.code is None and out.SerializeToString() == INFO
 
 
 def test_a_read_that_fails_every_try_is_unavailable_with_our_text(ingress):

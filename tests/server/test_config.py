@@ -33,3 +33,23 @@ def test_a_server_on_a_str_repository_answers(tmp_path):
             assert chunks and chunks[0].text == "red cube"
     finally:
         srv.stop(0)
+
+
+def test_admin_calls_need_a_token_unless_opened_or_on_loopback_alone():
+    import pytest
+
+    from fmgs_server.config import loopback_only
+
+    for host in ("127.0.0.1", "127.0.0.2", "::1", "[::1]", "localhost"):
+        assert loopback_only(host), host
+    for host in ("0.0.0.0", "::", "[::]", "10.1.2.3", "example.org"):
+        assert not loopback_only(host), host
+    assert ServerConfig().admin_without_token  # the default binds 127.0.0.1
+    assert not ServerConfig(host="0.0.0.0").admin_without_token
+    assert ServerConfig(host="0.0.0.0", admin_open=True).admin_without_token
+    # Tokens in use: loopback alone no longer opens admin calls; an admin token file closes them.
+    assert not ServerConfig(token_file="read").admin_without_token
+    assert ServerConfig(token_file="read", admin_open=True).admin_without_token
+    assert not ServerConfig(admin_token_file="admin").admin_without_token
+    with pytest.raises(ValueError, match="admin_open and admin_token_file"):
+        ServerConfig(admin_open=True, admin_token_file="admin").validate()

@@ -15,8 +15,8 @@ from grpc_health.v1 import health_pb2, health_pb2_grpc
 
 from fmgs.query.engine import SceneEngine
 from fmgs.query.pose import render_pose
-from fmgs_server.config import ServerConfig
-from fmgs_server.server import scene_health_name, start_server
+from fmgs_server.config import ADMIN_CLOSED, ServerConfig
+from fmgs_server.server import scene_health_name, start_server, warm_scene
 from fmgs_wire.proto.fmgs.v1 import fmgs_pb2 as pb
 from fmgs_wire.proto.fmgs.v1 import fmgs_pb2_grpc as pb_grpc
 from fmgs_wire.tensors import from_tensor, join, to_tensor
@@ -310,6 +310,97 @@ def test_tokens(models, tmp_path):
         srv.stop(0)
 
 
+def test_admin_calls_are_closed_by_default_off_loopback(models):
+    """The defaults on 0.0.0.0 (as the image runs): anyone who reaches the port could unload every scene."""
+    for admin_open in (False, True):
+        srv = _start(models, host="0.0.0.0", admin_open=admin_open)
+        try:
+            assert srv.bound == f"0.0.0.0:{srv.port}" and srv.describe().endswith(f"127.0.0.1:{srv.port})")
+            with grpc.insecure_channel(srv.address) as ch:
+                s = pb_grpc.FmgsStub(ch)
+                list(s.TextQuery(pb.TextQueryRequest(scene="blobs", texts=["red cube"], top_k=3)))  # loads
+                blobs = pb.SceneRequest(scene="blobs")
+                if admin_open:
+                    assert s.UnloadScene(blobs).state == pb.SCENE_STATE_UNLOADED
+                    assert s.LoadScene(blobs).state == pb.SCENE_STATE_READY
+                    continue
+                for call in (s.UnloadScene, s.LoadScene, s.ReloadScene):
+                    assert _code(lambda call=call: call(pb.SceneRequest(scene="blobs"))) == (
+                        C.PERMISSION_DENIED,
+                        ADMIN_CLOSED,
+                    )
+                assert s.GetScene(blobs).state == pb.SCENE_STATE_READY  # still loaded
+                assert list(s.TextQuery(pb.TextQueryRequest(scene="blobs", texts=["a"], top_k=3)))
+        finally:
+            srv.stop(0)
+
+
+def _health(ch, service: str = "") -> int:
+    return (
+        health_pb2_grpc.HealthStub(ch)
+        .Check(health_pb2.HealthCheckRequest(service=service), timeout=10)
+        .status
+    )
+
+
+def test_health_is_not_serving_until_the_preload_warm_up_ends(models):
+    """Each scene is NOT_SERVING until its own warm-up ends, the server until every scene's has; a scene
+    whose warm-up failed stays NOT_SERVING while the server says SERVING."""
+    SERVING, NOT_SERVING = health_pb2.HealthCheckResponse.SERVING, health_pb2.HealthCheckResponse.NOT_SERVING
+    entered = {name: threading.Event() for name in ("blobs", "plain")}
+    release = {name: threading.Event() for name in ("blobs", "plain")}
+
+    def warm(service, name):  # the warm-up, held until the test lets it end
+        entered[name].set()
+        assert release[name].wait(60)
+        if name == "plain":
+            raise RuntimeError("no encoder here")
+        service.repo.get(name)
+        return 0.0
+
+    srv = start_server(
+        ServerConfig(models=models, port=0, preload=True), lambda i: FakeEncoder(), warm=warm, wait=False
+    )
+    try:
+        with grpc.insecure_channel(srv.address) as ch:
+            assert entered["blobs"].wait(60)
+            names = ("", "fmgs.v1.Fmgs", "fmgs.v1.Fmgs/blobs", "fmgs.v1.Fmgs/plain")
+
+            def state():
+                return [_health(ch, n) for n in names]
+
+            assert state() == [NOT_SERVING] * 4 and not srv.ready.is_set()
+            release["blobs"].set()
+            assert entered["plain"].wait(60)
+            assert state() == [NOT_SERVING, NOT_SERVING, SERVING, NOT_SERVING]
+            release["plain"].set()
+            assert srv.ready.wait(60)
+            assert state() == [SERVING, SERVING, SERVING, NOT_SERVING]
+    finally:
+        srv.stop(0)
+
+
+def test_preload_warms_each_scene_before_returning(models):
+    loaded = []
+
+    def encoder(encoder_id):
+        loaded.append(encoder_id)
+        return FakeEncoder()
+
+    srv = start_server(ServerConfig(models=models, port=0, preload=True), encoder)
+    try:
+        assert srv.ready.is_set() and loaded == [ENCODER_ID]
+        with grpc.insecure_channel(srv.address) as ch:
+            assert [_health(ch, n) for n in ("", "fmgs.v1.Fmgs/blobs", "fmgs.v1.Fmgs/plain")] == [
+                health_pb2.HealthCheckResponse.SERVING
+            ] * 3
+            scenes = pb_grpc.FmgsStub(ch).ListScenes(pb.ListScenesRequest()).scenes
+            assert all(s.state == pb.SCENE_STATE_READY for s in scenes)
+        assert warm_scene(srv.service, "blobs") >= 0.0  # warm again: the kernels are compiled already
+    finally:
+        srv.stop(0)
+
+
 def test_memory_budget_unloads_least_recently_used(models):
     one = SceneEngine.open(models / "blobs").nbytes()
     srv = _start(models, memory_budget_bytes=int(one * 1.5))
@@ -387,3 +478,67 @@ def test_nothing_unpickles():
                 if bad.search(line) and "no pickle" not in line.lower() and "No pickle" not in line:
                     hits.append(f"{f.relative_to(root)}:{i}: {line.strip()}")
     assert not hits, hits
+
+
+_KERNEL_RUN = """
+import json, numpy as np
+from fmgs.render.cpu_kernels import stable_argsort_positive as k
+k(np.array([3.0, 1.0, 2.0]))
+print(json.dumps([sum(k.stats.cache_hits.values()), sum(k.stats.cache_misses.values())]))
+"""
+
+
+@pytest.mark.slow
+def test_compiled_kernels_are_kept_for_the_next_start(tmp_path):
+    """numba's cache (NUMBA_CACHE_DIR in the image): the first process compiles and writes the cache, a
+    second one loads the machine code from it instead of compiling again."""
+    import json
+    import os
+    import subprocess
+    import sys
+
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "numba")}
+
+    def run() -> list[int]:
+        out = subprocess.run([sys.executable, "-c", _KERNEL_RUN], env=env, capture_output=True, text=True)
+        assert out.returncode == 0, out.stderr[-2000:]
+        return json.loads(out.stdout.splitlines()[-1])
+
+    assert run() == [0, 1]  # compiled
+    assert list((tmp_path / "numba").rglob("*stable_argsort_positive*.nbi"))
+    assert run() == [1, 0]  # read from the cache
+
+
+def test_precompile_runs_every_scene_and_says_when_one_fails(models, tmp_path):
+    import subprocess
+    import sys
+
+    cmd = [sys.executable, "-m", "fmgs_server.cli", "--models", str(models), "--precompile"]
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert "scene blobs: kernels compiled" in done.stderr and "scene plain: kernels compiled" in done.stderr
+    (models / "plain" / "gaussians.safetensors").write_bytes(b"broken")
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 1 and "scene plain:" in done.stderr
+
+
+def test_a_ray_replica_warms_the_kernels_once_and_every_encoder(models):
+    """preload on a Ray scene replica (fmgs_server.cluster.host, no Ray needed): the first scene is warmed
+    and unloaded again (the multiplexer places scenes), the other scenes' encoders are loaded."""
+    from fmgs_server.cluster.host import HostCore
+
+    loaded, warmed = [], []
+
+    def encoder(encoder_id):
+        loaded.append(encoder_id)
+        return FakeEncoder()
+
+    def warm(service, name):
+        warmed.append(name)
+        service.repo.get(name)
+        return 0.0
+
+    core = HostCore(ServerConfig(models=models, preload=True), encoder)
+    core.warm_up(warm)
+    assert warmed == ["blobs"] and loaded == [ENCODER_ID]
+    assert [s.state for s in core.service.repo.scan()] == ["unloaded", "unloaded"]

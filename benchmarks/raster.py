@@ -119,9 +119,9 @@ def _peak_rss_gb() -> float:
 def configs(quick: bool, with_cuda: bool) -> list[Config]:
     if quick:
         return [
-            Config("garden", 480, 270, 5, "cpu", 3),
-            Config("garden", 480, 270, 3, "reference", 1),
-            Config("garden", 480, 270, 3, "reference+grad", 1),
+            Config("garden", 240, 135, 5, "cpu", 3),
+            Config("garden", 240, 135, 3, "reference", 1),
+            Config("garden", 240, 135, 3, "reference+grad", 1),
         ]
     out = []
     for scene in ("garden", "synthetic-1000000"):

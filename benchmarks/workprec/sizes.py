@@ -149,11 +149,11 @@ class Sizes:
 
 QUICK = Sizes(
     text=TextSizes(gaussians=20_000, queries=2),
-    pose=PoseSizes("synthetic-20000", 240, 135, queries=3, reps=1),
+    pose=PoseSizes("synthetic-20000", 120, 68, queries=3, reps=1),
     scene=SceneSizes(views=24, width=64, height=48),
     field=FieldSizes(
-        steps=(30, 60),
-        base_steps=30,
+        steps=(10, 20),
+        base_steps=10,
         paper_steps=4200,
         gs_steps=80,
         feature_scales=(0.25, 0.5),

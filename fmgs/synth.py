@@ -19,6 +19,7 @@ import numpy as np
 
 from fmgs.data.distortion import OpenCVDistortion
 from fmgs.io.atomic import atomic_path
+from fmgs.synthworld import COLOURS, sample_objects, texture_shade, world_object
 
 # name, base colour (linear RGB in [0,1]); label ids: 0 background, 1 floor, 2.. objects in this order
 OBJECTS = (
@@ -226,8 +227,6 @@ WORLD_EXTENT = 2.1
 def _world_meshes(cfg: SynthConfig):
     """The world preset's floor and objects (fmgs.synthworld.sample_objects), smallest placed last."""
     import open3d as o3d
-
-    from fmgs.synthworld import COLOURS, sample_objects
 
     rng = np.random.default_rng(cfg.seed)
     objs = sample_objects(rng, cfg.objects, cfg.novel)
@@ -445,8 +444,6 @@ def generate(out: str | Path, cfg: SynthConfig = SynthConfig()) -> Path:
             "aabb_max": bb.max_bound.tolist(),
         }
         if cfg.preset == "world" and label >= 2:
-            from fmgs.synthworld import world_object
-
             w = world_object(name)
             o.update(colour_name=w.colour, texture=w.texture, shape=w.shape, novel=w.novel)
         objects.append(o)
@@ -470,7 +467,6 @@ def _albedo_for(items, colours: np.ndarray, cfg: SynthConfig):
     striped = cfg.preset in ("cluttered", "world")
     if cfg.preset != "world":
         return lambda label, pts: _albedo(label, pts, colours, cfg.checker, striped)
-    from fmgs.synthworld import texture_shade
 
     centres = [np.zeros(3)] + [m.get_axis_aligned_bounding_box().get_center() for _, _, m, _ in items]
 

@@ -29,7 +29,9 @@ import torch
 from fmgs.errors import ValidationError
 from fmgs.gaussians import GaussianSet, sh_degree_from_bases
 from fmgs.io.atomic import atomic_path
+from fmgs.io.compressed_ply import decode_compressed_ply, is_compressed
 from fmgs.io.formats import GRAPHDECO_PLY, fail, gaussian_set
+from fmgs.io.splat import read_splat
 
 log = logging.getLogger(__name__)
 
@@ -60,8 +62,6 @@ def read_ply(path: str | os.PathLike) -> GaussianSet:
 
     path = Path(path)
     if path.suffix.lower() == ".splat":
-        from fmgs.io.splat import read_splat
-
         return read_splat(path)
     if not path.is_file():
         raise ValidationError(str(path), "no such file")
@@ -69,7 +69,6 @@ def read_ply(path: str | os.PathLike) -> GaussianSet:
         ply = PlyData.read(str(path))
     except (PlyParseError, ValueError, EOFError, OSError) as e:
         raise ValidationError(str(path), f"not a readable PLY file ({e})") from e
-    from fmgs.io.compressed_ply import decode_compressed_ply, is_compressed
 
     if is_compressed(ply):
         return decode_compressed_ply(ply, path)

@@ -16,10 +16,12 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
+from fmgs.cameras import Camera
 from fmgs.errors import ValidationError
 from fmgs.gaussians import SH_C0
 from fmgs.query.index import EmbeddingIndex, IndexConfig
 from fmgs.query.instances import Instance, InstanceConfig, default_eps, group_instances
+from fmgs.query.pose import render_pose
 from fmgs.query.presence import Presence, PresenceConfig, Probe, presence
 from fmgs.scene.package import ScenePackage, load_scene
 from fmgs.vecmath import safe_normalize
@@ -282,8 +284,6 @@ class SceneEngine:
     def warm_up(self) -> float:
         """Run a tiny text query and a 16x16 relevancy and colour render, so that the kernels a first
         request needs are compiled (numba JIT) and touched before it comes; returns the seconds taken."""
-        from fmgs.cameras import Camera
-        from fmgs.query.pose import render_pose
 
         t0 = time.perf_counter()
         q = torch.zeros(self.dim)

@@ -21,11 +21,13 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
+from fmgs.errors import ValidationError
 from fmgs.query.certify import order_rows
-from fmgs.query.engine import PRESENCE, EngineConfig, SceneEngine, TextAnswer
+from fmgs.query.engine import NO_GAUSSIANS, PRESENCE, EngineConfig, SceneEngine, TextAnswer
 from fmgs.query.instances import InstanceConfig, group_instances
+from fmgs.query.pose import PoseRender, relevancy_layer, score_image
 from fmgs.query.presence import Presence, PresenceConfig, Probe, presence
-from fmgs.scene.shards import ShardManifest, read_shard_ids, shard_folders
+from fmgs.scene.shards import ShardManifest, front_to_back, read_shard_ids, shard_folders
 from fmgs.vecmath import safe_normalize
 
 
@@ -171,8 +173,6 @@ def _merged_presence(parts, order, j: int, sq: ShardQuery, cfg: PresenceConfig) 
     have = np.concatenate([np.arange(len(p.rows)) < len(d) for p, d in zip(parts, dots, strict=True)])
     first = order[: cfg.rows]
     if len(first) == 0:
-        from fmgs.query.engine import NO_GAUSSIANS
-
         return NO_GAUSSIANS
     if not have[first].all():  # cannot happen: the best T overall are among each shard's best T
         raise RuntimeError("a shard left out presence dots of a row among the best")
@@ -208,7 +208,6 @@ class ShardedSceneEngine:
     @torch.no_grad()
     def render_pose(self, camera, query, outputs=("relevancy",), canonical=None):
         """As fmgs.query.pose.render_pose for POSE_OUTPUTS: the shards' layers composited."""
-        from fmgs.errors import ValidationError
 
         bad = [o for o in outputs if o not in POSE_OUTPUTS]
         if bad or not outputs:
@@ -261,7 +260,6 @@ class ShardLayer(NamedTuple):
 @torch.no_grad()
 def shard_layer(engine: SceneEngine, camera, query: torch.Tensor | None, canonical=None, between=None):
     """This shard's layer for a relevancy (or alpha-only, query None) render of ``camera``."""
-    from fmgs.query.pose import relevancy_layer
 
     out = relevancy_layer(engine, camera, query, canonical, between)
     return ShardLayer(out.image.float().cpu().numpy(), out.alpha.float().cpu().numpy())
@@ -274,7 +272,6 @@ def composite(layers: Sequence[ShardLayer], outputs: tuple[str, ...]):
     straddling a split plane and the rasteriser's early stop make the difference measured in
     benchmarks/results/CLUSTER.md against the unsharded render.
     """
-    from fmgs.query.pose import PoseRender, score_image
 
     img = np.zeros_like(layers[0].channels, dtype=np.float64)
     trans = np.ones_like(layers[0].alpha, dtype=np.float64)
@@ -291,8 +288,6 @@ def composite(layers: Sequence[ShardLayer], outputs: tuple[str, ...]):
 
 def render_order(manifest: ShardManifest, camera) -> list[int]:
     """Shard indices front to back for ``camera`` (ValidationError for a manifest without its tree)."""
-    from fmgs.errors import ValidationError
-    from fmgs.scene.shards import front_to_back
 
     if manifest.tree is None:
         raise ValidationError(

@@ -43,6 +43,8 @@ import numpy as np
 import torch
 
 from fmgs.errors import ValidationError
+from fmgs.io.mmap_tensors import mmap_torch
+from fmgs.io.tensor_stream import save_blocks
 from fmgs.query import tuning
 
 STATE_FILE = "query_state.safetensors"
@@ -246,7 +248,6 @@ def fingerprint(path: Path, blocks: int = 64, block: int = 4096) -> str:
 def save_state(state: QueryState, path: Path, source: str) -> None:
     """Write ``state`` to ``path`` (inside a package being written atomically), a block at a time (no
     bytes copy of the codes: 2.6 GB at 10M Gaussians)."""
-    from fmgs.io.tensor_stream import save_blocks
 
     meta = {
         "format": STATE_FORMAT,
@@ -286,8 +287,6 @@ def load_state(path: Path, num: int, dim: int, source: str) -> QueryState:
     (wrong format or version, shapes that disagree with the package, non-finite or negative bounds,
     a state written for other embeddings)."""
     from safetensors import SafetensorError, safe_open
-
-    from fmgs.io.mmap_tensors import mmap_torch
 
     where = str(path)
     try:
@@ -338,8 +337,6 @@ def _load_tier2(path: Path, meta: dict, n: int, d: int, r: int) -> Tier2 | None:
     """The second tier of a state (None when it has none), codes and bounds memory-mapped; head2 = rank2
     when the tier is stored whole."""
     from safetensors import safe_open
-
-    from fmgs.io.mmap_tensors import mmap_torch
 
     where = str(path)
     try:

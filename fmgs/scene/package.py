@@ -32,9 +32,10 @@ from fmgs.field.hashgrid import HashGrid
 from fmgs.field.model import FeatureField, FieldConfig
 from fmgs.gaussians import GaussianSet
 from fmgs.io.atomic import atomic_dir
+from fmgs.io.mmap_tensors import mmap_torch
 from fmgs.io.tensor_stream import save_blocks
 from fmgs.io.tensors import load_gaussians, save_gaussians
-from fmgs.query.state import STATE_FILE, QueryState
+from fmgs.query.state import STATE_FILE, QueryState, build_state, fingerprint, load_state, save_state
 from fmgs.scene.manifest import CANONICAL_PHRASES, FieldInfo, Manifest
 
 FIELD_DTYPES = {"float32": torch.float32, "float16": torch.float16}
@@ -144,9 +145,6 @@ def export_scene(
             },
         )
         if 0 < query_rank < D and M > 0:
-            from fmgs.io.mmap_tensors import mmap_torch
-            from fmgs.query.state import build_state, fingerprint, save_state
-
             state = build_state(mmap_torch(efile, "embeddings"), query_rank, rank2=query_rank2)
             save_state(state, tmp / STATE_FILE, fingerprint(efile))
         if field is not None:
@@ -221,8 +219,6 @@ def load_scene(path: str | Path, device: str | torch.device = "cpu", mmap: bool 
     t = read_tensors(efile, ("selected", *(() if mmap else ("canonical", "embeddings"))), device)
     sel = t["selected"]
     if mmap:  # only the compact state is resident; pose renders page the canonical dots in
-        from fmgs.io.mmap_tensors import mmap_torch
-
         emb, canon = _mmap_embeddings(efile), mmap_torch(efile, "canonical")
         if canon.dtype != torch.float32:
             raise ValidationError(str(efile), f"canonical must be float32, got {canon.dtype}")
@@ -262,8 +258,6 @@ def _load_state(path: Path, M: int, D: int) -> QueryState | None:
     server builds one in memory)."""
     import logging
 
-    from fmgs.query.state import fingerprint, load_state
-
     fpath = path / STATE_FILE
     if not fpath.is_file():
         return None
@@ -291,7 +285,6 @@ def read_tensors(fpath: Path, keys: tuple[str, ...], device) -> dict[str, torch.
 
 def _mmap_embeddings(fpath: Path) -> torch.Tensor:
     """[M,D] float16 tensor over a copy-on-write memory map of the stored embeddings."""
-    from fmgs.io.mmap_tensors import mmap_torch
 
     a = mmap_torch(fpath, "embeddings")
     if a.dtype != torch.float16:

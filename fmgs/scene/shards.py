@@ -28,7 +28,9 @@ import torch
 from fmgs.errors import ValidationError
 from fmgs.io.atomic import atomic_dir
 from fmgs.io.tensors import load_gaussians, save_gaussians
+from fmgs.query.state import STATE_FILE, TIER2_RANK, build_state, fingerprint, load_state, save_state
 from fmgs.scene.manifest import FILENAME, Manifest
+from fmgs.scene.package import read_tensors
 
 SHARDS_FILE = "shards.json"
 IDS_FILE = "shard_ids.safetensors"
@@ -225,9 +227,6 @@ def write_shards(
     """
     from safetensors.torch import save_file
 
-    from fmgs.query.state import STATE_FILE, TIER2_RANK, build_state, fingerprint, load_state, save_state
-    from fmgs.scene.package import read_tensors
-
     source, out = Path(source), Path(out)
     man = Manifest.read(source)
     g = load_gaussians(source / "gaussians.safetensors")
@@ -316,7 +315,6 @@ def read_shard_ids(
     folder: str | Path, num_gaussians: int, num_selected: int
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """The source indices of a shard's Gaussians [n] and embedded rows [m] (int64), checked."""
-    from fmgs.scene.package import read_tensors
 
     path = Path(folder) / IDS_FILE
     t = read_tensors(path, ("gaussians", "rows"), "cpu")

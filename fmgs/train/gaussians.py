@@ -28,6 +28,7 @@ from fmgs.sh import sh_to_rgb
 from fmgs.train.config import GSTrainConfig
 from fmgs.train.strategy import DensifyState, accumulate, refine, reset_opacity
 from fmgs.train.threads import thread_count
+from fmgs.train.viewed import focus_point, viewed_points
 
 log = logging.getLogger(__name__)
 PARAM_NAMES = ("means", "quats", "log_scales", "opacity_logits", "sh_dc", "sh_rest")
@@ -97,7 +98,6 @@ def _viewed_init(ds: PosedDataset, cfg: GSTrainConfig) -> tuple[np.ndarray, np.n
     """[random_init,3] points in the cameras' common view (outside a declared background) and their
     mean colours in [0,1] over INIT_IMAGES training images (fmgs.train.viewed), announced; a dataset
     whose cameras share no view is refused with what to supply."""
-    from fmgs.train.viewed import focus_point, viewed_points
 
     try:
         focus_point([f.camera for f in ds.frames])  # refuse before reading any image

@@ -385,11 +385,14 @@ def test_the_text_encoder_loads_through_a_download_and_matches_the_model(hub, cl
     assert load_text_encoder(REPO).files.source == "cache"
 
 
-def test_the_server_setting_forbids_downloads(hub):
+def test_the_server_setting_forbids_downloads_and_says_which_setting(hub):
     from fmgs_server.server import _text_encoder
 
     server, _ = hub
-    with pytest.raises(ModelNotFoundError, match="downloads are off"):
+    with pytest.raises(ModelNotFoundError) as e:
         _text_encoder("cpu", downloads=False)(REPO)
+    msg = str(e.value)
+    assert "downloads are off (this server's --no-model-downloads" in msg and "--model-downloads" in msg
+    assert "--offline" not in msg and "folder" not in msg and fetch_command(REPO) in msg
     assert server.requests == []
     assert _text_encoder("cpu", downloads=True)(REPO).files.source == "download"

@@ -34,6 +34,7 @@ import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
+from fnmatch import fnmatch
 from pathlib import Path
 from types import ModuleType
 
@@ -302,16 +303,22 @@ def _check_local(model_id: str, folder: Path) -> dict[str, str]:
     return files
 
 
+def _loaded(name: str) -> bool:
+    """Whether a snapshot's file is one a transformers load reads (COMMON_FILES, either WEIGHT_CHOICES):
+    other files a snapshot may hold (open_clip, flax, tf copies) are neither checked nor recorded."""
+    return any(fnmatch(name, p) for p in [*COMMON_FILES, *WEIGHT_CHOICES[0], *WEIGHT_CHOICES[1]])
+
+
 def _verify_snapshot(model_id: str, revision: str, snap: Path) -> dict[str, str]:
-    """{file name: sha256 of its bytes} of a hub snapshot, after checking every weights file against the
-    sha256 the hub advertised (its blob's name) and every .safetensors header. A file that fails is
-    deleted (blob and link) and ModelIntegrityError names it."""
+    """{file name: sha256 of its bytes} of a hub snapshot's files a load reads, after checking every
+    weights file against the sha256 the hub advertised (its blob's name) and every .safetensors header.
+    A file that fails is deleted (blob and link) and ModelIntegrityError names it."""
     files: dict[str, str] = {}
     bad: list[tuple[str, Path, str]] = []
     for p in sorted(snap.rglob("*")):
-        if p.is_dir():
-            continue
         name = p.relative_to(snap).as_posix()
+        if p.is_dir() or not _loaded(name):
+            continue
         if not p.exists():  # a link whose blob is gone
             bad.append((name, p, "has lost its cached blob"))
             continue
@@ -353,7 +360,8 @@ def evict_weights(files: ModelFiles) -> list[Path]:
         return []
     gone = []
     for p in sorted(files.path.rglob("*")):
-        if p.name.endswith(WEIGHT_SUFFIXES) and (p.is_symlink() or p.is_file()):
+        name = p.relative_to(files.path).as_posix()
+        if name.endswith(WEIGHT_SUFFIXES) and _loaded(name) and (p.is_symlink() or p.is_file()):
             blob = p.resolve() if p.is_symlink() else None
             p.unlink(missing_ok=True)
             if blob is not None:

@@ -396,3 +396,19 @@ def test_the_server_setting_forbids_downloads_and_says_which_setting(hub):
     assert "--offline" not in msg and "folder" not in msg and fetch_command(REPO) in msg
     assert server.requests == []
     assert _text_encoder("cpu", downloads=True)(REPO).files.source == "download"
+
+
+def test_files_a_load_does_not_read_are_neither_checked_nor_recorded(hub):
+    """A snapshot may also hold files another tool fetched (here the open_clip copy, 4 KiB of zeros: no
+    safetensors file); the check and the record cover the files a transformers load reads."""
+    from huggingface_hub import hf_hub_download
+
+    server, repo = hub
+    got = fetch_model(REPO)
+    cache = got.path.parents[2]  # the hub cache (hf_hub_download read HF_HUB_CACHE at its import)
+    hf_hub_download(
+        REPO, "open_clip_model.safetensors", revision=repo.commit, endpoint=server.endpoint, cache_dir=cache
+    )
+    assert (got.path / "open_clip_model.safetensors").is_file()
+    again = fetch_model(REPO, offline=True)
+    assert again.files == got.files and "open_clip_model.safetensors" not in again.files

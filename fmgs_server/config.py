@@ -83,8 +83,13 @@ class ServerConfig:
     one-pass forward kernel on a CUDA device) (docs/rendering.md)."""
     model_downloads: bool = True
     """Fetch a scene's text encoder from the hub (HF_ENDPOINT) on first use when it is neither a local
-    folder nor in the hub cache; off for locked-down deployments (then such a scene fails to load, naming
-    the model, its revision and the command that fetches it). HF_HUB_OFFLINE=1 also turns it off."""
+    folder nor in the hub cache; off for locked-down deployments (then such a scene's queries fail,
+    naming the model, its revision, this setting and the command that pre-fetches it). HF_HUB_OFFLINE=1
+    also turns it off. Hub calls time out after FMGS_HUB_TIMEOUT seconds (10)."""
+    allow_newer_model: bool = False
+    """Query a scene with whatever revision of its text encoder the hub cache (or hub) has now. Off: the
+    revision its manifest records, checked against the recorded sha256 of each file; a scene whose
+    recorded revision cannot be had, or whose cached files differ, fails its queries naming the model."""
     text_cache: int = 4096
     """Text embeddings cached per encoder."""
     tls_cert: Path | None = None

@@ -117,14 +117,27 @@ def add_service(service: FmgsService, server: grpc.Server) -> None:
     server.add_registered_method_handlers(SERVICE, handlers)
 
 
+NO_DOWNLOADS = (
+    "this server's --no-model-downloads, or model_downloads = false in its --config file; restart it with "
+    "--model-downloads to let it fetch models, or pre-fetch this one into its hub cache"
+)
+"""Why a server does not download a model, and what to change (in the error a scene's load gives)."""
+
+
 def _text_encoder(device: str, downloads: bool = True):
     """Loads a scene's text encoder: a local folder, the hub cache, else a download unless ``downloads``
-    is off (ServerConfig.model_downloads; HF_HUB_OFFLINE/FMGS_OFFLINE also forbid it)."""
+    is off (ServerConfig.model_downloads; HF_HUB_OFFLINE/FMGS_OFFLINE also forbid it). Given a ModelPin
+    (the revision and files a scene recorded), it loads that revision and refuses other bytes."""
 
-    def load(encoder_id: str):
+    def load(encoder_id: str, pin=None):
         from fmgs.features.text import load_text_encoder
 
-        return load_text_encoder(encoder_id, device=device, offline=None if downloads else True)
+        offline = None if downloads else NO_DOWNLOADS
+        if pin is None:
+            return load_text_encoder(encoder_id, device=device, offline=offline)
+        return load_text_encoder(
+            encoder_id, device=device, offline=offline, revision=pin.revision, expect=pin.expect
+        )
 
     return load
 
@@ -140,8 +153,9 @@ def warm_scene(service: FmgsService, name: str) -> float:
     seconds taken. Raises what a load raises."""
     t0 = time.perf_counter()
     engine = service.repo.get(name)
-    service.encoders.encoder(engine.encoder_id)
-    service.encoders.negatives(engine.encoder_id, tuple(negative_names(engine.manifest.label_names)))
+    model = service.text_model(engine)  # at the revision the scene was built with
+    service.encoders.encoder(model)
+    service.encoders.negatives(model, tuple(negative_names(engine.manifest.label_names)))
     engine.warm_up()
     return time.perf_counter() - t0
 

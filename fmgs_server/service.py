@@ -23,7 +23,7 @@ from fmgs.scene.manifest import Manifest
 from fmgs_server import budget, convert, responses
 from fmgs_server.calls import rpc, rpc_stream, stop_if_gone
 from fmgs_server.config import ServerConfig
-from fmgs_server.encoders import EncoderCache
+from fmgs_server.encoders import EncoderCache, TextModel, scene_text_model
 from fmgs_server.errors import FailedPrecondition, InvalidArgument
 from fmgs_server.repository import SceneRepository, SceneSlot
 from fmgs_server.sharded import ShardedSceneService, not_supported
@@ -50,9 +50,16 @@ class FmgsService(pb_grpc.FmgsServicer):
         if self.sharded.is_sharded(scene):
             raise not_supported(method, scene)
 
+    def text_model(self, engine) -> TextModel:
+        """The text encoder of ``engine``'s scene: its id, at the revision its manifest records
+        (fmgs_server.encoders.scene_text_model; any with ServerConfig.allow_newer_model)."""
+        return scene_text_model(
+            engine.encoder_id, engine.manifest.extra, self.cfg.allow_newer_model, engine.name
+        )
+
     def _canonical(self, engine, phrases) -> torch.Tensor | None:
         phrases = convert.texts(phrases, self.cfg, "canonical_phrases", allow_empty=True)
-        return self.encoders.embed(engine.encoder_id, phrases) if phrases else None
+        return self.encoders.embed(self.text_model(engine), phrases) if phrases else None
 
     def _info(self, slot: SceneSlot) -> pb.SceneInfo:
         manifest = None
@@ -133,14 +140,16 @@ class FmgsService(pb_grpc.FmgsServicer):
                     )
                 q = convert.tensor(request.embeddings, "embeddings", (len(values), engine.dim), cfg.max_texts)
             else:
-                q = self.encoders.embed(engine.encoder_id, values)
+                q = self.encoders.embed(self.text_model(engine), values)
             canon = self._canonical(engine, request.canonical_phrases)
             names = tuple(negative_names(engine.manifest.label_names))
-            negs = self.encoders.negatives(engine.encoder_id, names)
+            negs = self.encoders.negatives(self.text_model(engine), names)
             # Colour contrasts need the texts' words: a query given as an embedding goes without.
             probes = None
             if negs is not None and not request.HasField("embeddings"):
-                probes = presence_probes(values, q, lambda ts: self.encoders.embed(engine.encoder_id, ts))
+                probes = presence_probes(
+                    values, q, lambda ts: self.encoders.embed(self.text_model(engine), ts)
+                )
             n = len(values)
             t0 = time.perf_counter()
             between = lambda i: stop_if_gone(context, f"text {i} of {n}")  # noqa: E731
@@ -186,7 +195,7 @@ class FmgsService(pb_grpc.FmgsServicer):
             q = None
             if "relevancy" in outputs:
                 values = convert.texts([request.text] if request.text else [], cfg, "text")
-                q = self.encoders.embed(engine.encoder_id, values)[0]
+                q = self.encoders.embed(self.text_model(engine), values)[0]
             canon = self._canonical(engine, request.canonical_phrases)
             stop = lambda: stop_if_gone(context, "the render")  # noqa: E731
             out = render_pose(engine, cam, q, outputs, canon, stop)
@@ -230,10 +239,10 @@ class FmgsService(pb_grpc.FmgsServicer):
         need = budget.point_bytes(len(pts), len(values), self.cfg.point_chunk)
         with self.budget.reserve(need, context, "this point query"), self.slots.compute(context):
             t0 = time.perf_counter()
-            q = self.encoders.embed(engine.encoder_id, values)
+            q = self.encoders.embed(self.text_model(engine), values)
             canon = self._canonical(engine, request.canonical_phrases)
             if canon is None:
-                canon = self.encoders.embed(engine.encoder_id, list(engine.canonical_phrases))
+                canon = self.encoders.embed(self.text_model(engine), list(engine.canonical_phrases))
             stop = lambda: stop_if_gone(context, "the point query")  # noqa: E731
             a = query_points(engine, pts, q, canon, self.cfg.point_chunk, stop)
         return pb.PointQueryResponse(
@@ -260,7 +269,7 @@ class FmgsService(pb_grpc.FmgsServicer):
     def _segment(self, request, context, engine, names, cam):
         with self.slots.compute(context):
             t0 = time.perf_counter()
-            v = self.encoders.embed(engine.encoder_id, names)
+            v = self.encoders.embed(self.text_model(engine), names)
             s = segment(engine, v, cam, request.per_gaussian)
             ms = (time.perf_counter() - t0) * 1e3
         yield from responses.segment_chunks(names, cam, s, ms, self.cfg.chunk_bytes)

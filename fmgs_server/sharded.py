@@ -21,7 +21,7 @@ from fmgs.scene.manifest import Manifest
 from fmgs.scene.shards import SHARDS_FILE, ShardManifest, is_sharded, read_shard_ids
 from fmgs_server import convert, responses
 from fmgs_server.config import ServerConfig
-from fmgs_server.encoders import EncoderCache
+from fmgs_server.encoders import EncoderCache, TextModel, scene_text_model
 from fmgs_server.errors import FailedPrecondition
 from fmgs_server.slots import Slots
 from fmgs_wire.proto.fmgs.v1 import fmgs_pb2 as pb
@@ -125,6 +125,12 @@ class ShardedSceneService:
         info.label_names.extend(first.label_names)
         return info
 
+    def text_model(self, scene: str, sm: ShardManifest, first: Manifest | None = None) -> TextModel:
+        """The scene's text encoder at the revision its shards' manifests record (its first shard's)."""
+        if first is None:
+            first = Manifest.read(self.cfg.models / scene / sm.shards[0].folder)
+        return scene_text_model(sm.encoder_id, first.extra, self.cfg.allow_newer_model, scene)
+
     # ------------------------------------------------------------------ shards held here
 
     def engine(self, scene: str, folder: str):
@@ -187,10 +193,11 @@ class ShardedSceneService:
         inst = convert.instance_config(req.instances) if req.instances.enabled else None
         first = Manifest.read(cfg.models / scene / sm.shards[0].folder)
         names = tuple(negative_names(first.label_names))
+        model = self.text_model(scene, sm, first)
         t0 = time.perf_counter()
-        q = encoders.embed(sm.encoder_id, values)
-        negs = encoders.negatives(sm.encoder_id, names)
-        probes = probe_texts(values, q, lambda ts: encoders.embed(sm.encoder_id, ts))
+        q = encoders.embed(model, values)
+        negs = encoders.negatives(model, names)
+        probes = probe_texts(values, q, lambda ts: encoders.embed(model, ts))
         cols = tuple(n for f, n in responses.COLUMNS.items() if f in fields)
         sq = ShardQuery(
             q.float().numpy(), k, thr, None, negs.float().numpy().astype(np.float32), shard_probes(probes),
@@ -244,12 +251,13 @@ class ShardedSceneService:
             )
         t0 = time.perf_counter()
         q = canon = None
+        model = self.text_model(scene, sm)
         if "relevancy" in outputs:
             values = convert.texts([req.text] if req.text else [], cfg, "text")
-            q = encoders.embed(sm.encoder_id, values)[0]
+            q = encoders.embed(model, values)[0]
         phrases = convert.texts(req.canonical_phrases, cfg, "canonical_phrases", allow_empty=True)
         if phrases:
-            canon = encoders.embed(sm.encoder_id, phrases)
+            canon = encoders.embed(model, phrases)
         order = tuple(sm.shards[i].folder for i in render_order(sm, cam))
         return RenderPlan(scene, order, cam, q, canon, outputs, encoding, req.sequence, t0)
 

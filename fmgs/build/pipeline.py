@@ -1,5 +1,11 @@
 """Every stage from photos (or a posed dataset, or a 3DGS .ply with its posed images) to a scene package.
 
+Before the first stage, every model the build loads (CLIP, DINO, the text encoder) is found in the hub
+cache or downloaded, and checked (fmgs.features.registry.resolve_encoders): one error names every model
+that is missing, before any work. The revisions found are kept in WORK/models.json; the stages load
+exactly those, a later run of the same build too (unless ``allow_newer_model``), and the manifest records
+each model's revision and the sha256 of its files (``extra.models``).
+
 Stages, each skipped when its output is already complete in the work folder:
   1 poses     photos -> pycolmap SfM -> WORK/sfm/undistorted   (skipped for a posed dataset)
   2 geometry  3DGS training -> WORK/gs/point_cloud.ply         (skipped when a .ply is given)
@@ -21,6 +27,7 @@ import torch
 
 from fmgs.build.config import EMBEDDING_NEIGHBOURS, MAX_EMBEDDING_NEIGHBOURS, BuildConfig, TargetSpec
 from fmgs.errors import ValidationError
+from fmgs.features.models import DEFAULT_REVISION, ModelFiles, ModelPin
 from fmgs.gaussians import GaussianSet
 from fmgs.io.atomic import atomic_path
 from fmgs.train.evaluate import LOW_VIEW_PSNR_DB
@@ -88,17 +95,97 @@ def _is_dataset(path: Path) -> bool:
     )
 
 
-def extract_features(ds, cache_dir: Path, spec: TargetSpec, device: str, progress: bool = True):
-    """Fill ``cache_dir`` with the targets ``spec`` names (resuming); returns the FeatureCache."""
+WORK_MODELS = "models.json"
+"""The models a build resolved, {role: {encoder, id, revision, files}}, in its work folder: a later run
+of the same build loads these revisions (its stages reuse what the earlier run made with them)."""
+
+
+def build_models(spec: TargetSpec) -> dict[str, str]:
+    """{role: encoder id} of every model a build with ``spec`` loads: "text_encoder" (label names, or
+    the queries a CLIP-target scene answers), and for CLIP targets "clip" and "dino" (when it has one)."""
+    from fmgs.features.registry import query_encoder_id
+
+    if spec.kind == "labels":
+        return {"text_encoder": spec.text_encoder}
+    out = {"clip": spec.clip_model}
+    if spec.dino_model:
+        out["dino"] = spec.dino_model
+    out["text_encoder"] = query_encoder_id(spec.clip_model)
+    return out
+
+
+def resolve_build_models(
+    spec: TargetSpec,
+    work: Path | None = None,
+    offline: bool | str | None = None,
+    allow_newer_model: bool = False,
+) -> dict[str, ModelFiles]:
+    """{role: ModelFiles} of every model a build with ``spec`` loads (build_models), found or downloaded
+    and checked now, every missing one named in one error. With a ``work`` folder, the revisions an
+    earlier run recorded in WORK/models.json are the ones taken (unless ``allow_newer_model``), and the
+    ones taken are recorded there."""
+    from fmgs.features.registry import resolve_encoders
+    from fmgs.io.atomic import atomic_path
+
+    named = build_models(spec)
+    path = Path(work) / WORK_MODELS if work is not None else None
+    pins: dict[str, ModelPin] = {}
+    if path is not None and path.is_file() and not allow_newer_model:
+        try:
+            recorded = json.loads(path.read_text())
+        except (OSError, ValueError):
+            recorded = {}
+        for role, encoder_id in named.items():
+            rec = recorded.get(role) if isinstance(recorded, dict) else None
+            if isinstance(rec, dict) and rec.get("encoder") == encoder_id:
+                if (pin := ModelPin.from_record(rec)) is not None:
+                    pins[role] = pin
+    resolved = resolve_encoders(
+        named, offline=offline, pins=pins,
+        pinned_by=f"an earlier run of this build used ({path}); --allow-newer-model takes the current one",
+    )  # fmt: skip
+    if path is not None:
+        with atomic_path(path) as tmp:
+            records = {role: {"encoder": named[role], **f.record()} for role, f in resolved.items()}
+            tmp.write_text(json.dumps(records, indent=1))
+    return resolved
+
+
+def model_revisions(spec: TargetSpec, resolved: dict[str, ModelFiles]) -> dict[str, str]:
+    """{encoder id: hub revision} of the resolved models that come from the hub (the stages load these)."""
+    named = build_models(spec)
+    return {named[role]: f.revision for role, f in resolved.items() if f.revision}
+
+
+def _models_line(resolved: dict[str, ModelFiles]) -> str:
+    parts = []
+    for role, f in resolved.items():
+        at = f"@{f.revision[:12]}" if f.revision else ""
+        parts.append(f"{role} {f.model_id}{at} ({f.source})")
+    return "models: " + "; ".join(parts)
+
+
+def extract_features(
+    ds,
+    cache_dir: Path,
+    spec: TargetSpec,
+    device: str,
+    progress: bool = True,
+    revisions: dict[str, str] | None = None,
+):
+    """Fill ``cache_dir`` with the targets ``spec`` names (resuming); returns the FeatureCache.
+    ``revisions`` ({encoder id: hub revision}, model_revisions) pins the models loaded."""
     from fmgs.features.extract import ExtractConfig, extract_labels, extract_targets, read_label_names
     from fmgs.features.text import load_text_encoder
 
+    rev = revisions or {}
     ecfg = ExtractConfig(
         feature_scale=spec.feature_scale, feature_side=spec.feature_side, device=device, progress=progress
     )
     if spec.kind == "labels":
         names = read_label_names(spec.names or ds.root / "scene.json")
-        enc = load_text_encoder(spec.text_encoder, device=device)
+        text_rev = rev.get(spec.text_encoder, DEFAULT_REVISION)
+        enc = load_text_encoder(spec.text_encoder, device=device, revision=text_rev)
         return extract_labels(ds, cache_dir, spec.labels or ds.root / "labels", names, enc, cfg=ecfg)
     if spec.kind != "clip":
         raise ValidationError("targets", f"unknown target kind {spec.kind!r}; choose 'clip' or 'labels'")
@@ -106,8 +193,14 @@ def extract_features(ds, cache_dir: Path, spec: TargetSpec, device: str, progres
     from fmgs.features.dino import load_dense_encoder
     from fmgs.features.pyramid import pyramid_for
 
-    clip = load_image_encoder(spec.clip_model, device=device)
-    dino = load_dense_encoder(spec.dino_model, device=device) if spec.dino_model else None
+    clip = load_image_encoder(
+        spec.clip_model, device=device, revision=rev.get(spec.clip_model, DEFAULT_REVISION)
+    )
+    dino = None
+    if spec.dino_model:
+        dino = load_dense_encoder(
+            spec.dino_model, device, revision=rev.get(spec.dino_model, DEFAULT_REVISION)
+        )
     pyr = pyramid_for(clip, spec.single_scale, spec.crop_stride, spec.scale_blend)
     return extract_targets(ds, cache_dir, clip, dino, pyr, ecfg)
 
@@ -155,8 +248,19 @@ def _report_geometry(gaussians, ds, cfg: BuildConfig, work: Path, background) ->
         )  # fmt: skip
 
 
-def build_scene(source: str | Path, cfg: BuildConfig, progress: bool = True) -> Path:
-    """Run the stages for ``source`` (a photo folder or a posed dataset) and return the package path."""
+def build_scene(
+    source: str | Path,
+    cfg: BuildConfig,
+    progress: bool = True,
+    *,
+    offline: bool | str | None = None,
+    allow_newer_model: bool = False,
+) -> Path:
+    """Run the stages for ``source`` (a photo folder or a posed dataset) and return the package path.
+
+    The models come first (resolve_build_models): found, or downloaded unless ``offline`` (True, or the
+    words naming the flag that said so), before any stage; ``allow_newer_model`` takes their current
+    revisions even where an earlier run of this build recorded others."""
     from fmgs.data.dataset import load_dataset
     from fmgs.features.cache import FeatureCache
     from fmgs.features.text import load_text_encoder
@@ -174,6 +278,9 @@ def build_scene(source: str | Path, cfg: BuildConfig, progress: bool = True) -> 
     work = Path(cfg.work) if cfg.work else Path(cfg.models) / ".work" / cfg.name
     work.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
+    models = resolve_build_models(cfg.targets, work, offline, allow_newer_model)
+    revisions = model_revisions(cfg.targets, models)
+    print(_models_line(models), flush=True)
 
     if _is_dataset(source):
         _stage(1, "poses", f"posed dataset {source}")
@@ -226,10 +333,10 @@ def build_scene(source: str | Path, cfg: BuildConfig, progress: bool = True) -> 
     if cfg.ray:
         from fmgs.features.distributed import TargetJob, extract_features_ray
 
-        job = TargetJob(str(data), cfg.targets, cfg.device)
+        job = TargetJob(str(data), cfg.targets, cfg.device, revisions=tuple(sorted(revisions.items())))
         extract_features_ray(job, cache_dir, None if cfg.ray == "local" else cfg.ray, progress=progress)
     else:
-        extract_features(ds, cache_dir, cfg.targets, cfg.device, progress)
+        extract_features(ds, cache_dir, cfg.targets, cfg.device, progress, revisions)
     cache = FeatureCache.open(cache_dir)
 
     fcfg = replace(cfg.field, device=cfg.device, threads=cfg.field.threads or threads)
@@ -242,9 +349,12 @@ def build_scene(source: str | Path, cfg: BuildConfig, progress: bool = True) -> 
 
     out = Path(cfg.models) / cfg.name
     _stage(5, "package", str(out))
-    encoder = load_text_encoder(cache.targets["clip"].encoder, device="cpu")
+    query_id = cache.targets["clip"].encoder
+    encoder = load_text_encoder(query_id, device="cpu", revision=revisions.get(query_id, DEFAULT_REVISION))
     extra = {"source": str(source), "build_seconds": round(time.perf_counter() - t0, 1)}
     extra["targets"] = dataclasses.asdict(cfg.targets)  # how the targets were made: kind, models, pyramid
+    extra["targets"]["text_encoder"] = encoder.id  # the one that answers queries (CLIP's own for CLIP)
+    extra["models"] = {role: f.record() for role, f in models.items()}  # revisions, sha256 of the bytes
     if getattr(encoder, "files", None) is not None:  # the query encoder: id, revision, file hashes
         extra["text_encoder"] = encoder.files.record()
     if cfg.targets.kind == "labels":

@@ -53,7 +53,13 @@ def add_parser(sub) -> None:
         "--offline",
         action="store_true",
         help="never download models: use local folders and the hub cache only (as HF_HUB_OFFLINE=1 does); "
-        "a missing model stops the build naming the command that fetches it",
+        "every missing model is named, with the command that fetches it, before the first stage runs",
+    )
+    b.add_argument(
+        "--allow-newer-model",
+        action="store_true",
+        help="take the models' current hub revisions even where an earlier run of this build (its work "
+        "folder's models.json) used others; without it a rerun loads the revisions it started with",
     )
     config_flag(b, "build")
     g = b.add_argument_group(
@@ -92,8 +98,9 @@ def run(args: argparse.Namespace) -> int:
     from fmgs.build import build_scene
 
     cfg = build_config(args)
+    offline = "fmgs build --offline" if args.offline else None
     if args.offline:  # read at each model load, here and in Ray workers started from this process
         os.environ["FMGS_OFFLINE"] = "1"
-    out = build_scene(args.source, cfg)
+    out = build_scene(args.source, cfg, offline=offline, allow_newer_model=args.allow_newer_model)
     print(f"wrote scene package {out}")
     return 0

@@ -43,16 +43,20 @@ def target_spec(args: argparse.Namespace):
 def run(args: argparse.Namespace) -> int:
     """Extract feature targets (hybrid CLIP + DINO, or label masks) of a posed dataset into a cache."""
     from fmgs.build import extract_features
+    from fmgs.build.pipeline import model_revisions, resolve_build_models
     from fmgs.data.dataset import load_dataset
 
+    spec = target_spec(args)
+    revisions = model_revisions(spec, resolve_build_models(spec))  # every model, before any image
     if args.ray is not None:
         from fmgs.features.distributed import TargetJob, extract_features_ray
 
-        job = TargetJob(str(args.data), target_spec(args), args.device, args.undistort_dir)
+        pinned = tuple(sorted(revisions.items()))
+        job = TargetJob(str(args.data), spec, args.device, args.undistort_dir, revisions=pinned)
         cache = extract_features_ray(job, Path(args.out), None if args.ray == "local" else args.ray)
     else:
         ds = load_dataset(args.data, undistort_dir=args.undistort_dir)
-        cache = extract_features(ds, Path(args.out), target_spec(args), args.device)
+        cache = extract_features(ds, Path(args.out), spec, args.device, revisions=revisions)
     t = {k: f"{v.encoder} ({v.dim}-D)" for k, v in cache.targets.items()}
     print(f"feature cache {args.out}: {len(cache.image_names)} images, targets {t}")
     return 0

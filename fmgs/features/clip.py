@@ -11,7 +11,7 @@ import torch
 import torch.nn.functional as F
 
 from fmgs.errors import ValidationError
-from fmgs.features.models import DEFAULT_CLIP_ID, ModelFiles
+from fmgs.features.models import DEFAULT_CLIP_ID, DEFAULT_REVISION, ModelFiles
 from fmgs.features.text import ClipTextEncoder, embedding_dim, load_dual_encoder, pooled_output
 from fmgs.vecmath import safe_normalize
 
@@ -73,12 +73,16 @@ class ClipImageEncoder:
         model_dir: str | os.PathLike | None = None,
         device: str | torch.device = "cpu",
         dtype: torch.dtype = torch.float32,
+        *,
+        revision: str = DEFAULT_REVISION,
+        offline: bool | str | None = None,
     ) -> ClipImageEncoder:
-        """Load from ``model_dir``, the folder ``model_id``, the hub cache, or a download (fetch_model).
+        """Load from ``model_dir``, the folder ``model_id``, the hub cache at ``revision``, or a download
+        (fetch_model; ``offline`` forbids it).
 
         Mean/std come from the folder's ``preprocessor_config.json`` when it has them, else CLIP's.
         """
-        model, _, (mean, std), files = _load_dual(model_id, model_dir)
+        model, _, (mean, std), files = _load_dual(model_id, model_dir, revision, offline)
         enc = cls(model, model_id, device, mean, std, dtype)
         enc.files = files
         return enc
@@ -108,37 +112,49 @@ class ClipEncoders(NamedTuple):
 
 
 def load_image_encoder(
-    model_id: str = DEFAULT_CLIP_ID, device: str | torch.device = "cpu", dtype: torch.dtype = torch.float32
+    model_id: str = DEFAULT_CLIP_ID,
+    device: str | torch.device = "cpu",
+    dtype: torch.dtype = torch.float32,
+    *,
+    revision: str = DEFAULT_REVISION,
+    offline: bool | str | None = None,
 ) -> ImageEncoder:
     """The image encoder of any id the registry knows (fmgs.features.registry): a transformers CLIP or
-    SigLIP, an open_clip file, or the CLIP stand-in."""
+    SigLIP (at ``revision``), an open_clip file, or the CLIP stand-in."""
     if model_id.startswith("standin:"):
         from fmgs.features.standin import load_standin
 
         return load_standin(model_id, device)
-    return ClipImageEncoder.load(model_id, device=device, dtype=dtype)
+    return ClipImageEncoder.load(model_id, device=device, dtype=dtype, revision=revision, offline=offline)
 
 
 def load_clip(
     model_id: str = DEFAULT_CLIP_ID,
     model_dir: str | os.PathLike | None = None,
     device: str | torch.device = "cpu",
+    *,
+    revision: str = DEFAULT_REVISION,
 ) -> ClipEncoders:
     """Both encoders of one CLIP model, loaded once (fetched on first use, as fetch_model does)."""
-    model, tokenizer, (mean, std), files = _load_dual(model_id, model_dir)
+    model, tokenizer, (mean, std), files = _load_dual(model_id, model_dir, revision)
     image = ClipImageEncoder(model, model_id, device, mean, std)
     text = ClipTextEncoder(model, tokenizer(), model_id, device)
     image.files = text.files = files
     return ClipEncoders(image, text)
 
 
-def _load_dual(model_id: str, model_dir: str | os.PathLike | None):
+def _load_dual(
+    model_id: str,
+    model_dir: str | os.PathLike | None,
+    revision: str = DEFAULT_REVISION,
+    offline: bool | str | None = None,
+):
     """(model, tokenizer loader, (mean, std), ModelFiles) of a dual-encoder id (text.load_dual_encoder);
     an open_clip file normalises as CLIP does, a transformers model as its preprocessor config says."""
     from fmgs.features.registry import IMAGE_TYPES
 
     model, tokenizer, files, openclip = load_dual_encoder(
-        model_id, model_dir, None, IMAGE_TYPES, "image encoder"
+        model_id, model_dir, offline, IMAGE_TYPES, "image encoder", revision=revision
     )
     norm = (CLIP_MEAN, CLIP_STD) if openclip else _preprocessor_mean_std(files.path)
     return model, tokenizer, norm, files

@@ -9,7 +9,14 @@ import torch
 import torch.nn.functional as F
 
 from fmgs.errors import ValidationError
-from fmgs.features.models import DEFAULT_DINO_ID, ModelFiles, fetch_model, require_transformers
+from fmgs.features.models import (
+    DEFAULT_DINO_ID,
+    DEFAULT_REVISION,
+    ModelFiles,
+    fetch_model,
+    load_guard,
+    require_transformers,
+)
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 """Per-channel RGB mean DINO was trained with (ImageNet)."""
@@ -69,24 +76,30 @@ class DinoEncoder:
         device: str | torch.device = "cpu",
         short_side: int = DEFAULT_SHORT_SIDE,
         dtype: torch.dtype = torch.float32,
+        *,
+        revision: str = DEFAULT_REVISION,
+        offline: bool | str | None = None,
     ) -> DinoEncoder:
         """Load DINO (``vit``) or DINOv2 (``dinov2``, ``dinov2_with_registers``) from ``model_dir``, the
-        folder ``model_id`` (``hf:`` ids too), the hub cache or a download (fmgs.features.registry)."""
+        folder ``model_id`` (``hf:`` ids too), the hub cache at ``revision`` or a download
+        (fmgs.features.registry; ``offline`` forbids it)."""
         from fmgs.features.registry import DENSE_TYPES, parse_encoder_id, require_type
 
         ref = parse_encoder_id(model_id)
         if ref.family != "hf":
             raise ValidationError(model_id, "the dense regulariser loads transformers models (hf: ids) only")
-        files = fetch_model(ref.ref, model_dir)
+        files = fetch_model(ref.ref, model_dir, revision=revision, offline=offline)
         kind = require_type(files.path, model_id, DENSE_TYPES, "dense regulariser")
         transformers = require_transformers()
         d = str(files.path)
-        if kind == "vit":
-            model = transformers.ViTModel.from_pretrained(d, add_pooling_layer=False, local_files_only=True)
-        elif kind == "dinov2":
-            model = transformers.Dinov2Model.from_pretrained(d, local_files_only=True)
-        else:
-            model = transformers.Dinov2WithRegistersModel.from_pretrained(d, local_files_only=True)
+        with load_guard(files):
+            if kind == "vit":
+                kw = {"add_pooling_layer": False, "local_files_only": True}
+                model = transformers.ViTModel.from_pretrained(d, **kw)
+            elif kind == "dinov2":
+                model = transformers.Dinov2Model.from_pretrained(d, local_files_only=True)
+            else:
+                model = transformers.Dinov2WithRegistersModel.from_pretrained(d, local_files_only=True)
         enc = cls(model, model_id, device, short_side, dtype=dtype)
         enc.files = files
         return enc
@@ -122,14 +135,20 @@ class DinoEncoder:
         return out[0].permute(1, 2, 0).contiguous().to(image.device)
 
 
-def load_dense_encoder(model_id: str = DEFAULT_DINO_ID, device: str | torch.device = "cpu"):
-    """The dense regulariser of any id the registry knows: DINO or DINOv2 (``DinoEncoder.load``), or the
-    DINO stand-in (``standin-dino:FOLDER``, fmgs.features.standin_dino). Both offer ``dense``, ``id``,
-    ``dim`` and ``files``."""
+def load_dense_encoder(
+    model_id: str = DEFAULT_DINO_ID,
+    device: str | torch.device = "cpu",
+    *,
+    revision: str = DEFAULT_REVISION,
+    offline: bool | str | None = None,
+):
+    """The dense regulariser of any id the registry knows: DINO or DINOv2 (``DinoEncoder.load``, at
+    ``revision``), or the DINO stand-in (``standin-dino:FOLDER``, fmgs.features.standin_dino). Both offer
+    ``dense``, ``id``, ``dim`` and ``files``."""
     from fmgs.features.registry import parse_encoder_id
 
     if parse_encoder_id(model_id).family == "standin-dino":
         from fmgs.features.standin_dino import load_standin_dino
 
         return load_standin_dino(model_id, device)
-    return DinoEncoder.load(model_id, device=device)
+    return DinoEncoder.load(model_id, device=device, revision=revision, offline=offline)

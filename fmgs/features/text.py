@@ -15,9 +15,11 @@ from fmgs.errors import ValidationError
 from fmgs.features.clip_tokenizer import load_clip_tokenizer
 from fmgs.features.models import (
     DEFAULT_CLIP_ID,
+    DEFAULT_REVISION,
     MINILM_ID,
     ModelFiles,
     fetch_model,
+    load_guard,
     require,
     require_transformers,
 )
@@ -102,7 +104,8 @@ class MiniLMTextEncoder:
         self.batch_size = batch_size
         self.max_length = max_length
         self.tokenizer = transformers.AutoTokenizer.from_pretrained(str(d), local_files_only=True)
-        model = transformers.AutoModel.from_pretrained(str(d), local_files_only=True)
+        with load_guard(self.files):
+            model = transformers.AutoModel.from_pretrained(str(d), local_files_only=True)
         if model.config.hidden_size != MINILM_DIM:
             raise ValidationError(str(d), f"hidden size {model.config.hidden_size}, expected {MINILM_DIM}")
         self.model = model.to(self.device).eval()
@@ -153,14 +156,18 @@ class ClipTextEncoder:
         model_id: str = DEFAULT_CLIP_ID,
         model_dir: str | os.PathLike | None = None,
         device: str | torch.device = "cpu",
-        offline: bool | None = None,
+        offline: bool | str | None = None,
+        *,
+        revision: str = DEFAULT_REVISION,
+        expect: dict[str, str] | None = None,
     ) -> ClipTextEncoder:
-        """Load model and tokenizer from ``model_dir``, the folder ``model_id``, the hub cache, or a download
-        (fmgs.features.models.fetch_model; ``offline`` or HF_HUB_OFFLINE/FMGS_OFFLINE forbid it)."""
+        """Load model and tokenizer from ``model_dir``, the folder ``model_id``, the hub cache at
+        ``revision``, or a download (fmgs.features.models.fetch_model; ``offline`` or
+        HF_HUB_OFFLINE/FMGS_OFFLINE forbid it; ``expect`` refuses other files than a scene recorded)."""
         from fmgs.features.registry import TEXT_TYPES
 
         model, tokenizer, files, _ = load_dual_encoder(
-            model_id, model_dir, offline, TEXT_TYPES, "text encoder"
+            model_id, model_dir, offline, TEXT_TYPES, "text encoder", revision=revision, expect=expect
         )
         enc = cls(model, tokenizer(), model_id, device)
         enc.files = files
@@ -182,29 +189,38 @@ def load_text_encoder(
     encoder_id: str,
     model_dir: str | os.PathLike | None = None,
     device: str | torch.device = "cpu",
-    offline: bool | None = None,
+    offline: bool | str | None = None,
+    *,
+    revision: str = DEFAULT_REVISION,
+    expect: dict[str, str] | None = None,
 ) -> TextEncoder:
     """The text encoder for a scene's ``encoder_id``: MiniLM (shipped in its wheel) for its id, otherwise a
-    CLIP model, fetched on first use unless ``offline`` (fmgs.features.models.fetch_model)."""
+    CLIP model at ``revision``, fetched on first use unless ``offline`` (fmgs.features.models.fetch_model;
+    ``expect``: the {file: sha256} a scene recorded, other files are refused)."""
     if encoder_id == MINILM_ID:
         return MiniLMTextEncoder(model_dir, device)
     if encoder_id.startswith("standin:"):  # its text space is another encoder's (MiniLM)
         from fmgs.features.standin import load_standin
 
         return load_text_encoder(load_standin(encoder_id).text_encoder_id, device=device, offline=offline)
-    return ClipTextEncoder.load(encoder_id, model_dir, device, offline=offline)
+    return ClipTextEncoder.load(
+        encoder_id, model_dir, device, offline=offline, revision=revision, expect=expect
+    )
 
 
 def load_dual_encoder(
     model_id: str,
     model_dir: str | os.PathLike | None,
-    offline: bool | None,
+    offline: bool | str | None,
     allowed: tuple[str, ...],
     role: str,
+    *,
+    revision: str = DEFAULT_REVISION,
+    expect: dict[str, str] | None = None,
 ) -> tuple[Any, Any, ModelFiles, bool]:
     """(model, tokenizer loader, ModelFiles, whether it is an open_clip file) of a dual-encoder id
-    (fmgs.features.registry): a transformers CLIP or SigLIP fetched on first use (its ``model_type`` one
-    of ``allowed`` for ``role``), or an open_clip checkpoint file mapped onto CLIPModel."""
+    (fmgs.features.registry): a transformers CLIP or SigLIP at ``revision``, fetched on first use (its
+    ``model_type`` one of ``allowed`` for ``role``), or an open_clip checkpoint file mapped onto CLIPModel."""
     from fmgs.features.registry import parse_encoder_id, require_type
 
     ref = parse_encoder_id(model_id)
@@ -213,10 +229,11 @@ def load_dual_encoder(
 
         model, tokenizer, files = load_openclip_file(ref)
         return model, lambda: tokenizer, files, True
-    files = fetch_model(ref.ref, model_dir, offline=offline)
+    files = fetch_model(ref.ref, model_dir, offline=offline, revision=revision, expect=expect)
     kind = require_type(files.path, model_id, allowed, role)
     transformers = require_transformers()
-    model = transformers.AutoModel.from_pretrained(str(files.path), local_files_only=True)
+    with load_guard(files):
+        model = transformers.AutoModel.from_pretrained(str(files.path), local_files_only=True)
 
     def tokenizer():
         if kind == "clip":

@@ -21,6 +21,7 @@ import grpc
 from fmgs.scene.manifest import Manifest
 from fmgs_server.calls import status_of
 from fmgs_server.config import ServerConfig
+from fmgs_server.encoders import scene_text_model
 from fmgs_server.errors import NotFound
 from fmgs_server.server import make_service, warm_scene
 from fmgs_wire.proto.fmgs.v1 import fmgs_pb2 as pb
@@ -98,7 +99,9 @@ class HostCore:
                     repo.unload(slot.name)
                     compiled = True
                 else:
-                    encoders.encoder(Manifest.read(repo.root / slot.name).encoder_id)
+                    m = Manifest.read(repo.root / slot.name)
+                    allow = self.service.cfg.allow_newer_model
+                    encoders.encoder(scene_text_model(m.encoder_id, m.extra, allow, slot.name))
             except Exception as e:  # the scene's calls report it; the others are warm
                 log.warning("scene %s: warm-up failed: %s", slot.name, e)
 

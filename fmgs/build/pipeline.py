@@ -26,12 +26,29 @@ from pathlib import Path
 import torch
 
 from fmgs.build.config import EMBEDDING_NEIGHBOURS, MAX_EMBEDDING_NEIGHBOURS, BuildConfig, TargetSpec
+from fmgs.data.dataset import load_dataset
 from fmgs.errors import ValidationError
+from fmgs.features.cache import FeatureCache
+from fmgs.features.clip import load_image_encoder
+from fmgs.features.dino import load_dense_encoder
+from fmgs.features.distributed import TargetJob, extract_features_ray
+from fmgs.features.extract import ExtractConfig, extract_labels, extract_targets, read_label_names
 from fmgs.features.models import DEFAULT_REVISION, ModelFiles, ModelPin
+from fmgs.features.pyramid import pyramid_for
+from fmgs.features.registry import query_encoder_id, resolve_encoders
+from fmgs.features.text import load_text_encoder
+from fmgs.field.model import FeatureField
+from fmgs.field.neighbours import neighbour_mean, reach_of
 from fmgs.gaussians import GaussianSet
 from fmgs.io.atomic import atomic_path
-from fmgs.train.evaluate import LOW_VIEW_PSNR_DB
-from fmgs.train.field import FieldTrainResult
+from fmgs.io.ply import read_ply
+from fmgs.query.relevancy import CANONICAL_PHRASES
+from fmgs.scene.package import check_scene_name, export_scene
+from fmgs.sfm import run_sfm
+from fmgs.train.evaluate import LOW_VIEW_PSNR_DB, evaluate
+from fmgs.train.field import FieldTrainResult, train_field
+from fmgs.train.floaters import floater_mask
+from fmgs.train.gaussians import config_record, dataset_background, train_gaussians, trained_background
 from fmgs.train.threads import auto_threads
 
 log = logging.getLogger(__name__)
@@ -51,10 +68,6 @@ def package_from_field(
     selected Gaussians within its reach (fmgs.field.neighbours; 1: none) and write the scene package
     to ``out`` (``field_dtype``: storage of the field's tensors, see ``export_scene``). The manifest's
     extra records ``embedding_neighbours``."""
-    from fmgs.field.model import FeatureField
-    from fmgs.field.neighbours import neighbour_mean, reach_of
-    from fmgs.query.relevancy import CANONICAL_PHRASES
-    from fmgs.scene.package import export_scene
 
     if not 1 <= neighbours <= MAX_EMBEDDING_NEIGHBOURS:
         raise ValidationError(
@@ -103,7 +116,6 @@ of the same build loads these revisions (its stages reuse what the earlier run m
 def build_models(spec: TargetSpec) -> dict[str, str]:
     """{role: encoder id} of every model a build with ``spec`` loads: "text_encoder" (label names, or
     the queries a CLIP-target scene answers), and for CLIP targets "clip" and "dino" (when it has one)."""
-    from fmgs.features.registry import query_encoder_id
 
     if spec.kind == "labels":
         return {"text_encoder": spec.text_encoder}
@@ -124,8 +136,6 @@ def resolve_build_models(
     and checked now, every missing one named in one error. With a ``work`` folder, the revisions an
     earlier run recorded in WORK/models.json are the ones taken (unless ``allow_newer_model``), and the
     ones taken are recorded there."""
-    from fmgs.features.registry import resolve_encoders
-    from fmgs.io.atomic import atomic_path
 
     named = build_models(spec)
     path = Path(work) / WORK_MODELS if work is not None else None
@@ -175,8 +185,6 @@ def extract_features(
 ):
     """Fill ``cache_dir`` with the targets ``spec`` names (resuming); returns the FeatureCache.
     ``revisions`` ({encoder id: hub revision}, model_revisions) pins the models loaded."""
-    from fmgs.features.extract import ExtractConfig, extract_labels, extract_targets, read_label_names
-    from fmgs.features.text import load_text_encoder
 
     rev = revisions or {}
     ecfg = ExtractConfig(
@@ -189,9 +197,6 @@ def extract_features(
         return extract_labels(ds, cache_dir, spec.labels or ds.root / "labels", names, enc, cfg=ecfg)
     if spec.kind != "clip":
         raise ValidationError("targets", f"unknown target kind {spec.kind!r}; choose 'clip' or 'labels'")
-    from fmgs.features.clip import load_image_encoder
-    from fmgs.features.dino import load_dense_encoder
-    from fmgs.features.pyramid import pyramid_for
 
     clip = load_image_encoder(
         spec.clip_model, device=device, revision=rev.get(spec.clip_model, DEFAULT_REVISION)
@@ -218,8 +223,6 @@ def _report_geometry(gaussians, ds, cfg: BuildConfig, work: Path, background) ->
     """Print the geometry's held-out PSNR/SSIM (every HOLDOUT_EVERY-th view; the mean and the worst view)
     and the floaters it leaves (fmgs.train.floaters), and store them in WORK/geometry.json with every view's;
     warn naming each view below LOW_PSNR_DB, and when the mean is."""
-    from fmgs.train.evaluate import evaluate
-    from fmgs.train.floaters import floater_mask
 
     train, test = ds.split(cfg.gs.holdout_every)
     if not test:
@@ -261,12 +264,6 @@ def build_scene(
     The models come first (resolve_build_models): found, or downloaded unless ``offline`` (True, or the
     words naming the flag that said so), before any stage; ``allow_newer_model`` takes their current
     revisions even where an earlier run of this build recorded others."""
-    from fmgs.data.dataset import load_dataset
-    from fmgs.features.cache import FeatureCache
-    from fmgs.features.text import load_text_encoder
-    from fmgs.io.ply import read_ply
-    from fmgs.scene.package import check_scene_name
-    from fmgs.train.field import train_field
 
     check_scene_name(cfg.name)
     source = Path(source)
@@ -290,8 +287,6 @@ def build_scene(
         if _is_dataset(data):
             _stage(1, "poses", f"complete ({data})")
         else:
-            from fmgs.sfm import run_sfm
-
             _stage(1, "poses", f"pycolmap SfM on {source}")
             r = run_sfm(source, work / "sfm", cfg.sfm)
             data = Path(r.dataset_dir)
@@ -309,8 +304,6 @@ def build_scene(
         _stage(2, "geometry", f"given {cfg.ply}")
         ply = Path(cfg.ply)
     else:
-        from fmgs.train.gaussians import config_record, train_gaussians
-
         gcfg = replace(cfg.gs, device=cfg.device, threads=cfg.gs.threads or threads)
         ply = work / "gs" / "point_cloud.ply"
         done = work / "gs" / "train.json"
@@ -322,7 +315,6 @@ def build_scene(
             # A finished run with other settings starts over; an interrupted one (no train.json) resumes.
             train_gaussians(ds, work / "gs", gcfg, progress=progress, resume=not record)
     gaussians = read_ply(ply)
-    from fmgs.train.gaussians import dataset_background, trained_background
 
     # A given .ply is scored on the dataset's background; our own run on the one it trained with.
     background = dataset_background(ds) if cfg.ply else trained_background(ply.parent, ds)
@@ -331,8 +323,6 @@ def build_scene(
     cache_dir = work / "features"
     _stage(3, "features", f"{cfg.targets.kind} targets -> {cache_dir}")
     if cfg.ray:
-        from fmgs.features.distributed import TargetJob, extract_features_ray
-
         job = TargetJob(str(data), cfg.targets, cfg.device, revisions=tuple(sorted(revisions.items())))
         extract_features_ray(job, cache_dir, None if cfg.ray == "local" else cfg.ray, progress=progress)
     else:
@@ -358,8 +348,6 @@ def build_scene(
     if getattr(encoder, "files", None) is not None:  # the query encoder: id, revision, file hashes
         extra["text_encoder"] = encoder.files.record()
     if cfg.targets.kind == "labels":
-        from fmgs.features.extract import read_label_names
-
         extra["label_names"] = read_label_names(cfg.targets.names or ds.root / "scene.json")
     extra.update(cfg.extra)
     return package_from_field(

@@ -12,6 +12,8 @@ import torch.nn.functional as F
 
 from fmgs.errors import ValidationError
 from fmgs.features.models import DEFAULT_CLIP_ID, DEFAULT_REVISION, ModelFiles
+from fmgs.features.registry import IMAGE_TYPES
+from fmgs.features.standin import load_standin
 from fmgs.features.text import ClipTextEncoder, embedding_dim, load_dual_encoder, pooled_output
 from fmgs.vecmath import safe_normalize
 
@@ -122,8 +124,6 @@ def load_image_encoder(
     """The image encoder of any id the registry knows (fmgs.features.registry): a transformers CLIP or
     SigLIP (at ``revision``), an open_clip file, or the CLIP stand-in."""
     if model_id.startswith("standin:"):
-        from fmgs.features.standin import load_standin
-
         return load_standin(model_id, device)
     return ClipImageEncoder.load(model_id, device=device, dtype=dtype, revision=revision, offline=offline)
 
@@ -151,7 +151,6 @@ def _load_dual(
 ):
     """(model, tokenizer loader, (mean, std), ModelFiles) of a dual-encoder id (text.load_dual_encoder);
     an open_clip file normalises as CLIP does, a transformers model as its preprocessor config says."""
-    from fmgs.features.registry import IMAGE_TYPES
 
     model, tokenizer, files, openclip = load_dual_encoder(
         model_id, model_dir, offline, IMAGE_TYPES, "image encoder", revision=revision

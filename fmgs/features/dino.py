@@ -17,6 +17,8 @@ from fmgs.features.models import (
     load_guard,
     require_transformers,
 )
+from fmgs.features.registry import DENSE_TYPES, parse_encoder_id, require_type
+from fmgs.features.standin_dino import load_standin_dino
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 """Per-channel RGB mean DINO was trained with (ImageNet)."""
@@ -83,7 +85,6 @@ class DinoEncoder:
         """Load DINO (``vit``) or DINOv2 (``dinov2``, ``dinov2_with_registers``) from ``model_dir``, the
         folder ``model_id`` (``hf:`` ids too), the hub cache at ``revision`` or a download
         (fmgs.features.registry; ``offline`` forbids it)."""
-        from fmgs.features.registry import DENSE_TYPES, parse_encoder_id, require_type
 
         ref = parse_encoder_id(model_id)
         if ref.family != "hf":
@@ -145,10 +146,7 @@ def load_dense_encoder(
     """The dense regulariser of any id the registry knows: DINO or DINOv2 (``DinoEncoder.load``, at
     ``revision``), or the DINO stand-in (``standin-dino:FOLDER``, fmgs.features.standin_dino). Both offer
     ``dense``, ``id``, ``dim`` and ``files``."""
-    from fmgs.features.registry import parse_encoder_id
 
     if parse_encoder_id(model_id).family == "standin-dino":
-        from fmgs.features.standin_dino import load_standin_dino
-
         return load_standin_dino(model_id, device)
     return DinoEncoder.load(model_id, device=device, revision=revision, offline=offline)

@@ -21,7 +21,20 @@ import numpy as np
 import torch
 
 from fmgs.build.config import TargetSpec
+from fmgs.data.dataset import load_dataset
 from fmgs.features.cache import FeatureCache, FeatureCacheWriter, TargetInfo
+from fmgs.features.clip import load_image_encoder
+from fmgs.features.dino import load_dense_encoder
+from fmgs.features.extract import (
+    ExtractConfig,
+    image_label_targets,
+    image_targets,
+    label_embeddings,
+    read_label_names,
+)
+from fmgs.features.models import DEFAULT_REVISION
+from fmgs.features.pyramid import pyramid_for
+from fmgs.features.text import load_text_encoder
 
 
 @dataclass(frozen=True)
@@ -42,10 +55,6 @@ class _Worker:
     """A process's loaded dataset and encoders for one job."""
 
     def __init__(self, job: TargetJob) -> None:
-        from fmgs.data.dataset import load_dataset
-        from fmgs.features.extract import ExtractConfig, label_embeddings, read_label_names
-        from fmgs.features.models import DEFAULT_REVISION
-        from fmgs.features.text import load_text_encoder
 
         spec = job.spec
         rev = dict(job.revisions)
@@ -63,10 +72,6 @@ class _Worker:
             self.labels = spec.labels or self.ds.root / "labels"
             self.targets = {"clip": TargetInfo(enc.id, enc.dim, True)}
         else:
-            from fmgs.features.clip import load_image_encoder
-            from fmgs.features.dino import load_dense_encoder
-            from fmgs.features.pyramid import pyramid_for
-
             clip_rev = rev.get(spec.clip_model, DEFAULT_REVISION)
             self.clip = load_image_encoder(spec.clip_model, device=device, revision=clip_rev)
             self.dino = None
@@ -80,7 +85,6 @@ class _Worker:
 
     def maps(self, i: int) -> dict:
         """Image i's maps as numpy arrays (add()'s keyword arguments)."""
-        from fmgs.features.extract import image_label_targets, image_targets
 
         if self.kind == "labels":
             out = image_label_targets(self.ds, i, self.labels, self.emb, frozenset({0}), self.cfg)
@@ -127,8 +131,6 @@ def extract_features_ray(
     when the job's device is not "cpu" and the cluster has GPUs. ``task`` replaces maps_task (tests).
     """
     import ray
-
-    from fmgs.data.dataset import load_dataset
 
     if batch < 1 or max_retries < 0:
         raise ValueError("batch >= 1 and max_retries >= 0 required")

@@ -36,6 +36,7 @@ import torch
 import torch.nn.functional as F
 
 from fmgs.errors import ValidationError
+from fmgs.features.scale_blend import BLENDS, blend_scales, scale_weights
 from fmgs.features.sizes import CROP_STRIDE
 
 
@@ -67,7 +68,6 @@ class PyramidConfig:
             raise ValidationError("max_stride", f"must lie in (0, 1] or be None, got {self.max_stride}")
         if self.crop_px < 1 or self.batch_size < 1:
             raise ValidationError("crop_px/batch_size", "must be positive")
-        from fmgs.features.scale_blend import BLENDS
 
         if self.blend not in BLENDS:
             raise ValidationError("blend", f"must be one of {BLENDS}, got {self.blend!r}")
@@ -260,7 +260,6 @@ def hybrid_map(
     blends need (cfg.blend). Returns [h,w,D] float32 (out_hw = (h, w)) on image's device, unit-norm per
     pixel.
     """
-    from fmgs.features.scale_blend import blend_scales, scale_weights
 
     h, w = _check_image(image, out_hw)
     if dense is not None and tuple(dense.shape[:2]) != (h, w):

@@ -27,6 +27,7 @@ from torch import nn
 
 from fmgs.errors import ValidationError
 from fmgs.features.models import MINILM_ID, ModelFiles, ModelNotFoundError, local_weight_hashes
+from fmgs.features.pyramid import PyramidConfig
 from fmgs.vecmath import safe_normalize
 
 CONFIG = "standin.json"
@@ -166,8 +167,6 @@ def sample_crop_targets(
     indices into the sorted images (default all); ``object_share``: the fraction of crops centred on a
     random object pixel (label >= 2) instead of any pixel (objects are a small part of most views)."""
     from PIL import Image
-
-    from fmgs.features.pyramid import PyramidConfig
 
     data = Path(data)
     names = json.loads((data / "scene.json").read_text())["label_names"]

@@ -23,6 +23,9 @@ from fmgs.features.models import (
     require,
     require_transformers,
 )
+from fmgs.features.openclip import load_openclip_file
+from fmgs.features.registry import TEXT_TYPES, parse_encoder_id, require_type
+from fmgs.features.standin import load_standin
 from fmgs.vecmath import safe_normalize
 
 MINILM_DIM = 384
@@ -164,7 +167,6 @@ class ClipTextEncoder:
         """Load model and tokenizer from ``model_dir``, the folder ``model_id``, the hub cache at
         ``revision``, or a download (fmgs.features.models.fetch_model; ``offline`` or
         HF_HUB_OFFLINE/FMGS_OFFLINE forbid it; ``expect`` refuses other files than a scene recorded)."""
-        from fmgs.features.registry import TEXT_TYPES
 
         model, tokenizer, files, _ = load_dual_encoder(
             model_id, model_dir, offline, TEXT_TYPES, "text encoder", revision=revision, expect=expect
@@ -200,8 +202,6 @@ def load_text_encoder(
     if encoder_id == MINILM_ID:
         return MiniLMTextEncoder(model_dir, device)
     if encoder_id.startswith("standin:"):  # its text space is another encoder's (MiniLM)
-        from fmgs.features.standin import load_standin
-
         return load_text_encoder(load_standin(encoder_id).text_encoder_id, device=device, offline=offline)
     return ClipTextEncoder.load(
         encoder_id, model_dir, device, offline=offline, revision=revision, expect=expect
@@ -221,12 +221,9 @@ def load_dual_encoder(
     """(model, tokenizer loader, ModelFiles, whether it is an open_clip file) of a dual-encoder id
     (fmgs.features.registry): a transformers CLIP or SigLIP at ``revision``, fetched on first use (its
     ``model_type`` one of ``allowed`` for ``role``), or an open_clip checkpoint file mapped onto CLIPModel."""
-    from fmgs.features.registry import parse_encoder_id, require_type
 
     ref = parse_encoder_id(model_id)
     if ref.family == "openclip-file":
-        from fmgs.features.openclip import load_openclip_file
-
         model, tokenizer, files = load_openclip_file(ref)
         return model, lambda: tokenizer, files, True
     files = fetch_model(ref.ref, model_dir, offline=offline, revision=revision, expect=expect)

@@ -111,6 +111,7 @@ def test_build_rejects_bad_names_and_sources(tmp_path, capsys):
 
 @pytest.mark.slow
 def test_geometry_settings_reach_3dgs_and_a_change_retrains(tmp_path, monkeypatch, capsys):
+    from fmgs.build import pipeline
     from fmgs.synth import SynthConfig, generate
     from fmgs.train import gaussians as gs_mod
 
@@ -122,7 +123,7 @@ def test_geometry_settings_reach_3dgs_and_a_change_retrains(tmp_path, monkeypatc
         surface_ply(tmp_path / "scene", out / "point_cloud.ply")
         (out / "train.json").write_text(json.dumps({"steps": cfg.steps, "config": gs_mod.config_record(cfg)}))
 
-    monkeypatch.setattr(gs_mod, "train_gaussians", fake_train)
+    monkeypatch.setattr(pipeline, "train_gaussians", fake_train)  # the name the build calls
     args = ["build", str(tmp_path / "scene"), "--name", "g", "--models", str(tmp_path / "m")]
     args += ["--targets", "labels", "--gs-steps", "12", "--field-steps", "3", "--device", "cpu"]
     assert main([*args, "--sh-degree", "0", "--grad-threshold", "0.5"]) == 0
@@ -139,6 +140,7 @@ def test_geometry_settings_reach_3dgs_and_a_change_retrains(tmp_path, monkeypatc
 
 
 def test_a_dataset_without_points_stops_unless_random_gaussians_are_allowed(tmp_path, monkeypatch, capsys):
+    from fmgs.build import pipeline
     from fmgs.synth import SynthConfig, generate
     from fmgs.train import gaussians as gs_mod
 
@@ -155,7 +157,7 @@ def test_a_dataset_without_points_stops_unless_random_gaussians_are_allowed(tmp_
         shutil.copy(tmp_path / "fit.ply", out / "point_cloud.ply")
         (out / "train.json").write_text(json.dumps({"steps": cfg.steps, "config": gs_mod.config_record(cfg)}))
 
-    monkeypatch.setattr(gs_mod, "train_gaussians", fake_train)
+    monkeypatch.setattr(pipeline, "train_gaussians", fake_train)  # the name the build calls
     args = ["build", str(tmp_path / "scene"), "--name", "g", "--models", str(tmp_path / "m")]
     args += ["--targets", "labels", "--gs-steps", "12", "--field-steps", "3", "--device", "cpu"]
     assert main(args) == 2

@@ -332,11 +332,7 @@ def _verify_snapshot(model_id: str, revision: str, snap: Path) -> dict[str, str]
             bad.append((name, p, problem))
     if bad:
         for _, link, _ in bad:
-            blob = link.resolve() if link.is_symlink() else None
-            link.unlink(missing_ok=True)
-            if blob is not None and blob != link:
-                blob.unlink(missing_ok=True)
-            _forget(blob or link)
+            _delete_cached(link)
         what = "; ".join(f"{name} {problem}" for name, _, problem in bad)
         raise ModelIntegrityError(
             model_id,
@@ -344,6 +340,16 @@ def _verify_snapshot(model_id: str, revision: str, snap: Path) -> dict[str, str]
             "the next run downloads it again",
         )
     return files
+
+
+def _delete_cached(link: Path) -> None:
+    """Delete a snapshot's file: the link and the blob it points to (or the file itself), and forget its
+    check."""
+    blob = link.resolve() if link.is_symlink() else None
+    link.unlink(missing_ok=True)
+    if blob is not None and blob != link:
+        blob.unlink(missing_ok=True)
+    _forget(blob or link)
 
 
 def _forget(path: Path) -> None:
@@ -362,11 +368,7 @@ def evict_weights(files: ModelFiles) -> list[Path]:
     for p in sorted(files.path.rglob("*")):
         name = p.relative_to(files.path).as_posix()
         if name.endswith(WEIGHT_SUFFIXES) and _loaded(name) and (p.is_symlink() or p.is_file()):
-            blob = p.resolve() if p.is_symlink() else None
-            p.unlink(missing_ok=True)
-            if blob is not None:
-                blob.unlink(missing_ok=True)
-            _forget(blob or p)
+            _delete_cached(p)
             gone.append(p)
     return gone
 

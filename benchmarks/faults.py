@@ -17,7 +17,6 @@ from __future__ import annotations
 import argparse
 import datetime as dt
 import json
-import os
 import re
 import shutil
 import socket
@@ -158,7 +157,7 @@ def run(quick: bool) -> dict:
 
     from fmgs_client import FmgsClient
     from fmgs_server.cluster.config import ClusterConfig
-    from fmgs_server.cluster.launch import PROXY_HEALTH_ENV, start_ray_serve
+    from fmgs_server.cluster.launch import set_proxy_health_env, start_ray_serve
     from fmgs_server.config import ServerConfig
     from fmgs_server.server import start_server
 
@@ -178,8 +177,7 @@ def run(quick: bool) -> dict:
                     reference[key] = ans
         cc = ClusterConfig(min_replicas=2, max_replicas=2, replica_cpus=0.5, max_ongoing_requests=8)
         res["cluster"] = {"scene_replicas": 2, "ingress_replicas": cc.ingress_replicas, "read_attempts": 3}
-        for key, value in PROXY_HEALTH_ENV.items():  # read by Serve's controller, which ray.init starts
-            os.environ.setdefault(key, value)
+        set_proxy_health_env()  # read by Serve's controller, which ray.init starts
         ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
         load = None
         try:

@@ -23,6 +23,13 @@ the controller when it starts: set for a cluster that --ray starts, and in the e
 for one started separately (deploy/kuberay/rayservice.yaml does)."""
 
 
+def set_proxy_health_env() -> None:
+    """PROXY_HEALTH_ENV into this process's environment (values already set win): call it before the Ray
+    cluster starts, so that Serve's controller inherits them."""
+    for key, value in PROXY_HEALTH_ENV.items():
+        os.environ.setdefault(key, value)
+
+
 def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
@@ -50,8 +57,7 @@ def start_ray_serve(cfg: ServerConfig, cc: ClusterConfig, address: str | None, e
     os.environ.setdefault(
         "RAY_SERVE_GRPC_MAX_MESSAGE_SIZE", str(max(cfg.max_send_bytes, cfg.max_receive_bytes))
     )
-    for key, value in PROXY_HEALTH_ENV.items():
-        os.environ.setdefault(key, value)
+    set_proxy_health_env()
     import ray
     from ray import serve
     from ray.serve.config import HTTPOptions, gRPCOptions

@@ -16,8 +16,8 @@ from tests.helpers.hub_server import HubRepo, HubServer
 from tests.helpers.scenes import surface_ply
 from tests.helpers.tiny_models import save_clip_folder, tiny_clip_model
 
-pytest.importorskip("huggingface_hub")
-transformers = pytest.importorskip("transformers")
+pytest.importorskip("huggingface_hub", reason="in requirements/cpu.txt (CI)")
+transformers = pytest.importorskip("transformers", reason="in requirements/cpu.txt (CI)")
 CLIP = "acme/tiny-clip"
 DINO = "acme/tiny-dino"
 

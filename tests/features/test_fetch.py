@@ -40,8 +40,8 @@ from tests.helpers.hub_server import (
 )
 from tests.helpers.tiny_models import save_clip_folder, tiny_clip_model
 
-transformers = pytest.importorskip("transformers")
-pytest.importorskip("huggingface_hub")
+transformers = pytest.importorskip("transformers", reason="in requirements/cpu.txt (CI)")
+pytest.importorskip("huggingface_hub", reason="in requirements/cpu.txt (CI)")
 
 REPO = "acme/tiny-clip"
 WEIGHTS = "model.safetensors"

@@ -175,8 +175,8 @@ REPO = "acme/tiny-clip"
 @pytest.fixture(scope="module")
 def clip_repos(bpe_dir, tmp_path_factory):
     """A tiny CLIP repository (16-D, as the blob scene) and the weights of its next commit."""
-    pytest.importorskip("transformers")
-    pytest.importorskip("huggingface_hub")
+    pytest.importorskip("transformers", reason="in requirements/cpu.txt (CI)")
+    pytest.importorskip("huggingface_hub", reason="in requirements/cpu.txt (CI)")
     from fmgs.features.clip_tokenizer import clip_tokenizer_from_bpe_files
     from tests.helpers.hub_server import HubRepo
     from tests.helpers.tiny_models import save_clip_folder, tiny_clip_model

@@ -34,6 +34,10 @@ class PictureFeed:
         self.outputs = ("relevancy", "rgb", "alpha") if text else ("rgb", "alpha")
         self._on_result, self._on_error = on_result, on_error
         self._cond = threading.Condition()
+        self._delivering = threading.RLock()
+        """Held while a callback runs: close() waits for it, so nothing is delivered once close() returns
+        (a viewer that restarts its feed for a new text would otherwise show the old text's picture).
+        Reentrant: a callback may close its own feed."""
         self._newest: CameraSpec | None = None
         self._last: CameraSpec | None = None
         self._in_flight: dict[int, CameraSpec] = {}
@@ -51,10 +55,18 @@ class PictureFeed:
             self._cond.notify_all()
 
     def close(self) -> None:
-        """Stop: the open stream ends once its pose is answered; nothing more is delivered."""
+        """Stop: the open stream ends once its pose is answered; nothing is delivered after this returns
+        (it waits for a callback already running)."""
         with self._cond:
             self._closed = True
             self._cond.notify_all()
+        with self._delivering:
+            pass
+
+    def _deliver(self, callback: Callable, *args) -> None:
+        with self._delivering:
+            if not self._closed:
+                callback(*args)
 
     def _poses(self, stream_id: int) -> Iterator[CameraSpec]:
         """The request stream: the newest pose whenever nothing is in flight (consumed by gRPC)."""
@@ -84,9 +96,8 @@ class PictureFeed:
                         cam = self._in_flight.pop(r.sequence, None)
                         self._in_flight.clear()  # an answer settles every older pose
                         self._cond.notify_all()
-                        closed = self._closed
-                    if cam is not None and not closed:
-                        self._on_result(cam, r)
+                    if cam is not None:
+                        self._deliver(self._on_result, cam, r)
                 error = None  # the server ended the stream (it is shutting down): open another
             except FmgsError as e:
                 error = e
@@ -99,6 +110,6 @@ class PictureFeed:
             if closed:
                 return
             if error is not None:
-                self._on_error(error)
+                self._deliver(self._on_error, error)
             with self._cond:
                 self._cond.wait_for(lambda: self._closed, RECONNECT_S)

@@ -167,6 +167,9 @@ class Inspector:
         """The Open3D geometries in the view by name (scene, answer, boxes)."""
         self.mode = PICTURE_MODES[0]
         self.last_picture: tuple[CameraSpec, RenderResult] | None = None
+        self.last_picture_text = ""
+        """The text the last picture was rendered for ("" for colour only): after a new query the panel
+        keeps the previous picture until the new text's first one arrives."""
         self.last_error = ""
         self.latency_ms: float | None = None
         self.feed: PictureFeed | None = None
@@ -481,7 +484,7 @@ class Inspector:
         def show() -> None:
             if self.feed is not feed or feed is None:
                 return
-            self.last_picture = (cam, r)
+            self.last_picture, self.last_picture_text = (cam, r), feed.text
             self.latency_ms = r.elapsed_ms
             self._show_picture()
 

@@ -62,6 +62,7 @@ def test_query_recolours_by_relevancy_and_draws_the_instance_boxes(drive):
 def test_picture_panel_is_the_servers_render_of_the_view(drive):
     _, rec = drive
     p = rec["picture"]
+    assert p["shown_has_relevancy"], "the panel shows a colour-only picture: the old feed's"
     assert p["relevancy_equal"] and p["rgb_equal"] and p["alpha_equal"]
     assert max(p["size"]) == 320
     assert len(set(rec["modes"].values())) == 3  # composite, relevancy and colour differ

@@ -201,3 +201,30 @@ def test_picture_feed_reconnects_with_the_last_pose():
         time.sleep(0.05)
     feed.close()
     assert [e.code for e in errors] == ["UNAVAILABLE"] and got == [cam] and feed.outputs == ("rgb", "alpha")
+
+
+def test_picture_feed_delivers_nothing_once_closed():
+    """A restarted feed (a new text) must not show the old feed's picture: close() waits for a delivery
+    already under way, and none starts after it."""
+    client, got = _SlowClient(), []
+    entered, release = threading.Event(), threading.Event()
+
+    def on_result(cam, r):
+        got.append(cam)
+        entered.set()
+        release.wait(5.0)
+
+    feed = PictureFeed(client, "s", "t", on_result, lambda e: None)
+    cams = _cams(3)
+    feed.put(cams[0])
+    assert entered.wait(5.0)
+    feed.put(cams[1])  # its answer comes after close()
+    closer = threading.Thread(target=feed.close)
+    closer.start()
+    closer.join(0.3)
+    assert closer.is_alive()  # close() waits for the callback in progress
+    release.set()
+    closer.join(5.0)
+    assert not closer.is_alive()
+    time.sleep(0.3)  # the pose sent before close() is answered after it: not delivered
+    assert got == [cams[0]]

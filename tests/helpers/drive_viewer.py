@@ -88,6 +88,7 @@ def main() -> int:
                 insp.feed is not None
                 and insp.feed.text == text
                 and lp is not None
+                and insp.last_picture_text == text
                 and np.array_equal(lp[0].viewmat, insp.current_camera().viewmat)
             )
 
@@ -147,6 +148,7 @@ def main() -> int:
     rec["picture"] = {
         "camera": cam.to_dict(),
         "relevancy_equal": bool(np.array_equal(shown.relevancy, r.relevancy)),
+        "shown_has_relevancy": shown.relevancy is not None,  # not a colour-only picture of the old feed
         "rgb_equal": bool(np.array_equal(shown.rgb, r.rgb)),
         "alpha_equal": bool(np.array_equal(shown.alpha, r.alpha)),
         "size": [r.width, r.height],

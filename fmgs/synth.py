@@ -328,8 +328,11 @@ def _shade(albedo: np.ndarray, normals: np.ndarray) -> np.ndarray:
     return np.clip(albedo * (0.35 + 0.65 * lam)[..., None], 0.0, 1.0)
 
 
-def generate(out: str | Path, cfg: SynthConfig = SynthConfig()) -> Path:
-    """Render the scene into ``out`` (created); returns the path of its transforms.json."""
+def generate(out: str | Path, cfg: SynthConfig = SynthConfig(), viewmats: np.ndarray | None = None) -> Path:
+    """Render the scene into ``out`` (created); returns the path of its transforms.json.
+
+    ``viewmats`` [V,4,4] world-to-camera (OpenCV axes) replace the rig's cameras (a robot's path,
+    fmgs.synthbag); ``cfg.views`` is then ignored."""
     import open3d as o3d
     from PIL import Image
 
@@ -371,9 +374,13 @@ def generate(out: str | Path, cfg: SynthConfig = SynthConfig()) -> Path:
     mid = S // 2
 
     frames, views = [], []
-    for v in range(cfg.views):
-        eye, target = _camera_position(cfg, v)
-        V = _look_at(eye, target)
+    for v in range(cfg.views if viewmats is None else len(viewmats)):
+        if viewmats is None:
+            eye, target = _camera_position(cfg, v)
+            V = _look_at(eye, target)
+        else:
+            V = np.asarray(viewmats[v], np.float64)
+            eye = -V[:3, :3].T @ V[:3, 3]
         R = V[:3, :3]
         dirs = d_cam @ R  # world directions (R^T d), keeping the camera z component = 1
         rays = np.concatenate([np.broadcast_to(eye, dirs.shape), dirs], -1).astype(np.float32)

@@ -161,6 +161,7 @@ def cmd_info(client: FmgsClient, args: argparse.Namespace) -> int:
             "bounds",
             "(once loaded)" if s.bounds is None else f"min {_vec(s.bounds[0])}  max {_vec(s.bounds[1])}",
         ),
+        ("frame", f"{s.frame_id} (metres)" if s.frame_id else "the scene's own"),
     ]
     width = max(len(k) for k, _ in items)
     for k, v in items:

@@ -50,6 +50,9 @@ class SceneInfo:
     """Changes whenever the scene's files change."""
     bounds: np.ndarray | None
     """[2,3] float64 axis-aligned bounds of the means (row 0 min, row 1 max); None when not reported."""
+    frame_id: str = ""
+    """The frame every position is in, in metres (a robot's fixed frame, e.g. "map", for a scene built
+    from its recording); "" when the scene's frame is its own."""
 
     @property
     def center(self) -> np.ndarray | None:
@@ -79,6 +82,7 @@ class SceneInfo:
             resident_bytes=int(m.resident_bytes),
             version=m.version,
             bounds=bounds,
+            frame_id=m.frame_id,
         )
 
 

@@ -51,6 +51,7 @@ def scene_info(slot: SceneSlot, manifest: Manifest | None) -> pb.SceneInfo:
     info.canonical_phrases.extend(m.canonical)
     info.label_names.extend(m.label_names)
     info.bounds.extend(m.bounds if e is None else (float(v) for v in e.bounds))
+    info.frame_id = m.frame_id
     if e is not None:
         info.resident_bytes = e.nbytes()
     return info

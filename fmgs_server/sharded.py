@@ -123,6 +123,7 @@ class ShardedSceneService:
         info.sh_degree, info.has_field = first.sh_degree, first.field is not None
         info.canonical_phrases.extend(first.canonical)
         info.label_names.extend(first.label_names)
+        info.frame_id = first.frame_id
         return info
 
     def text_model(self, scene: str, sm: ShardManifest, first: Manifest | None = None) -> TextModel:

@@ -6,6 +6,7 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass
 
+from fmgs.data.rosbag_config import RecordingConfig
 from fmgs.features.models import DEFAULT_CLIP_ID, DEFAULT_DINO_ID, MINILM_ID
 from fmgs.features.sizes import CROP_STRIDE, FEATURE_SIDE, SCALE_BLEND, SCALE_BLENDS, check_feature_scale
 from fmgs.scene.manifest import FIELD_DTYPES, MODELS
@@ -83,6 +84,8 @@ class BuildConfig:
     """Work folder for intermediate outputs (default: WORK = <models>/.work/<name>)."""
     ply: str | None = None
     """An existing 3DGS scene (skip geometry training): .ply (graphdeco or compressed) or .splat."""
+    recording: RecordingConfig = dataclasses.field(default_factory=RecordingConfig)
+    """How a robot's ROS 2 recording (a bag folder, .mcap or .db3) given as the source becomes a dataset."""
     sfm: SfMConfig = dataclasses.field(default_factory=SfMConfig)
     """The poses stage (photos only; a posed dataset skips it)."""
     gs: GSTrainConfig = dataclasses.field(default_factory=GSTrainConfig)

@@ -8,6 +8,7 @@ each model's revision and the sha256 of its files (``extra.models``).
 
 Stages, each skipped when its output is already complete in the work folder:
   1 poses     photos -> pycolmap SfM -> WORK/sfm/undistorted   (skipped for a posed dataset)
+              a ROS 2 recording -> poses from tf -> WORK/recording (SfM when it has no usable tf)
   2 geometry  3DGS training -> WORK/gs/point_cloud.ply         (skipped when a .ply is given)
   3 features  targets -> WORK/features (CLIP + DINO, or label masks) (resumes per image)
   4 field     distillation -> WORK/field                        (resumes from its checkpoint)
@@ -27,6 +28,13 @@ import torch
 
 from fmgs.build.config import EMBEDDING_NEIGHBOURS, MAX_EMBEDDING_NEIGHBOURS, BuildConfig, TargetSpec
 from fmgs.data.dataset import load_dataset
+from fmgs.data.rosbag import (
+    ImportResult,
+    completed_import,
+    import_recording,
+    is_recording,
+    source_fingerprint,
+)
 from fmgs.errors import ValidationError
 from fmgs.features.cache import FeatureCache
 from fmgs.features.clip import load_image_encoder
@@ -219,7 +227,19 @@ GEOMETRY_REPORT = "geometry.json"
 """The geometry's held-out scores, written in the build's work folder."""
 
 
-def _report_geometry(gaussians, ds, cfg: BuildConfig, work: Path, background) -> None:
+def _import_recording(source: Path, work: Path, cfg: BuildConfig) -> ImportResult:
+    """The recording's keyframes as a dataset in WORK/recording (reused when the files and settings are
+    the same as the last import's)."""
+    out = work / "recording"
+    fp = source_fingerprint(source)
+    done = completed_import(out, cfg.recording, fp)
+    if done is not None:
+        return done
+    _stage(1, "poses", f"reading the recording {source}")
+    return import_recording(source, out, cfg.recording, fp)
+
+
+def _report_geometry(gaussians, ds, cfg: BuildConfig, work: Path, background, rec=None) -> None:
     """Print the geometry's held-out PSNR/SSIM (every HOLDOUT_EVERY-th view; the mean and the worst view)
     and the floaters it leaves (fmgs.train.floaters), and store them in WORK/geometry.json with every view's;
     warn naming each view below LOW_PSNR_DB, and when the mean is."""
@@ -240,6 +260,8 @@ def _report_geometry(gaussians, ds, cfg: BuildConfig, work: Path, background) ->
     _stage(2, "geometry", floaters.line())
     scores = {**r.summary(LOW_PSNR_DB), "views": len(test), "gaussians": gaussians.num}
     scores["floaters"] = floaters.summary()
+    if rec is not None:  # how the recording's frames were chosen
+        scores["recording"] = {k: v for k, v in dataclasses.asdict(rec).items() if k != "dataset"}
     with atomic_path(work / GEOMETRY_REPORT) as tmp:
         tmp.write_text(json.dumps(scores, indent=1))
     if r.warning(LOW_PSNR_DB):
@@ -270,8 +292,12 @@ def build_scene(
     # "auto" threads are counted once, before any stage: counted at each stage, the load of the build's
     # own 3DGS stage left its field stage one thread on an otherwise idle 2-core machine.
     threads = auto_threads()
-    if not source.is_dir():
-        raise ValidationError("source", f"{source} is not a folder (photos or a posed dataset)")
+    recording = is_recording(source)
+    if not source.is_dir() and not recording:
+        raise ValidationError(
+            "source",
+            f"{source} is not a folder (photos or a posed dataset) or a ROS 2 recording (.mcap, .db3)",
+        )
     work = Path(cfg.work) if cfg.work else Path(cfg.models) / ".work" / cfg.name
     work.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
@@ -279,7 +305,23 @@ def build_scene(
     revisions = model_revisions(cfg.targets, models)
     print(_models_line(models), flush=True)
 
-    if _is_dataset(source):
+    rec = None
+    if recording:
+        rec = _import_recording(source, work, cfg)
+        data = Path(rec.dataset)
+        _stage(1, "poses", rec.line())
+        if not rec.posed:
+            _stage(
+                1,
+                "poses",
+                "the scene's frame will be SfM's, not the robot's: answers need aligning to its map",
+            )
+            sfm_data = work / "sfm" / "undistorted"
+            if _is_dataset(sfm_data):
+                data = sfm_data
+            else:
+                data = Path(run_sfm(data / "images", work / "sfm", cfg.sfm).dataset_dir)
+    elif _is_dataset(source):
         _stage(1, "poses", f"posed dataset {source}")
         data = source
     else:
@@ -318,7 +360,7 @@ def build_scene(
 
     # A given .ply is scored on the dataset's background; our own run on the one it trained with.
     background = dataset_background(ds) if cfg.ply else trained_background(ply.parent, ds)
-    _report_geometry(gaussians, ds, cfg, work, background)
+    _report_geometry(gaussians, ds, cfg, work, background, rec)
 
     cache_dir = work / "features"
     _stage(3, "features", f"{cfg.targets.kind} targets -> {cache_dir}")
@@ -347,6 +389,10 @@ def build_scene(
     extra["models"] = {role: f.record() for role, f in models.items()}  # revisions, sha256 of the bytes
     if getattr(encoder, "files", None) is not None:  # the query encoder: id, revision, file hashes
         extra["text_encoder"] = encoder.files.record()
+    if rec is not None:
+        extra["recording"] = {k: v for k, v in dataclasses.asdict(rec).items() if k != "dataset"}
+        if rec.posed:  # positions are the robot's: its fixed frame, metres
+            extra["frame"] = {"id": rec.fixed_frame, "units": "m", "camera_frame": rec.camera_frame}
     if cfg.targets.kind == "labels":
         extra["label_names"] = read_label_names(cfg.targets.names or ds.root / "scene.json")
     extra.update(cfg.extra)

@@ -13,6 +13,7 @@ COMMANDS = (
     "features",
     "train_field",
     "build",
+    "bag_info",
     "shard",
     "serve",
 )

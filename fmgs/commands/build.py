@@ -32,6 +32,10 @@ BUILD_ALIASES = {
             "feature_side",
         )
     },
+    **{
+        f"recording.{k}": "--" + k.replace("_", "-")
+        for k in ("image_topic", "camera_info_topic", "depth_topic", "fixed_frame")
+    },
     "field.per_gaussian": "--per-gaussian",
     "field.adaptive_resolution": "--adaptive-resolution",
     "field.seed": "--seed",
@@ -45,7 +49,10 @@ def add_parser(sub) -> None:
     from fmgs.build.config import BuildConfig
 
     b = sub.add_parser("build", help="photos or a posed dataset -> scene package in models/")
-    b.add_argument("source", help="photo folder, or posed dataset folder")
+    b.add_argument(
+        "source",
+        help="photo folder, posed dataset folder, or a robot's ROS 2 recording (bag folder, .mcap, .db3)",
+    )
     b.add_argument(
         "--extra", dest="extra_file", help="JSON file with an object merged into the manifest's extra"
     )

@@ -81,6 +81,13 @@ class Manifest:
         names = self.extra.get("label_names", [])
         return tuple(str(n) for n in names) if isinstance(names, list) else ()
 
+    @property
+    def frame_id(self) -> str:
+        """The frame the scene's positions are in, in metres (``extra.frame.id``: a robot's fixed frame
+        for a scene built from its recording); "" when the scene's frame is its own."""
+        frame = self.extra.get("frame")
+        return str(frame.get("id", "")) if isinstance(frame, dict) else ""
+
     def to_dict(self) -> dict:
         return {
             "format": FORMAT,

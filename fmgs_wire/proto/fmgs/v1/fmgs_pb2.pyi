@@ -109,7 +109,7 @@ class Camera(_message.Message):
     def __init__(self, viewmat: _Optional[_Iterable[float]] = ..., fx: _Optional[float] = ..., fy: _Optional[float] = ..., cx: _Optional[float] = ..., cy: _Optional[float] = ..., width: _Optional[int] = ..., height: _Optional[int] = ..., near: _Optional[float] = ...) -> None: ...
 
 class SceneInfo(_message.Message):
-    __slots__ = ("name", "state", "reason", "encoder_id", "embedding_dim", "num_gaussians", "num_embedded", "sh_degree", "has_field", "canonical_phrases", "label_names", "resident_bytes", "version", "bounds")
+    __slots__ = ("name", "state", "reason", "encoder_id", "embedding_dim", "num_gaussians", "num_embedded", "sh_degree", "has_field", "canonical_phrases", "label_names", "resident_bytes", "version", "bounds", "frame_id")
     NAME_FIELD_NUMBER: _ClassVar[int]
     STATE_FIELD_NUMBER: _ClassVar[int]
     REASON_FIELD_NUMBER: _ClassVar[int]
@@ -124,6 +124,7 @@ class SceneInfo(_message.Message):
     RESIDENT_BYTES_FIELD_NUMBER: _ClassVar[int]
     VERSION_FIELD_NUMBER: _ClassVar[int]
     BOUNDS_FIELD_NUMBER: _ClassVar[int]
+    FRAME_ID_FIELD_NUMBER: _ClassVar[int]
     name: str
     state: SceneState
     reason: str
@@ -138,7 +139,8 @@ class SceneInfo(_message.Message):
     resident_bytes: int
     version: str
     bounds: _containers.RepeatedScalarFieldContainer[float]
-    def __init__(self, name: _Optional[str] = ..., state: _Optional[_Union[SceneState, str]] = ..., reason: _Optional[str] = ..., encoder_id: _Optional[str] = ..., embedding_dim: _Optional[int] = ..., num_gaussians: _Optional[int] = ..., num_embedded: _Optional[int] = ..., sh_degree: _Optional[int] = ..., has_field: _Optional[bool] = ..., canonical_phrases: _Optional[_Iterable[str]] = ..., label_names: _Optional[_Iterable[str]] = ..., resident_bytes: _Optional[int] = ..., version: _Optional[str] = ..., bounds: _Optional[_Iterable[float]] = ...) -> None: ...
+    frame_id: str
+    def __init__(self, name: _Optional[str] = ..., state: _Optional[_Union[SceneState, str]] = ..., reason: _Optional[str] = ..., encoder_id: _Optional[str] = ..., embedding_dim: _Optional[int] = ..., num_gaussians: _Optional[int] = ..., num_embedded: _Optional[int] = ..., sh_degree: _Optional[int] = ..., has_field: _Optional[bool] = ..., canonical_phrases: _Optional[_Iterable[str]] = ..., label_names: _Optional[_Iterable[str]] = ..., resident_bytes: _Optional[int] = ..., version: _Optional[str] = ..., bounds: _Optional[_Iterable[float]] = ..., frame_id: _Optional[str] = ...) -> None: ...
 
 class ListScenesRequest(_message.Message):
     __slots__ = ()

@@ -271,7 +271,7 @@ def _overlap_mean(scenes: list[dict]) -> str:
     return f"{sum(vs) / len(vs):.1%}" if len(vs) == len(scenes) else "-"
 
 
-def _present_absent(rows: list[dict]) -> tuple[str, str]:
+def present_absent(rows: list[dict]) -> tuple[str, str]:
     """'found/present' and 'not found/absent' counts of presence rows."""
     rates = presence_rates(rows)
     p_ok, p_n = (sum(rates[k][i] for k in PRESENT_KINDS) for i in (0, 1))
@@ -305,7 +305,7 @@ def neighbours_section(scenes: list[dict]) -> list[str]:
             k = v.get("embedding_neighbours", 1)
             per_k.setdefault(k, []).append((s["seed"], v))
             worst = min(v["class_iou"].items(), key=lambda kv: kv[1])
-            found, absent = _present_absent(v["presence"])
+            found, absent = present_absent(v["presence"])
             lines.append(
                 f"| {s['seed']} | {k} | {v['localisation_2d']:.1%} | {v['localisation_3d']:.1%} | "
                 f"{v['miou']:.3f} | {worst[0]} {worst[1]:.2f} | {found} | {absent} |"
@@ -313,7 +313,7 @@ def neighbours_section(scenes: list[dict]) -> list[str]:
     for k, vs in sorted(per_k.items()):
         keys = ("localisation_2d", "localisation_3d", "miou")
         m2, m3, mi = (float(np.mean([v[key] for _, v in vs])) for key in keys)
-        found, absent = _present_absent([r for _, v in vs for r in v["presence"]])
+        found, absent = present_absent([r for _, v in vs for r in v["presence"]])
         lines.append(f"| **mean** | {k} | {m2:.1%} | {m3:.1%} | {mi:.3f} | | {found} | {absent} |")
     lines += ["", "3D localisation failures:", ""]
     for k, vs in sorted(per_k.items()):

@@ -254,7 +254,11 @@ def write_robot_bag(out: str | Path, cfg: RobotPathConfig | None = None) -> Path
             if topic not in cons:
                 cons[topic] = w.add_connection(topic, msg.__msgtype__, typestore=ts)
             w.write(cons[topic], s, ts.serialize_cdr(msg, msg.__msgtype__))
-    shutil.copy(render / "scene.json", out / "scene.json")
+    scene = json.loads((render / "scene.json").read_text())
+    for v in scene["views"]:  # named as an import names its frames: by message index
+        v["file_path"] = f"images/{int(Path(v['file_path']).stem):06d}.png"
+    with atomic_path(out / "scene.json") as tmp:
+        tmp.write_text(json.dumps(scene, indent=1))
     with atomic_path(out / "truth.json") as tmp:
         tmp.write_text(json.dumps({**truth, "config": asdict(cfg)}))
     return bag

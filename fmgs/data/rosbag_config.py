@@ -32,7 +32,7 @@ class RecordingConfig:
     """An image whose stamp falls between two samples of a moving transform further apart than this (and
     than 3 of that transform's usual intervals, for one published slowly) is dropped (a tf dropout): tf2
     would interpolate across it, but the pose there is a guess."""
-    max_depth_points: int = 200_000
+    max_depth_points: int = 100_000
     """Cap on the sparse points from depth (pixels are taken on a regular stride)."""
 
     def __post_init__(self) -> None:

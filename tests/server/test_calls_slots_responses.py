@@ -3,6 +3,7 @@ messages built from engine answers (responses): chunks under the byte cap, the s
 
 from __future__ import annotations
 
+import dataclasses
 import threading
 
 import grpc
@@ -16,6 +17,7 @@ from fmgs.query.points import NoFieldError
 from fmgs.query.pose import render_pose
 from fmgs.query.segment import segment
 from fmgs.scene.manifest import Manifest
+from fmgs_client.types import SceneInfo as ClientSceneInfo
 from fmgs_server import responses
 from fmgs_server.calls import status_of
 from fmgs_server.errors import DeadlineExceeded, NotFound, ResourceExhausted
@@ -142,6 +144,12 @@ def test_scene_info_from_the_manifest_or_the_engine(engine, tmp_path):
     assert loaded.state == pb.SCENE_STATE_READY and loaded.resident_bytes == engine.nbytes() > 0
     assert responses.scene_info(SceneSlot("x", UNLOADED), None).num_gaussians == 0  # unreadable manifest
     assert FmgsService.__name__ == "FmgsService" and isinstance(m, Manifest)
+    # A scene built from a robot's recording says which frame its positions are in; others say none.
+    assert info.frame_id == "" and m.frame_id == ""
+    robot = dataclasses.replace(m, extra={**m.extra, "frame": {"id": "map", "units": "m"}})
+    wire = responses.scene_info(SceneSlot("robot", UNLOADED), robot)
+    assert wire.frame_id == "map" and ClientSceneInfo.from_proto(wire).frame_id == "map"
+    assert ClientSceneInfo.from_proto(info).frame_id == ""
 
 
 def test_a_request_stream_ended_by_a_late_cancel_is_logged_cancelled(caplog):

@@ -49,7 +49,11 @@ class RobotPathConfig:
     transport: str = "raw"
     """"raw" (rgb8 Image), "compressed" (PNG CompressedImage) or "both" (two topics of one camera)."""
     depth: bool = True
-    """A registered depth topic (32FC1, metres) with its own CameraInfo."""
+    """A depth topic (32FC1, metres) with its own CameraInfo."""
+    depth_offset: tuple[float, float, float] | None = None
+    """None: the depth is registered to the colour camera (its frame, size and K). A translation (metres,
+    in the colour optical frame): an unregistered depth camera there, in its own frame
+    ``camera_depth_optical_frame`` at half the colour size."""
     storage: str = "mcap"
     """"mcap" or "sqlite3"."""
     blur_every: int = 0
@@ -150,6 +154,13 @@ def write_robot_bag(out: str | Path, cfg: RobotPathConfig | None = None) -> Path
     generate(render, replace(cfg.synth, views=len(viewmats)), viewmats)
     meta = json.loads((render / "transforms.json").read_text())
     W, H = meta["w"], meta["h"]
+    dmeta, dframe, drender = meta, "camera_optical_frame", render
+    if cfg.depth and cfg.depth_offset is not None:  # a second camera beside the colour one, rendered apart
+        c_d = _T(np.eye(3), cfg.depth_offset)
+        dviews = np.stack([np.linalg.inv(np.array(T) @ c_d) for T in truth["map_T_optical"]])
+        drender, dframe = out / "render_depth", "camera_depth_optical_frame"
+        generate(drender, replace(cfg.synth, views=len(dviews), width=W // 2, height=H // 2), dviews)
+        dmeta = json.loads((drender / "transforms.json").read_text())
 
     ts = get_typestore(Stores.ROS2_HUMBLE)
     ty = ts.types
@@ -180,9 +191,10 @@ def write_robot_bag(out: str | Path, cfg: RobotPathConfig | None = None) -> Path
             Tr(V3(*map(float, T[:3, 3])), Q(float(x), float(y), float(z), float(w))),
         )
 
-    def info(ns: int, frame: str):
+    def info(ns: int, frame: str, meta: dict = meta):
         # ROS's principal point counts the top-left pixel's centre as (0, 0): ours less half a pixel.
         fx, fy, cx, cy = meta["fl_x"], meta["fl_y"], meta["cx"] - 0.5, meta["cy"] - 0.5
+        H, W = meta["h"], meta["w"]
         K = np.array([fx, 0, cx, 0, fy, cy, 0, 0, 1.0])
         P = np.array([fx, 0, cx, 0, 0, fy, cy, 0, 0, 0, 1.0, 0])
         return Info(
@@ -209,6 +221,8 @@ def write_robot_bag(out: str | Path, cfg: RobotPathConfig | None = None) -> Path
     static = [tstamped(s0, "camera_link", opt, _T(OPTICAL_IN_LINK, [0, 0, 0]))]
     if cfg.mount_tf:
         static.insert(0, tstamped(s0, "base_link", "camera_link", _link_in_base(cfg)))
+    if dframe != opt:
+        static.append(tstamped(s0, opt, dframe, _T(np.eye(3), cfg.depth_offset)))
     msgs.append((s0, "/tf_static", TFm(static)))
     m_o = _odom_in_map(cfg)
     for k, (s, T) in enumerate(zip(truth["tf_stamps"], truth["odom_T_base"], strict=True)):
@@ -237,15 +251,11 @@ def write_robot_bag(out: str | Path, cfg: RobotPathConfig | None = None) -> Path
         if cfg.camera_info:
             msgs.append((rec, "/camera/color/camera_info", info(s, opt)))
         if cfg.depth:
-            d = np.load(render / "depth" / f"{i:04d}.npy").astype(np.float32)
-            msgs.append(
-                (
-                    rec,
-                    "/camera/depth/image_raw",
-                    Img(header(s, opt), H, W, "32FC1", 0, 4 * W, d.view(np.uint8).ravel()),
-                )
-            )
-            msgs.append((rec, "/camera/depth/camera_info", info(s, opt)))
+            d = np.load(drender / "depth" / f"{i:04d}.npy").astype(np.float32)
+            dh, dw = d.shape
+            img = Img(header(s, dframe), dh, dw, "32FC1", 0, 4 * dw, d.view(np.uint8).ravel())
+            msgs.append((rec, "/camera/depth/image_raw", img))
+            msgs.append((rec, "/camera/depth/camera_info", info(s, dframe, dmeta)))
         shutil.copy(render / "labels" / f"{i:04d}.png", out / "labels" / f"{i:06d}.png")
     msgs.sort(key=lambda m: m[0])
     with Writer(bag, version=9, storage_plugin=plugin) as w:

@@ -58,6 +58,14 @@ def add_parser(sub) -> None:
         help="leave the constant backdrop colour out of transforms.json (default: declared as "
         '"background"), as most real captures do',
     )
+    sy.add_argument(
+        "--robot-bag",
+        type=float,
+        metavar="SECONDS",
+        help="instead of the rig: a robot's ROS 2 recording of the scene (fmgs.synthbag), OUT/bag, a base "
+        "driving once around it in this many seconds (images at 15 Hz, tf at 50 Hz, registered depth), "
+        "with its true poses (truth.json), label images and scene.json beside it, for `fmgs build OUT/bag`",
+    )
     sy.set_defaults(func=run)
 
 
@@ -82,6 +90,18 @@ def run(args: argparse.Namespace) -> int:
         declare_background=not args.undeclared_background,
     )
     t0 = time.perf_counter()
+    if args.robot_bag is not None:
+        from dataclasses import replace
+
+        from fmgs.errors import ValidationError
+        from fmgs.synthbag import RobotPathConfig, write_robot_bag
+
+        if args.robot_bag <= 0:
+            raise ValidationError("--robot-bag", "the drive's length in seconds must be positive")
+        bag = write_robot_bag(args.out, RobotPathConfig(synth=replace(cfg, views=0), seconds=args.robot_bag))
+        print(f"wrote {bag} ({args.robot_bag:g} s drive, {w}x{h}, {cfg.objects} objects) in "
+              f"{time.perf_counter() - t0:.1f} s")  # fmt: skip
+        return 0
     path = generate(args.out, cfg)
     secs = time.perf_counter() - t0
     print(f"wrote {path} ({cfg.views} views, {w}x{h}, {cfg.objects} objects) in {secs:.1f} s")

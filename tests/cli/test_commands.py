@@ -162,3 +162,27 @@ def test_folders_and_photo_folders_get_a_hint(tmp_path, capsys):
     Image.new("RGB", (8, 8)).save(photos / "images" / "a.jpg")
     assert main(["eval-gs", str(photos), str(tmp_path / "s.ply")]) == 2
     assert "photos without poses need `fmgs sfm`" in capsys.readouterr().err
+
+
+def test_synth_robot_bag_and_bag_info(tmp_path, capsys):
+    assert (
+        main(
+            ["synth", "--out", str(tmp_path / "r"), "--size", "48x36", "--objects", "2", "--robot-bag", "1.5"]
+        )
+        == 0
+    )
+    assert "1.5 s drive" in capsys.readouterr().out
+    assert (tmp_path / "r" / "truth.json").is_file() and len(
+        list((tmp_path / "r" / "labels").iterdir())
+    ) == 22
+    assert main(["bag-info", str(tmp_path / "r" / "bag")]) == 0
+    out = capsys.readouterr().out
+    assert "colour cameras: /camera/color/image_raw" in out and "depth: /camera/depth/image_raw" in out
+    assert main(["bag-info", str(tmp_path / "r" / "bag"), "--json"]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert "camera_optical_frame" in info["tf_frames"] and info["colour_topics"] == [
+        "/camera/color/image_raw"
+    ]
+    assert main(["bag-info", str(tmp_path / "nothing")]) == 2
+    assert "no such recording" in capsys.readouterr().err
+    assert main(["synth", "--out", str(tmp_path / "x"), "--robot-bag", "-1"]) == 2

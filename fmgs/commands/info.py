@@ -8,7 +8,9 @@ from pathlib import Path
 
 from fmgs.commands.common import load_scene
 
-PACKAGE_BUILD_KEYS = ("description", "source", "build_seconds", "made_by", "targets", "embedding_neighbours")
+PACKAGE_BUILD_KEYS = (
+    "description", "source", "build_seconds", "made_by", "targets", "embedding_neighbours", "recording",
+)  # fmt: skip
 """Keys of a package manifest's ``extra`` that ``fmgs info`` shows as how the package was built."""
 
 
@@ -48,7 +50,8 @@ def run(args: argparse.Namespace) -> int:
 
 def package_info(path: Path) -> dict:
     """What a scene package holds, from its manifest (validated; no tensor is read): name, encoder, counts,
-    bounds, the field's storage, label names, how it was built, and its files with their sizes."""
+    bounds and the frame they are in (None: the scene's own), the field's storage, label names, how it was
+    built, and its files with their sizes."""
     from fmgs.errors import ValidationError
     from fmgs.scene.manifest import Manifest
 
@@ -69,6 +72,7 @@ def package_info(path: Path) -> dict:
         "sh_degree": m.sh_degree,
         "bounds_min": [round(v, 4) for v in m.bounds[:3]],
         "bounds_max": [round(v, 4) for v in m.bounds[3:]],
+        "frame": m.frame_id or None,
         "embedding_dtype": m.embedding_dtype,
         "field": None if m.field is None else {"dtype": m.field.dtype, "dino_head": m.field.dino_head},
         "label_names": list(m.label_names),

@@ -46,6 +46,9 @@ def test_build_from_a_bag_answers_in_the_map_frame(built, capsys):
     assert rec["read"] == rec["kept"] + sum(rec["dropped"].values())
     geometry = json.loads((tmp / "models" / ".work" / "robot" / "geometry.json").read_text())
     assert geometry["recording"] == rec
+    assert main(["info", str(tmp / "models" / "robot")]) == 0
+    shown = json.loads(capsys.readouterr().out)
+    assert shown["frame"] == "map" and shown["build"]["recording"]["kept"] == rec["kept"]
     engine = SceneEngine.open(tmp / "models" / "robot")
     enc = load_text_encoder(engine.manifest.encoder_id)
     objects = json.loads((tmp / "scene.json").read_text())["objects"][1:]  # not the floor

@@ -35,6 +35,7 @@ def built(tmp_path_factory):
 def test_build_from_a_bag_answers_in_the_map_frame(built, capsys):
     from fmgs.features.text import load_text_encoder
     from fmgs.query.engine import SceneEngine
+    from fmgs.query.instances import InstanceConfig
     from fmgs.scene.manifest import Manifest
 
     tmp, _ = built
@@ -53,13 +54,16 @@ def test_build_from_a_bag_answers_in_the_map_frame(built, capsys):
     enc = load_text_encoder(engine.manifest.encoder_id)
     objects = json.loads((tmp / "scene.json").read_text())["objects"][1:]  # not the floor
     for o in objects:
-        r = engine.text_query(enc.encode_text([o["name"]])[0], top_k=10)
+        q = enc.encode_text([o["name"]])[0]
+        r = engine.text_query(q, top_k=10)
         means = engine.gaussians.means[r.index].detach().numpy()
         lo, hi = np.array(o["aabb_min"]) - 0.1, np.array(o["aabb_max"]) + 0.1
         inside = np.all((means >= lo) & (means <= hi), axis=1)
         # In map coordinates: the first answer and most of the top 10 lie in the object's box (measured:
         # 10 of 10 for each of the 4 objects); in odom's frame they would be about 0.5 m away.
         assert inside[0] and inside.sum() >= 7, (o["name"], inside)
+        best = engine.text_query(q, top_k=100, instances=InstanceConfig()).instances[0]  # the 3D box served
+        assert np.all((best.centroid >= lo) & (best.centroid <= hi)), (o["name"], best.centroid)
 
 
 def test_the_terminal_says_what_the_recording_gave_and_a_rebuild_reuses_it(built, capsys):

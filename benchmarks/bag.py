@@ -31,16 +31,14 @@ ROOT = Path(__file__).resolve().parents[1]
 REPORT = ROOT / "benchmarks" / "results" / "BAG.md"
 
 
-def _build(source: Path, name: str, out: Path, rec: Path, args) -> float:
+def _build(source: Path, name: str, out: Path, rec: Path, args) -> None:
     from fmgs.cli import main as fmgs
 
     cmd = ["build", str(source), "--name", name, "--models", str(out / "models"), "--targets", "labels"]
     cmd += ["--labels", str(rec / "labels"), "--names", str(rec / "scene.json")]
     cmd += ["--gs-steps", str(args.gs_steps), "--grad-threshold", str(args.grad_threshold)]
     cmd += ["--field-steps", str(args.field_steps)]
-    t0 = time.perf_counter()
     assert fmgs(cmd) == 0
-    return time.perf_counter() - t0
 
 
 def _truth_dataset(recording: Path, rec: Path, out: Path) -> Path:
@@ -109,35 +107,35 @@ def run(args) -> dict:
         t0 = time.perf_counter()
         write_robot_bag(rec, path)
         print(f"recording written in {time.perf_counter() - t0:.0f} s", flush=True)
-    bag = rec / "bag"
-    bag_s = _build(bag, "bag", out, rec, args)
-    work = out / "models" / ".work" / "bag"
-    recording = work / "recording"
+    models = out / "models"
+
+    def built(source: Path, name: str) -> dict:
+        """Build (or, with --reuse, take the package already in OUT); its build time is the pipeline's own
+        (the manifest's build_seconds: photos in to package out)."""
+        if not (args.reuse and (models / name / "manifest.json").is_file()):
+            _build(source, name, out, rec, args)
+        m = json.loads((models / name / "manifest.json").read_text())
+        geometry = json.loads((models / ".work" / name / "geometry.json").read_text())
+        return {"build_seconds": m["extra"]["build_seconds"], "psnr": geometry["psnr"], "geometry": geometry}
+
+    rows = {"bag": built(rec / "bag", "bag")}
+    recording = models / ".work" / "bag" / "recording"
     # Labels and scene.json beside the kept frames, to score them (the import does not carry labels).
     shutil.copytree(rec / "labels", recording / "labels", dirs_exist_ok=True)
     shutil.copy(rec / "scene.json", recording / "scene.json")
-    truth_data = _truth_dataset(recording, rec, out / "truth-poses")
-    truth_s = _build(truth_data, "truth", out, rec, args)
-    geometry = {
-        n: json.loads((out / "models" / ".work" / n / "geometry.json").read_text()) for n in ("bag", "truth")
-    }
-    return {
+    if not args.skip_truth:
+        rows["truth"] = built(_truth_dataset(recording, rec, out / "truth-poses"), "truth")
+    res = {
         "seed": args.seed,
         "size": args.size,
         "seconds": args.seconds,
-        "recording": geometry["bag"]["recording"],
+        "recording": rows["bag"]["geometry"]["recording"],
         "pose_error": _pose_error(recording, rec),
-        "bag": {
-            "build_seconds": bag_s,
-            "psnr": geometry["bag"]["psnr"],
-            **_score(out / "models" / "bag", recording),
-        },
-        "truth": {
-            "build_seconds": truth_s,
-            "psnr": geometry["truth"]["psnr"],
-            **_score(out / "models" / "truth", recording),
-        },
     }
+    for name, row in rows.items():
+        row.pop("geometry")
+        res[name] = {**row, **_score(models / name, recording)}
+    return res
 
 
 def _pct(v: float) -> str:
@@ -174,6 +172,8 @@ def report(res: dict, info: dict) -> str:
         "|---|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for key, label in (("bag", "recording (tf, depth)"), ("truth", "true poses, generator points")):
+        if key not in res:
+            continue
         r = res[key]
         p, a = present_absent(r["presence"])
         lines.append(
@@ -183,11 +183,32 @@ def report(res: dict, info: dict) -> str:
         )
     lines += [
         "",
-        f"Build seconds on this 2-core machine ({info['load']}); they include the import of the recording "
-        "for the first row.",
+        "Build seconds: the pipeline's own (the manifest's `build_seconds`, source in to package out) on "
+        f"this 2-core machine ({info['load']}); the first row's include reading the recording.",
         "",
     ]
+    if info.get("reused"):
+        lines += [
+            "Scored from the packages this command had built (the run was stopped after the builds, then "
+            "`--reuse` scored them without building again).",
+            "",
+        ]
+    if "truth" not in res:
+        lines += ["The true-pose row was not run (`--skip-truth`).", ""]
     return "\n".join(lines)
+
+
+def _without_load(argv: list[str]) -> list[str]:
+    """The command line less --reuse and --load TEXT (what the report records as its command)."""
+    out, skip = [], False
+    for a in argv:
+        if skip:
+            skip = False
+        elif a == "--load":
+            skip = True
+        elif a != "--reuse" and not a.startswith("--load="):
+            out.append(a)
+    return out
 
 
 def main() -> int:
@@ -199,6 +220,12 @@ def main() -> int:
     ap.add_argument("--gs-steps", type=int, default=3000)
     ap.add_argument("--grad-threshold", type=float, default=0.001)
     ap.add_argument("--field-steps", type=int, default=1500)
+    ap.add_argument("--skip-truth", action="store_true", help="build and score the recording only")
+    ap.add_argument(
+        "--reuse",
+        action="store_true",
+        help="score the packages already built in OUT instead of building them",
+    )
     ap.add_argument("--quick", action="store_true", help="CI size: a 10 s drive at 64x48, short stages")
     ap.add_argument("--report", action="store_true", help="also write benchmarks/results/BAG.md")
     ap.add_argument("--load", default="idle", help="what else ran on the machine (for the report)")
@@ -213,8 +240,10 @@ def main() -> int:
         "when": datetime.now(UTC).strftime("%Y-%m-%d %H:%M UTC"),
         "machine": f"{platform.processor() or platform.machine()} (no GPU)",
         "commit": commit.stdout.strip() or "unknown",
-        "command": "python -m benchmarks.bag " + " ".join(sys.argv[1:]),
+        # --reuse only skips builds an earlier run of the same command made: the command reproduces them
+        "command": "python -m benchmarks.bag " + " ".join(_without_load(sys.argv[1:])),
         "load": args.load,
+        "reused": args.reuse,
     }
     (out / "bag.json").write_text(json.dumps({"result": res, "info": info}, indent=1, default=str))
     print(report(res, info))

@@ -15,16 +15,14 @@ from __future__ import annotations
 
 import argparse
 import json
-import platform
 import shutil
-import subprocess
 import sys
 import time
-from datetime import UTC, datetime
 from pathlib import Path
 
 import numpy as np
 
+from benchmarks.common import machine, machine_words
 from benchmarks.unseen import present_absent, scene_quality
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -235,11 +233,11 @@ def main() -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     res = run(args)
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True)
+    m = machine()
     info = {
-        "when": datetime.now(UTC).strftime("%Y-%m-%d %H:%M UTC"),
-        "machine": f"{platform.processor() or platform.machine()} (no GPU)",
-        "commit": commit.stdout.strip() or "unknown",
+        "when": m["date"],
+        "machine": machine_words(m).rsplit(", commit", 1)[0],
+        "commit": m["commit"],
         # --reuse only skips builds an earlier run of the same command made: the command reproduces them
         "command": "python -m benchmarks.bag " + " ".join(_without_load(sys.argv[1:])),
         "load": args.load,

@@ -36,6 +36,8 @@ def _build(source: Path, name: str, out: Path, rec: Path, args) -> None:
     cmd += ["--labels", str(rec / "labels"), "--names", str(rec / "scene.json")]
     cmd += ["--gs-steps", str(args.gs_steps), "--grad-threshold", str(args.grad_threshold)]
     cmd += ["--field-steps", str(args.field_steps)]
+    if args.threads:  # auto counts idle cores from the load average, which lags a process that just ended
+        cmd += ["--gs-threads", str(args.threads), "--field-threads", str(args.threads)]
     assert fmgs(cmd) == 0
 
 
@@ -223,6 +225,7 @@ def main() -> int:
     ap.add_argument("--gs-steps", type=int, default=3000)
     ap.add_argument("--grad-threshold", type=float, default=0.001)
     ap.add_argument("--field-steps", type=int, default=1500)
+    ap.add_argument("--threads", type=int, default=0, help="threads of the 3DGS and field stages (0: auto)")
     ap.add_argument("--skip-truth", action="store_true", help="build and score the recording only")
     ap.add_argument(
         "--reuse",

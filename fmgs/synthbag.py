@@ -251,7 +251,7 @@ def write_robot_bag(out: str | Path, cfg: RobotPathConfig | None = None) -> Path
         if cfg.camera_info:
             msgs.append((rec, "/camera/color/camera_info", info(s, opt)))
         if cfg.depth:
-            d = np.load(drender / "depth" / f"{i:04d}.npy").astype(np.float32)
+            d = np.load(drender / "depth" / f"{i:04d}.npy", allow_pickle=False).astype(np.float32)
             dh, dw = d.shape
             img = Img(header(s, dframe), dh, dw, "32FC1", 0, 4 * dw, d.view(np.uint8).ravel())
             msgs.append((rec, "/camera/depth/image_raw", img))

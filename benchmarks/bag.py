@@ -163,10 +163,17 @@ def report(res: dict, info: dict) -> str:
         f"{res['size']} images): a base drives once around it in {res['seconds']:.0f} s, tf `map -> odom -> "
         "base_link -> camera_link -> camera_optical_frame` at 50 Hz with a 0.5 s dropout of `odom -> "
         "base_link`, PNG CompressedImage at 15 Hz with every 13th frame blurred (9-pixel box), a registered "
-        "32FC1 depth camera. Both rows are built with the same settings (label targets; step counts in the "
-        "command) on the same kept frames and scored on the same held-out frames (every 8th kept frame) in "
-        "the map frame; *recording*: `fmgs build BAG` (poses from tf, points from depth); *true poses*: the "
-        "kept frames as a `transforms.json` dataset with the generator's poses and surface points.",
+        "32FC1 depth camera. "
+        + (
+            "Both rows are built with the same settings (label targets; step counts in the command) on the "
+            "same kept frames and scored on the same held-out frames (every 8th kept frame) in the map "
+            "frame; *recording*: `fmgs build BAG` (poses from tf, points from depth); *true poses*: the kept "
+            "frames as a `transforms.json` dataset with the generator's poses and surface points."
+            if "truth" in res
+            else "`fmgs build BAG` (poses from tf, points from depth; label targets, step counts in the "
+            "command), scored on its held-out frames (every 8th kept frame) in the map frame against the "
+            "generator's objects, through the engine the server runs."
+        ),
         "",
         f"Frames: read {rc['read']}, kept {rc['kept']} (dropped: {dropped}); {rc['depth_points']:,} points "
         f"from depth. Poses from tf against the generator's: at most {pe['max_translation_m']:.1e} m and "
@@ -194,8 +201,7 @@ def report(res: dict, info: dict) -> str:
     ]
     if info.get("reused"):
         lines += [
-            "Scored from the packages this command had built (the run was stopped after the builds, then "
-            "`--reuse` scored them without building again).",
+            "Scored (again) from the packages this command had built: `--reuse` builds nothing.",
             "",
         ]
     if "truth" not in res:

@@ -41,17 +41,25 @@ def _build(source: Path, name: str, out: Path, rec: Path, args) -> None:
     assert fmgs(cmd) == 0
 
 
+FLIP = np.diag([1.0, -1.0, -1.0, 1.0])
+"""OpenCV camera axes to OpenGL's (transforms.json's), and back."""
+
+
+def _true_poses(rec: Path) -> dict[int, np.ndarray]:
+    """Image stamp -> the generator's map_T_optical (OpenCV axes), from truth.json."""
+    truth = json.loads((rec / "truth.json").read_text())
+    return {s: np.array(T) for s, T in zip(truth["image_stamps"], truth["map_T_optical"], strict=True)}
+
+
 def _truth_dataset(recording: Path, rec: Path, out: Path) -> Path:
     """The recording's kept frames with the generator's poses and surface points (transforms.json)."""
     if out.exists():
         shutil.rmtree(out)
     shutil.copytree(recording, out)
-    truth = json.loads((rec / "truth.json").read_text())
-    poses = dict(zip(truth["image_stamps"], truth["map_T_optical"], strict=True))
+    poses = _true_poses(rec)
     meta = json.loads((out / "transforms.json").read_text())
-    flip = np.diag([1.0, -1.0, -1.0, 1.0])
     for f in meta["frames"]:
-        f["transform_matrix"] = (np.array(poses[f["stamp_ns"]]) @ flip).tolist()
+        f["transform_matrix"] = (poses[f["stamp_ns"]] @ FLIP).tolist()
     shutil.copy(rec / "render" / "points3D.ply", out / "points3D.ply")
     (out / "transforms.json").write_text(json.dumps(meta, indent=1))
     return out
@@ -60,13 +68,11 @@ def _truth_dataset(recording: Path, rec: Path, out: Path) -> Path:
 def _pose_error(recording: Path, rec: Path) -> dict:
     from fmgs.data.tf import matrix_to_quat
 
-    truth = json.loads((rec / "truth.json").read_text())
-    poses = dict(zip(truth["image_stamps"], truth["map_T_optical"], strict=True))
+    poses = _true_poses(rec)
     meta = json.loads((recording / "transforms.json").read_text())
-    flip = np.diag([1.0, -1.0, -1.0, 1.0])
     t_err, r_err = [], []
     for f in meta["frames"]:
-        got, want = np.array(f["transform_matrix"]) @ flip, np.array(poses[f["stamp_ns"]])
+        got, want = np.array(f["transform_matrix"]) @ FLIP, poses[f["stamp_ns"]]
         t_err.append(float(np.linalg.norm(got[:3, 3] - want[:3, 3])))
         q = matrix_to_quat(want[:3, :3].T @ got[:3, :3])  # the angle from its quaternion: no arccos floor
         r_err.append(float(np.degrees(2 * np.arctan2(np.linalg.norm(q[:3]), abs(q[3])))))

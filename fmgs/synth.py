@@ -19,6 +19,7 @@ import numpy as np
 
 from fmgs.data.distortion import OpenCVDistortion
 from fmgs.io.atomic import atomic_path
+from fmgs.io.points import write_point_ply
 from fmgs.synthworld import COLOURS, sample_objects, texture_shade, world_object
 
 # name, base colour (linear RGB in [0,1]); label ids: 0 background, 1 floor, 2.. objects in this order
@@ -426,7 +427,7 @@ def generate(out: str | Path, cfg: SynthConfig = SynthConfig(), viewmats: np.nda
         wp, wn = _sample_surface(wall, cfg.points // 2, np.random.default_rng(cfg.seed + 1))
         wc = (_shade(_wall_albedo(wp, cfg.checker), wn) * 255 + 0.5).astype(np.uint8)
         pts, cols = np.concatenate([pts, wp]), np.concatenate([cols, wc])
-    _write_points(out / "points3D.ply", pts, cols)
+    write_point_ply(out / "points3D.ply", pts, cols)
     meta = {
         "w": W,
         "h": H,
@@ -517,18 +518,3 @@ def _sample_surface(mesh, n: int, rng) -> tuple[np.ndarray, np.ndarray]:
     u, w = np.where(flip, 1 - u, u), np.where(flip, 1 - w, w)
     p = a[pick] + u[:, None] * (b - a)[pick] + w[:, None] * (c - a)[pick]
     return p, cross[pick] / np.maximum(area[pick], 1e-300)[:, None]
-
-
-def _write_points(path: Path, pts: np.ndarray, cols: np.ndarray) -> None:
-    from plyfile import PlyData, PlyElement
-
-    rec = np.empty(
-        len(pts),
-        dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("red", "u1"), ("green", "u1"), ("blue", "u1")],
-    )
-    for i, k in enumerate("xyz"):
-        rec[k] = pts[:, i]
-    for i, k in enumerate(("red", "green", "blue")):
-        rec[k] = cols[:, i]
-    with atomic_path(path) as tmp:
-        PlyData([PlyElement.describe(rec, "vertex")]).write(str(tmp))

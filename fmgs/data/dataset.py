@@ -15,6 +15,7 @@ from fmgs.data.colmap import read_model
 from fmgs.data.transforms import parse_transforms
 from fmgs.data.undistort import CACHE_DIR, fingerprint, undistorted_copy
 from fmgs.errors import ValidationError
+from fmgs.io.points import read_point_ply
 
 log = logging.getLogger(__name__)
 
@@ -182,7 +183,7 @@ def read_transforms(path: str | Path, undistort_dir: str | Path | None = None) -
     _report_missing(str(path), parsed.missing, parsed.total, root)
     points = colors = None
     if parsed.ply_file:
-        points, colors = _read_point_ply(root / parsed.ply_file)
+        points, colors = read_point_ply(root / parsed.ply_file)
     if all(f.lens.is_pinhole for f in parsed.frames):
         frames = [Frame(f.name, f.image_path, f.camera) for f in parsed.frames]
         frames.sort(key=lambda f: f.name)
@@ -192,16 +193,3 @@ def read_transforms(path: str | Path, undistort_dir: str | Path | None = None) -
     copy = undistorted_copy(parsed.colmap_model(), root, und, fingerprint([path], names))
     ds = read_colmap(copy / "sparse", copy / "images")
     return PosedDataset(root, ds.frames, points, colors)
-
-
-def _read_point_ply(path: Path) -> tuple[np.ndarray, np.ndarray]:
-    from plyfile import PlyData
-
-    v = PlyData.read(str(path))["vertex"]
-    pts = np.stack([np.asarray(v[k], dtype=np.float64) for k in ("x", "y", "z")], 1)
-    names = {p.name for p in v.properties}
-    if {"red", "green", "blue"} <= names:
-        cols = np.stack([np.asarray(v[k]) for k in ("red", "green", "blue")], 1).astype(np.uint8)
-    else:
-        cols = np.full((len(pts), 3), 128, dtype=np.uint8)
-    return pts, cols

@@ -30,6 +30,7 @@ from fmgs.data.rosbag_config import RecordingConfig
 from fmgs.data.tf import CLOCK_JUMP_S, TfTree
 from fmgs.errors import ValidationError
 from fmgs.io.atomic import atomic_path
+from fmgs.io.points import write_point_ply
 
 log = logging.getLogger(__name__)
 
@@ -513,9 +514,9 @@ def _import(path, out: Path, final: Path, cfg: RecordingConfig, fingerprint: str
                     }
                 )
             if depth_topic:
-                pts, cols, _ = _depth_points(r, depth_topic, tree, fixed, kept, stamps, poses, out, lens, cfg)
+                pts, cols = _depth_points(r, depth_topic, tree, fixed, kept, stamps, poses, out, lens, cfg)
                 if len(pts):
-                    _write_ply(out / "points3D.ply", pts, cols)
+                    write_point_ply(out / "points3D.ply", pts, cols)
                     meta["ply_file_path"] = "points3D.ply"
                 res.depth_topic, res.depth_points = depth_topic, len(pts)
             meta["fmgs_frame"] = {"id": fixed, "units": "m", "camera_frame": cam_frame}
@@ -550,7 +551,7 @@ def _depth_points(r, topic, tree, fixed, kept, stamps, poses, out: Path, lens: L
         if abs(int(dstamps_a[j]) - stamps[k]) <= DEPTH_MATCH_S * 1e9:
             pair[j] = k
     if not pair:
-        return np.zeros((0, 3)), np.zeros((0, 3), np.uint8), 0
+        return np.zeros((0, 3)), np.zeros((0, 3), np.uint8)
     dlens = lens if info is None else lens_from_info(info, _info_topic_for(topic))
     per = max(1, cfg.max_depth_points // len(pair))
     stride = max(1, int(np.ceil(np.sqrt(dlens.width * dlens.height / per))))
@@ -590,20 +591,5 @@ def _depth_points(r, topic, tree, fixed, kept, stamps, poses, out: Path, lens: L
         pts_all.append(pw)
         cols_all.append(cols)
     if not pts_all:
-        return np.zeros((0, 3)), np.zeros((0, 3), np.uint8), len(pair)
-    return np.concatenate(pts_all), np.concatenate(cols_all), len(pair)
-
-
-def _write_ply(path: Path, pts: np.ndarray, cols: np.ndarray) -> None:
-    from plyfile import PlyData, PlyElement
-
-    v = np.empty(
-        len(pts),
-        dtype=[("x", "f4"), ("y", "f4"), ("z", "f4"), ("red", "u1"), ("green", "u1"), ("blue", "u1")],
-    )
-    for i, a in enumerate("xyz"):
-        v[a] = pts[:, i]
-    for i, a in enumerate(("red", "green", "blue")):
-        v[a] = cols[:, i]
-    with atomic_path(path) as tmp:
-        PlyData([PlyElement.describe(v, "vertex")]).write(str(tmp))
+        return np.zeros((0, 3)), np.zeros((0, 3), np.uint8)
+    return np.concatenate(pts_all), np.concatenate(cols_all)

@@ -196,16 +196,20 @@ class TfTree:
         are further apart than max_gap_s and GAP_PERIODS of its usual interval). check_connected first."""
         up_s, up_t = self._chain(source), self._chain(target)
         common = next(f for f in up_s if f in set(up_t))
-        T_s = np.eye(4)  # common_T_source
-        for f in up_s[: up_s.index(common)]:
-            T, why = self._edge_at(f, stamp_ns)
-            if T is None:
-                return None, why
-            T_s = T @ T_s
-        T_t = np.eye(4)  # common_T_target
-        for f in up_t[: up_t.index(common)]:
-            T, why = self._edge_at(f, stamp_ns)
-            if T is None:
-                return None, why
-            T_t = T @ T_t
+        T_s, why = self._up_to(up_s[: up_s.index(common)], stamp_ns)  # common_T_source
+        if T_s is None:
+            return None, why
+        T_t, why = self._up_to(up_t[: up_t.index(common)], stamp_ns)  # common_T_target
+        if T_t is None:
+            return None, why
         return invert(T_t) @ T_s, ""
+
+    def _up_to(self, chain: list[str], stamp_ns: int) -> tuple[np.ndarray | None, str]:
+        """top_T_first [4,4] along ``chain`` (a frame and its ancestors below ``top``), or (None, why)."""
+        T_all = np.eye(4)
+        for f in chain:
+            T, why = self._edge_at(f, stamp_ns)
+            if T is None:
+                return None, why
+            T_all = T @ T_all
+        return T_all, ""

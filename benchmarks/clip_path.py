@@ -202,7 +202,8 @@ def report(d: dict) -> str:
         "says, the DINO stand-in's dense map as the DINO target. Every scene is queried with MiniLM and "
         "scored on the held-out views as served.",
         "",
-        f"The CLIP stand-in (a 1M-parameter CNN, `{clip_cfg['command']}`) is trained into MiniLM's space on "
+        f"The CLIP stand-in (a small CNN, {'two convs' if clip_cfg.get('blocks', 1) == 2 else 'one conv'} per "
+        f"stage, `{clip_cfg['command']}`) is trained into MiniLM's space on "
         f"crops of {len(clip_cfg['train_seeds'])} other world scenes, against what each crop shows (each "
         "name's share under a centre-weighted window, over captions of varying detail); held-out crop "
         f"accuracy {clip_cfg['heldout_crop_accuracy']:.3f}, {clip_cfg['heldout_novel_crop_accuracy']:.3f} on "

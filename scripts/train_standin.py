@@ -148,6 +148,7 @@ def main() -> int:
     ap.add_argument("--per-view", type=int, default=60)
     ap.add_argument("--epochs", type=int, default=12)
     ap.add_argument("--width", type=int, default=32)
+    ap.add_argument("--blocks", type=int, default=2, help="convs per halving stage (StandinNet)")
     ap.add_argument("--loss", default="softmax", choices=("softmax", "cosine", "both"))
     ap.add_argument("--target", default="mixture", choices=("mixture", "dominant"))
     a = ap.parse_args()
@@ -182,7 +183,7 @@ def main() -> int:
     xn = (x - mean) / std
     print(f"{len(x)} training crops from {len(train)} scenes, {len(vocab)} captions", flush=True)
 
-    net = StandinNet(table.shape[1], IMAGE_SIZE, a.width)
+    net = StandinNet(table.shape[1], IMAGE_SIZE, a.width, a.blocks)
     opt = torch.optim.AdamW(net.parameters(), lr=2e-3, weight_decay=1e-4)
     sched = torch.optim.lr_scheduler.OneCycleLR(opt, 2e-3, total_steps=a.epochs * ((len(x) + 255) // 256))
     for epoch in range(a.epochs):
@@ -205,12 +206,25 @@ def main() -> int:
             opt.step()
             sched.step()
             total += loss.item() * len(i)
-        print(f"epoch {epoch + 1}/{a.epochs}: loss {total / len(x):.3f}", flush=True)
+        net.eval()
+        with torch.inference_mode():
+            acc = accuracy(
+                StandinImageEncoder(
+                    net,
+                    {"dim": table.shape[1], "image_size": IMAGE_SIZE, "mean": MEAN, "std": STD},
+                    "standin:training",
+                ),
+                text,
+                held,
+            )
+        print(f"epoch {epoch + 1}/{a.epochs}: loss {total / len(x):.3f}, held-out crop accuracy {acc:.3f}, "
+              f"{time.perf_counter() - t0:.0f} s", flush=True)  # fmt: skip
 
     config = {
         "dim": int(table.shape[1]),
         "image_size": IMAGE_SIZE,
         "width": a.width,
+        "blocks": a.blocks,
         "mean": list(MEAN),
         "std": list(STD),
         "text_encoder": MINILM_ID,

@@ -36,21 +36,35 @@ PREFIX = "standin:"
 
 
 class StandinNet(nn.Module):
-    """Crops [B,3,S,S] (normalised) -> [B,dim] (not normalised): four 3x3 conv stages, three halving the
-    side, then a linear map of the whole [S/8, S/8] grid (it keeps where things are: the label that
-    counts is the one under the crop's centre)."""
+    """Crops [B,3,S,S] (normalised) -> [B,dim] (not normalised): 3x3 conv stages, three halving the side,
+    then a linear map of the whole [S/8, S/8] grid (it keeps where things are: what lies at the crop's
+    centre counts most). ``blocks`` 1: one plain conv per stage (the first stand-ins); 2: the halving
+    stages get a second conv and every conv a batch norm, which a stand-in needs to fit a world of
+    colour x texture x shape names (one conv per stage underfits it)."""
 
-    def __init__(self, dim: int = 384, image_size: int = 32, width: int = 32) -> None:
+    def __init__(self, dim: int = 384, image_size: int = 32, width: int = 32, blocks: int = 1) -> None:
         super().__init__()
         if image_size % 8:
             raise ValidationError("image_size", f"must be a multiple of 8, got {image_size}")
+        if blocks not in (1, 2):
+            raise ValidationError("blocks", f"must be 1 or 2, got {blocks}")
         w = width
-        self.features = nn.Sequential(
-            nn.Conv2d(3, w, 3, padding=1), nn.ReLU(),
-            nn.Conv2d(w, 2 * w, 3, stride=2, padding=1), nn.ReLU(),
-            nn.Conv2d(2 * w, 4 * w, 3, stride=2, padding=1), nn.ReLU(),
-            nn.Conv2d(4 * w, 4 * w, 3, stride=2, padding=1), nn.ReLU(),
-        )  # fmt: skip
+
+        def conv(cin: int, cout: int, stride: int = 1) -> list[nn.Module]:
+            if blocks == 1:
+                return [nn.Conv2d(cin, cout, 3, stride=stride, padding=1), nn.ReLU()]
+            return [
+                nn.Conv2d(cin, cout, 3, stride=stride, padding=1, bias=False),
+                nn.BatchNorm2d(cout),
+                nn.ReLU(),
+            ]
+
+        layers = conv(3, w)
+        for cin, cout in ((w, 2 * w), (2 * w, 4 * w), (4 * w, 4 * w)):
+            layers += conv(cin, cout, 2)
+            if blocks == 2:
+                layers += conv(cout, cout)
+        self.features = nn.Sequential(*layers)
         self.head = nn.Linear(4 * w * (image_size // 8) ** 2, dim)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
@@ -100,7 +114,9 @@ def save_standin(folder: str | os.PathLike, net: StandinNet, config: dict) -> Pa
 
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
-    save_file({k: v.detach().half().contiguous() for k, v in net.state_dict().items()}, str(folder / WEIGHTS))
+    state = {k: (v.detach().half() if v.is_floating_point() else v.detach()).contiguous()
+             for k, v in net.state_dict().items()}  # fmt: skip
+    save_file(state, str(folder / WEIGHTS))
     (folder / CONFIG).write_text(json.dumps(config, indent=1))
     return folder
 
@@ -113,8 +129,12 @@ def load_standin(model_id: str, device: str | torch.device = "cpu") -> StandinIm
     if not (folder / CONFIG).is_file() or not (folder / WEIGHTS).is_file():
         raise ModelNotFoundError(model_id, [f"{folder} (needs {CONFIG} and {WEIGHTS})"])
     config = json.loads((folder / CONFIG).read_text())
-    net = StandinNet(int(config["dim"]), int(config["image_size"]), int(config["width"]))
-    net.load_state_dict({k: v.float() for k, v in load_file(str(folder / WEIGHTS)).items()})
+    net = StandinNet(
+        int(config["dim"]), int(config["image_size"]), int(config["width"]), int(config.get("blocks", 1))
+    )
+    net.load_state_dict(
+        {k: v.float() if v.is_floating_point() else v for k, v in load_file(str(folder / WEIGHTS)).items()}
+    )
     enc = StandinImageEncoder(net, config, model_id, device)
     enc.files = ModelFiles(model_id, folder, "local", files=local_weight_hashes(folder))
     return enc

@@ -8,6 +8,7 @@ import json
 from pathlib import Path
 
 import numpy as np
+import pytest
 import torch
 
 from fmgs.features.models import MINILM_ID
@@ -32,14 +33,19 @@ def _config(**kw) -> dict:
             "text_encoder": MINILM_ID, **kw}  # fmt: skip
 
 
-def test_save_and_load_give_the_same_embeddings(tmp_path):
+@pytest.mark.parametrize("blocks", [1, 2])
+def test_save_and_load_give_the_same_embeddings(tmp_path, blocks):
     torch.manual_seed(0)
-    net = StandinNet(8, 16, 4)
-    save_standin(tmp_path, net, _config())
+    net = StandinNet(8, 16, 4, blocks)
+    if blocks == 2:  # batch norms with running statistics of their own
+        net.train()
+        net(torch.rand(16, 3, 16, 16) * 4)
+    save_standin(tmp_path, net, _config(blocks=blocks))
     enc = load_standin(f"standin:{tmp_path}")
-    ref_net = StandinNet(8, 16, 4)
-    ref_net.load_state_dict({k: v.half().float() for k, v in net.state_dict().items()})  # shipped as float16
-    ref = StandinImageEncoder(ref_net, _config(), "x")
+    ref_net = StandinNet(8, 16, 4, blocks)
+    shipped = {k: v.half().float() if v.is_floating_point() else v for k, v in net.state_dict().items()}
+    ref_net.load_state_dict(shipped)  # shipped as float16
+    ref = StandinImageEncoder(ref_net, _config(blocks=blocks), "x")
     x = torch.rand(5, 3, 40, 40)
     out = enc(x)
     assert out.shape == (5, 8) and torch.allclose(out.norm(dim=-1), torch.ones(5), atol=1e-5)

@@ -63,9 +63,17 @@ def variant_name(seed: int, variant: str) -> str:
 
 
 def clip_build(
-    out: Path, seed: int, data: Path, variant: str, field_steps: int | None, standin: Path, dino: Path
+    out: Path,
+    seed: int,
+    data: Path,
+    variant: str,
+    field_steps: int | None,
+    standin: Path,
+    dino: Path,
+    threads: int = 0,
 ) -> Path:
-    """``fmgs build --targets clip`` of ``variant`` on the label build's 3DGS; returns the package."""
+    """``fmgs build --targets clip`` of ``variant`` on the label build's 3DGS; returns the package.
+    ``threads``: the field's CPU threads (0: the build's own choice)."""
     from fmgs.cli import main as fmgs
 
     v = VARIANTS[variant]
@@ -78,6 +86,8 @@ def clip_build(
         cmd.append("--no-dotsim")
     if field_steps is not None:
         cmd += ["--field-steps", str(field_steps)]
+    if threads:
+        cmd += ["--field-threads", str(threads)]
     record = out / f"build-{name}.json"
     if record.is_file() and json.loads(record.read_text())["command"] == cmd:
         return out / "models" / name
@@ -181,6 +191,21 @@ def summary(rows: list[dict], kind: str) -> dict:
     }
 
 
+def standin_errors(cfg: dict) -> str:
+    """The CLIP stand-in's held-out object crops per scale and how it errs, where its config has them."""
+    per_scale = cfg.get("heldout_object_crop_accuracy_per_scale")
+    if not per_scale:
+        return ""
+    scales = sorted(per_scale, key=float)
+    return (
+        " Crops whose most salient label is an object are named right "
+        f"{per_scale[scales[0]]:.3f} of the time at the finest scale ({scales[0]}) and "
+        f"{per_scale[scales[-1]]:.3f} at the coarsest ({scales[-1]}); "
+        f"{cfg['heldout_object_errors_named_as_stuff']:.0%} of the misnamed ones are named as floor or wall, "
+        "not as another object."
+    )
+
+
 def report(d: dict) -> str:
     rows, info, cmd = d["rows"], d["machine"], d["command"]
     kinds = ["labels", *d["variants"]]
@@ -202,12 +227,12 @@ def report(d: dict) -> str:
         "says, the DINO stand-in's dense map as the DINO target. Every scene is queried with MiniLM and "
         "scored on the held-out views as served.",
         "",
-        f"The CLIP stand-in (a small CNN, {'two convs' if clip_cfg.get('blocks', 1) == 2 else 'one conv'} per "
-        f"stage, `{clip_cfg['command']}`) is trained into MiniLM's space on "
+        f"The CLIP stand-in (a small CNN, {'two convs' if clip_cfg.get('blocks', 1) == 2 else 'one conv'} "
+        f"per stage, `{clip_cfg['command']}`) is trained into MiniLM's space on "
         f"crops of {len(clip_cfg['train_seeds'])} other world scenes, against what each crop shows (each "
         "name's share under a centre-weighted window, over captions of varying detail); held-out crop "
         f"accuracy {clip_cfg['heldout_crop_accuracy']:.3f}, {clip_cfg['heldout_novel_crop_accuracy']:.3f} on "
-        "crops of held-out names. The DINO stand-in (a small CNN, "
+        "crops of held-out names." + standin_errors(clip_cfg) + " The DINO stand-in (a small CNN, "
         f"`{dino_cfg['command']}`) is trained without labels (dense clustering across augmented views); on "
         "held-out scenes the cosine of two pixels' features is "
         f"{dino_cfg['heldout']['trained']['within_object_cosine']:.2f} within one object and "
@@ -315,6 +340,7 @@ def main() -> int:
     ap.add_argument(
         "--grad-threshold", type=float, default=0.001, help="3DGS densification threshold (default 0.001)"
     )
+    ap.add_argument("--field-threads", type=int, default=0, help="CLIP builds' field threads (0: auto)")
     ap.add_argument("--target-views", type=int, default=6, help="views per scene of the target-map table")
     ap.add_argument("--standin", default=str(STANDIN), help="the CLIP stand-in's folder")
     ap.add_argument("--standin-dino", default=str(STANDIN_DINO), help="the DINO stand-in's folder")
@@ -352,7 +378,7 @@ def main() -> int:
             build_scene(out, seed, a.views, a.size, a.gs_steps, a.field_steps, a.grad_threshold,
                         synth_flags(seed), preset="world")  # fmt: skip
         for v in variants if not a.no_build else ():
-            clip_build(out, seed, data, v, a.field_steps, standin, dino)
+            clip_build(out, seed, data, v, a.field_steps, standin, dino, a.field_threads)
         rows.append(score(out, seed, data, variants))
         datas.append(data)
         (out / "clip_path.json").write_text(json.dumps({"rows": rows}, indent=1, default=float))

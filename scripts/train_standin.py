@@ -52,8 +52,12 @@ TEMPERATURE = 0.05
 
 
 def seeds(text: str) -> list[int]:
-    a, _, b = text.partition("-")
-    return list(range(int(a), int(b) + 1)) if b else [int(s) for s in a.split(",")]
+    """'9001-9100,9201-9400,9500' -> the seeds, in order."""
+    out: list[int] = []
+    for part in text.split(","):
+        a, _, b = part.partition("-")
+        out += range(int(a), int(b) + 1) if b else [int(a)]
+    return out
 
 
 def scene(work: Path, seed: int, novel: int = 0, views: int = VIEWS) -> Path:
@@ -140,6 +144,57 @@ def accuracy(encoder, text, samples, which: str = "all") -> float:
     return hits / max(total, 1)
 
 
+def heldout_figures(encoder, text, work: Path, per_view: int) -> dict:
+    """Held-out crop accuracy (all, seen objects, held-out names); per pyramid scale, the accuracy on
+    crops whose most salient label is an object; and, of the object crops named wrongly, the share named
+    as stuff (floor, wall, backdrop) rather than as another object."""
+    from fmgs.features.pyramid import PyramidConfig
+    from fmgs.features.standin import sample_crop_targets
+
+    held = dataset(work, list(HELDOUT), per_view, np.random.default_rng(1), novel=3)
+    out = {
+        "heldout_crop_accuracy": round(accuracy(encoder, text, held), 4),
+        "heldout_object_crop_accuracy": round(accuracy(encoder, text, held, "objects"), 4),
+        "heldout_novel_crop_accuracy": round(accuracy(encoder, text, held, "novel"), 4),
+    }
+    per_scale, wrong, as_stuff = {}, 0, 0
+    for scale in PyramidConfig.scales:
+        hits = total = 0
+        for seed in HELDOUT:
+            s = sample_crop_targets(scene(work, seed, novel=3), per_view // 2, np.random.default_rng(seed),
+                                    IMAGE_SIZE, object_share=OBJECT_SHARE, scales=(scale,))  # fmt: skip
+            want = salient(s.shares, s.names).argmax(1)
+            obj = torch.tensor([world(s.names[w]) is not None for w in want.tolist()])
+            if not obj.any():
+                continue
+            pred = (encoder(s.crops[obj]) @ text.encode_text(s.names).T).argmax(1)
+            ok = pred == want[obj]
+            hits, total = hits + int(ok.sum()), total + int(obj.sum())
+            wrong += int((~ok).sum())
+            as_stuff += sum(world(s.names[p]) is None for p in pred[~ok].tolist())
+        per_scale[str(scale)] = round(hits / max(total, 1), 4)
+    out["heldout_object_crop_accuracy_per_scale"] = per_scale
+    out["heldout_object_errors_named_as_stuff"] = round(as_stuff / max(wrong, 1), 4)
+    return out
+
+
+def evaluate(folder: Path, work: Path, per_view: int) -> int:
+    """Measure a trained stand-in's held-out figures again and write them into its standin.json."""
+    import json
+
+    from fmgs.features.standin import CONFIG, load_standin
+    from fmgs.features.text import MiniLMTextEncoder
+
+    encoder = load_standin(f"standin:{folder}")
+    with torch.inference_mode():
+        figures = heldout_figures(encoder, MiniLMTextEncoder(), work, per_view)
+    config = json.loads((folder / CONFIG).read_text())
+    config.update(figures)
+    (folder / CONFIG).write_text(json.dumps(config, indent=1))
+    print(json.dumps(figures, indent=1))
+    return 0
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", default=str(ROOT / "benchmarks" / "standin"))
@@ -151,7 +206,10 @@ def main() -> int:
     ap.add_argument("--blocks", type=int, default=2, help="convs per halving stage (StandinNet)")
     ap.add_argument("--loss", default="softmax", choices=("softmax", "cosine", "both"))
     ap.add_argument("--target", default="mixture", choices=("mixture", "dominant"))
+    ap.add_argument("--evaluate", metavar="FOLDER", help="only measure FOLDER's held-out figures again")
     a = ap.parse_args()
+    if a.evaluate:
+        return evaluate(Path(a.evaluate), Path(a.work), a.per_view)
 
     from fmgs.features.models import MINILM_ID
     from fmgs.features.standin import StandinImageEncoder, StandinNet, save_standin
@@ -241,9 +299,7 @@ def main() -> int:
     }
     encoder = StandinImageEncoder(net, config, "standin:training")
     with torch.inference_mode():
-        config["heldout_crop_accuracy"] = round(accuracy(encoder, text, held), 4)
-        config["heldout_object_crop_accuracy"] = round(accuracy(encoder, text, held, "objects"), 4)
-        config["heldout_novel_crop_accuracy"] = round(accuracy(encoder, text, held, "novel"), 4)
+        config.update(heldout_figures(encoder, text, work, a.per_view))
     config["train_seconds"] = round(time.perf_counter() - t0, 1)
     save_standin(a.out, net, config)
     print(

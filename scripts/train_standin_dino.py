@@ -41,11 +41,6 @@ POINTS = 256
 """Points per view pair where the two views' assignments are compared."""
 
 
-def seeds(text: str) -> list[int]:
-    a, _, b = text.partition("-")
-    return list(range(int(a), int(b) + 1)) if b else [int(s) for s in a.split(",")]
-
-
 def load_images(folders: list[Path]) -> torch.Tensor:
     """[N,3,H,W] float RGB in [0,1] of every render in ``folders``/images."""
     from PIL import Image
@@ -188,7 +183,7 @@ def main() -> int:
     gen = torch.Generator().manual_seed(0)
     work = Path(a.work)
     t0 = time.perf_counter()
-    images = load_images([clip_script.scene(work, s) for s in seeds(a.seeds)])
+    images = load_images([clip_script.scene(work, s) for s in clip_script.seeds(a.seeds)])
     held = [clip_script.scene(work, s, novel=3) for s in HELDOUT]
     print(f"{len(images)} training renders", flush=True)
     net = DenseStandinNet(a.dim, a.width)
@@ -219,7 +214,7 @@ def main() -> int:
         "short_side": SHORT_SIDE,
         "mean": list(MEAN),
         "std": list(STD),
-        "train_seeds": seeds(a.seeds),
+        "train_seeds": clip_script.seeds(a.seeds),
         "heldout_seeds": list(HELDOUT),
         "train_renders": len(images),
         "steps": a.steps,

@@ -180,12 +180,14 @@ def sample_crop_targets(
     image_size: int = 32,
     views: list[int] | None = None,
     object_share: float = 0.0,
+    scales: tuple[float, ...] = PyramidConfig.scales,
 ) -> CropSample:
     """Square crops of a generated scene's views (fmgs.synth: images/, labels/, depth/, scene.json) at the
     CLIP pyramid's scales x the short side, centred at random pixels (``rng``: numpy Generator), each
     resized as the pyramid resizes its crops, with the names they show (``CropSample``). ``views``:
     indices into the sorted images (default all); ``object_share``: the fraction of crops centred on a
-    random object pixel (label >= 2) instead of any pixel (objects are a small part of most views)."""
+    random object pixel (label >= 2) instead of any pixel (objects are a small part of most views);
+    ``scales``: the crop sides drawn from (fractions of the short side)."""
     from PIL import Image
 
     data = Path(data)
@@ -200,7 +202,7 @@ def sample_crop_targets(
         H, W = lab.shape
         oy, ox = np.nonzero((lab >= 2) & (lab < len(names))) if object_share > 0 else (None, None)
         for _ in range(per_view):
-            side = max(4, round(float(rng.choice(PyramidConfig.scales)) * min(H, W)))
+            side = max(4, round(float(rng.choice(scales)) * min(H, W)))
             if object_share > 0 and len(oy) and rng.uniform() < object_share:
                 i = int(rng.integers(len(oy)))
                 cx, cy = int(ox[i]), int(oy[i])

@@ -83,3 +83,13 @@ def test_the_shipped_standin_places_unseen_crops_at_their_names(tmp_path):
     acc = crop_accuracy(enc, table, crops, labels, names)
     chance = max(labels.count(n) for n in set(labels)) / len(labels)  # always the most common label
     assert acc >= SHIPPED_CROP_ACCURACY and acc > chance + 0.2, (acc, chance)
+
+
+def test_the_training_script_reads_seed_lists_with_ranges():
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("train_standin", ROOT / "scripts" / "train_standin.py")
+    script = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(script)
+    assert script.seeds("9001-9003,9201-9202,9500") == [9001, 9002, 9003, 9201, 9202, 9500]
+    assert script.seeds("7") == [7]

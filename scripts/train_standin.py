@@ -144,19 +144,24 @@ def accuracy(encoder, text, samples, which: str = "all") -> float:
     return hits / max(total, 1)
 
 
-def heldout_figures(encoder, text, work: Path, per_view: int) -> dict:
-    """Held-out crop accuracy (all, seen objects, held-out names); per pyramid scale, the accuracy on
-    crops whose most salient label is an object; and, of the object crops named wrongly, the share named
-    as stuff (floor, wall, backdrop) rather than as another object."""
+def heldout(work: Path, per_view: int) -> list:
+    """The held-out scenes' crops, drawn with a fixed generator: every stand-in is measured on the same."""
+    return dataset(work, list(HELDOUT), per_view, np.random.default_rng(1), novel=3)
+
+
+def heldout_figures(encoder, text, work: Path, per_view: int, held: list) -> dict:
+    """Held-out crop accuracy on ``held`` (all, seen objects, held-out names); per pyramid scale, the
+    accuracy on crops whose most salient label is an object; and, of the object crops named wrongly, the
+    share named as stuff (floor, wall, backdrop) rather than as another object."""
     from fmgs.features.pyramid import PyramidConfig
     from fmgs.features.standin import sample_crop_targets
 
-    held = dataset(work, list(HELDOUT), per_view, np.random.default_rng(1), novel=3)
     out = {
         "heldout_crop_accuracy": round(accuracy(encoder, text, held), 4),
         "heldout_object_crop_accuracy": round(accuracy(encoder, text, held, "objects"), 4),
         "heldout_novel_crop_accuracy": round(accuracy(encoder, text, held, "novel"), 4),
     }
+    tables = {seed: text.encode_text(s.names) for seed, s in zip(HELDOUT, held, strict=True)}
     per_scale, wrong, as_stuff = {}, 0, 0
     for scale in PyramidConfig.scales:
         hits = total = 0
@@ -167,7 +172,7 @@ def heldout_figures(encoder, text, work: Path, per_view: int) -> dict:
             obj = torch.tensor([world(s.names[w]) is not None for w in want.tolist()])
             if not obj.any():
                 continue
-            pred = (encoder(s.crops[obj]) @ text.encode_text(s.names).T).argmax(1)
+            pred = (encoder(s.crops[obj]) @ tables[seed].T).argmax(1)
             ok = pred == want[obj]
             hits, total = hits + int(ok.sum()), total + int(obj.sum())
             wrong += int((~ok).sum())
@@ -187,7 +192,7 @@ def evaluate(folder: Path, work: Path, per_view: int) -> int:
 
     encoder = load_standin(f"standin:{folder}")
     with torch.inference_mode():
-        figures = heldout_figures(encoder, MiniLMTextEncoder(), work, per_view)
+        figures = heldout_figures(encoder, MiniLMTextEncoder(), work, per_view, heldout(work, per_view))
     config = json.loads((folder / CONFIG).read_text())
     config.update(figures)
     (folder / CONFIG).write_text(json.dumps(config, indent=1))
@@ -220,7 +225,7 @@ def main() -> int:
     work = Path(a.work)
     t0 = time.perf_counter()
     train = dataset(work, seeds(a.seeds), a.per_view, rng)
-    held = dataset(work, list(HELDOUT), a.per_view, rng, novel=3)
+    held = heldout(work, a.per_view)
     seen = sorted({n for s in train for n in s.names})
     vocab_list = sorted({c for n in seen for c, _ in captions(n)} | set(seen))
     vocab = {c: i for i, c in enumerate(vocab_list)}
@@ -244,6 +249,8 @@ def main() -> int:
     net = StandinNet(table.shape[1], IMAGE_SIZE, a.width, a.blocks)
     opt = torch.optim.AdamW(net.parameters(), lr=2e-3, weight_decay=1e-4)
     sched = torch.optim.lr_scheduler.OneCycleLR(opt, 2e-3, total_steps=a.epochs * ((len(x) + 255) // 256))
+    watch_config = {"dim": table.shape[1], "image_size": IMAGE_SIZE, "mean": MEAN, "std": STD}
+    watch = StandinImageEncoder(net, watch_config, "standin:training")  # the net itself, as it trains
     for epoch in range(a.epochs):
         net.train()
         perm = torch.randperm(len(x))
@@ -266,15 +273,7 @@ def main() -> int:
             total += loss.item() * len(i)
         net.eval()
         with torch.inference_mode():
-            acc = accuracy(
-                StandinImageEncoder(
-                    net,
-                    {"dim": table.shape[1], "image_size": IMAGE_SIZE, "mean": MEAN, "std": STD},
-                    "standin:training",
-                ),
-                text,
-                held,
-            )
+            acc = accuracy(watch, text, held)
         print(f"epoch {epoch + 1}/{a.epochs}: loss {total / len(x):.3f}, held-out crop accuracy {acc:.3f}, "
               f"{time.perf_counter() - t0:.0f} s", flush=True)  # fmt: skip
 
@@ -299,7 +298,7 @@ def main() -> int:
     }
     encoder = StandinImageEncoder(net, config, "standin:training")
     with torch.inference_mode():
-        config.update(heldout_figures(encoder, text, work, a.per_view))
+        config.update(heldout_figures(encoder, text, work, a.per_view, held))
     config["train_seconds"] = round(time.perf_counter() - t0, 1)
     save_standin(a.out, net, config)
     print(

@@ -46,10 +46,18 @@ def candidate_scores(maps: dict[str, torch.Tensor | list[torch.Tensor]], table: 
 
 
 def target_candidates(
-    data: Path, standin: Path = STANDIN, standin_dino: Path = STANDIN_DINO, views: int = 6
+    data: Path,
+    standin: Path = STANDIN,
+    standin_dino: Path = STANDIN_DINO,
+    views: int = 6,
+    seconds: dict[str, float] | None = None,
 ) -> dict[str, dict]:
     """{candidate: scores} over the first ``views`` views of scene ``data`` (see the module docstring):
-    hits and totals, to be pooled over scenes by ``rates``."""
+    hits and totals, to be pooled over scenes by ``rates``. ``seconds``, when given, gathers the time
+    spent (added to what it holds): "views", "pyramid" (every crop through the CLIP stand-in), "dino" (the
+    dense map) and each candidate's own (its weights, blend and pooling on top of those)."""
+    import time
+
     from PIL import Image
 
     from fmgs.features.dino import load_dense_encoder
@@ -71,16 +79,29 @@ def target_candidates(
         img = torch.from_numpy(np.asarray(Image.open(p).convert("RGB"), np.float32) / 255.0)
         lab = torch.from_numpy(np.asarray(Image.open(data / "labels" / p.name)).astype(np.int64))
         H, W = lab.shape
+        took = {} if seconds is None else seconds
+        clock = time.perf_counter
         with torch.inference_mode():
+            t0 = clock()
             sm = scale_maps(enc, img, cfg, (H, W))
+            t1 = clock()
             dense = dino.dense(img, (H, W))
+            t2 = clock()
+            took["views"] = took.get("views", 0.0) + 1
+            took["pyramid"] = took.get("pyramid", 0.0) + t1 - t0
+            took["dino"] = took.get("dino", 0.0) + t2 - t1
             radius = max(1, round(POOL_RADIUS * min(H, W)))
             maps: dict = {f"{s} alone": torch.nn.functional.normalize(m, dim=-1)
                           for s, m in zip(cfg.scales, sm.maps, strict=True)}  # fmt: skip
             for b in BLENDS:
+                t0 = clock()
                 t = blend_scales(sm.maps, scale_weights(b, dense, sm.edges))
+                t1 = clock()
                 maps[b] = t
                 maps[f"{b} + pooled"] = pool_regions(t, dense, radius)
+                t2 = clock()
+                took[b] = took.get(b, 0.0) + t1 - t0
+                took[f"{b} + pooled"] = took.get(f"{b} + pooled", 0.0) + t2 - t0
             maps["lerf (max over scales)"] = list(sm.maps)
             scores = candidate_scores(maps, table)
         valid = lab >= 1

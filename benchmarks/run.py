@@ -7,9 +7,10 @@
 Sections: ``text`` (per-Gaussian text query), ``pose`` (relevancy image), ``field`` (feature-field
 training), ``gs`` (3DGS training), ``scaling`` (latency and memory against size, gRPC against
 concurrency), ``floor`` (this machine's bandwidth and arithmetic rate, and each hot path's time as a
-multiple of the floor they imply). Every work-precision diagram puts the error on one axis and the run
-time on the other, one curve per knob, with the exact reference as a point; that point is the exact
-path re-run inside the timing loop and compared with the reference like every other setting, so its
+multiple of the floor they imply), ``targets`` (CLIP target blends: object pixels named right before
+distillation against target time per view). Every work-precision diagram puts the error on one axis and
+the run time on the other, one curve per knob, with the exact reference as a point; that point is the
+exact path re-run inside the timing loop and compared with the reference like every other setting, so its
 error is measured, not assumed. The default point of the text and pose diagrams is the product path
 (SceneEngine on an exported scene package, opened as the query server opens it). The exit status is 1
 when any exact point shows a non-zero error.
@@ -19,8 +20,8 @@ results.json (everything) and one CSV per table.
 
 The code lives in benchmarks/workprec/: sizes.py (quick and full sizes), measure.py (error measures,
 timing, growth fits, cost models), engine.py (the product path), one module per section (text.py,
-pose.py, gs.py, field.py, scaling.py, floor.py: its measurement, table, reading and plot), plots.py and
-report.py (CSV, PNG, REPORT.md). This file is the command line.
+pose.py, gs.py, field.py, scaling.py, floor.py, targets.py: its measurement, table, reading and plot),
+plots.py and report.py (CSV, PNG, REPORT.md). This file is the command line.
 """
 
 from __future__ import annotations
@@ -35,7 +36,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from benchmarks.common import RESULTS
-from benchmarks.workprec import field, floor, gs, pose, scaling, text
+from benchmarks.workprec import field, floor, gs, pose, scaling, targets, text
 from benchmarks.workprec.measure import exact_failures, set_threads
 from benchmarks.workprec.report import SECTIONS, machine_info, write_report
 from benchmarks.workprec.sizes import FULL, QUICK, Sizes
@@ -55,6 +56,8 @@ def run_section(name: str, sizes: Sizes, work: Path, threads: int) -> dict:
         return scaling.section(sizes.scaling, work, threads)
     if name == "floor":
         return floor.section(sizes.floor, threads)
+    if name == "targets":
+        return targets.section(sizes.targets, work)
     raise ValueError(name)
 
 
@@ -94,7 +97,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     work = a.work or Path(tmp.name)
     work.mkdir(parents=True, exist_ok=True)
     info = machine_info()
-    order = ["text", "pose", "gs", "field", "scaling", "floor"]  # gs first: the field reuses its fit
+    order = [
+        "text",
+        "pose",
+        "gs",
+        "field",
+        "scaling",
+        "floor",
+        "targets",
+    ]  # gs first: the field reuses its fit
     t_all = time.perf_counter()
     try:
         for name in [s for s in order if s in only]:

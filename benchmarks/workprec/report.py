@@ -9,10 +9,18 @@ import subprocess
 from pathlib import Path
 
 from benchmarks.common import ROOT, machine
-from benchmarks.workprec import field, floor, gs, pose, scaling, text
+from benchmarks.workprec import field, floor, gs, pose, scaling, targets, text
 from benchmarks.workprec.measure import GPU_NOTE, exact_failures
 
-MODULES = {"text": text, "pose": pose, "field": field, "gs": gs, "scaling": scaling, "floor": floor}
+MODULES = {
+    "text": text,
+    "pose": pose,
+    "field": field,
+    "gs": gs,
+    "scaling": scaling,
+    "floor": floor,
+    "targets": targets,
+}
 """Each section's module (section, markdown, reading, plot), in the order of the report."""
 SECTIONS = tuple(MODULES)
 

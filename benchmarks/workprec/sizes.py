@@ -135,6 +135,22 @@ class FloorSizes:
 
 
 @dataclass(frozen=True)
+class TargetSizes:
+    """CLIP target blends: generated world scenes (fmgs synth --preset world) and views per scene."""
+
+    seeds: tuple[int, ...]
+    """Scene seeds (odd: open, even: in a room); the dev scenes of CLIP_TARGETS.md, no benchmark's seed."""
+    views: int
+    """Views per scene whose targets are made and scored (the first of the scene's cameras)."""
+    width: int
+    """Image width."""
+    height: int
+    """Image height."""
+    scene_views: int = 12
+    """Cameras each scene is generated with (the camera ring depends on it)."""
+
+
+@dataclass(frozen=True)
 class Sizes:
     """Everything that differs between the quick (CI) and the full run."""
 
@@ -145,6 +161,7 @@ class Sizes:
     gs: GSSizes
     scaling: ScalingSizes
     floor: FloorSizes
+    targets: TargetSizes
 
 
 QUICK = Sizes(
@@ -183,6 +200,7 @@ QUICK = Sizes(
         render_size=(240, 135),
         reps=5,
     ),
+    targets=TargetSizes(seeds=(301,), views=1, width=64, height=48),
 )
 
 FULL = Sizes(
@@ -210,4 +228,5 @@ FULL = Sizes(
         render_scene="garden",
         render_size=(480, 270),
     ),
+    targets=TargetSizes(seeds=(301, 302, 303, 304), views=4, width=128, height=96),
 )

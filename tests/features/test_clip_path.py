@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 
 from benchmarks.clip_path import STANDIN, STANDIN_DINO
-from fmgs.features.sizes import SCALE_BLEND
+from fmgs.features.sizes import SCALE_BLEND, SCALE_BLENDS
 from fmgs.synth import SynthConfig, generate
 from tests.helpers.scenes import surface_ply
 
@@ -45,7 +45,11 @@ def test_the_default_blend_puts_object_pixels_at_their_names(scene):
     (see the module's floors for the figures when written)."""
     from benchmarks.clip_targets import rates, target_candidates
 
-    r = rates([target_candidates(scene, STANDIN, STANDIN_DINO, views=4)])
+    took: dict[str, float] = {}
+    r = rates([target_candidates(scene, STANDIN, STANDIN_DINO, views=4, seconds=took)])
+    # the work-precision report's times: per part, the pooled blend's including its blend's
+    assert took["views"] == 4 and took["pyramid"] > 0 and took["dino"] > 0, took
+    assert all(took[f"{b} + pooled"] >= took[b] >= 0 for b in SCALE_BLENDS), took
     assert r[SCALE_BLEND]["object_pixels"] >= TARGET_OBJECT_PIXELS, r[SCALE_BLEND]
     assert r[SCALE_BLEND]["novel_object_pixels"] >= TARGET_NOVEL_PIXELS, r[SCALE_BLEND]
     assert r[SCALE_BLEND]["object_pixels"] >= r["mean"]["object_pixels"], (r[SCALE_BLEND], r["mean"])

@@ -14,12 +14,14 @@ dot-product similarity loss and without DINO) on that build's 3DGS, each scored 
 served (2D and 3D localisation, mIoU, presence), the three novel objects also on their own. Then the
 target maps alone, before distillation, per candidate (benchmarks.clip_targets). Writes clip_path.json
 and CLIP_PATH.md (with --report, both into benchmarks/results/ as CLIP_PATH.json and CLIP_PATH.md). Builds
-already in OUT are kept.
+already in OUT are kept, and so are a package's scores (OUT/score-NAME.json) while its manifest is the
+same: delete them to score again after changing how packages are scored.
 """
 
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import shlex
 import sys
@@ -146,11 +148,17 @@ def score(out: Path, seed: int, data: Path, variants: list[str]) -> dict:
         pkg = out / "models" / name
         if not (pkg / "manifest.json").is_file():  # --no-build: a variant not built for this seed
             continue
-        engine = SceneEngine.open(pkg)
-        q = scene_quality(engine, ds, enc, test, data, names)
-        q["novel"] = novel_scores(q, data)
-        q["embedded"] = engine.num_embedded
-        q["bytes"] = package_bytes(pkg)
+        key = hashlib.sha256((pkg / "manifest.json").read_bytes()).hexdigest()
+        kept = out / f"score-{name}.json"  # the package's scores, kept while its manifest is the same
+        if kept.is_file() and json.loads(kept.read_text())["manifest_sha256"] == key:
+            q = json.loads(kept.read_text())["quality"]
+        else:
+            engine = SceneEngine.open(pkg)
+            q = scene_quality(engine, ds, enc, test, data, names)
+            q["novel"] = novel_scores(q, data)
+            q["embedded"] = engine.num_embedded
+            q["bytes"] = package_bytes(pkg)
+            kept.write_text(json.dumps({"manifest_sha256": key, "quality": q}, default=float))
         rec = out / f"build-{seed if kind == 'labels' else name}.json"  # build_scene names the label one
         q["build_seconds"] = json.loads(rec.read_text())["seconds"]
         row["kinds"][kind] = q

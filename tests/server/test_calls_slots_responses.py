@@ -19,7 +19,7 @@ from fmgs.query.segment import segment
 from fmgs.scene.manifest import Manifest
 from fmgs_client.types import SceneInfo as ClientSceneInfo
 from fmgs_server import responses
-from fmgs_server.calls import status_of
+from fmgs_server.calls import DEADLINE_SLACK_S, seen_by_client, status_of
 from fmgs_server.errors import DeadlineExceeded, NotFound, ResourceExhausted
 from fmgs_server.repository import READY, UNLOADED, SceneSlot
 from fmgs_server.service import FmgsService
@@ -176,3 +176,13 @@ def test_a_request_stream_ended_by_a_late_cancel_is_logged_cancelled(caplog):
         ctx = Ctx()
         assert list(Svc().Stream(poses(ctx, cancelled), ctx)) == ["frame"]
         assert f" {expected} 1 msgs" in caplog.records[-1].getMessage()
+
+
+def test_a_call_gone_at_its_deadline_is_logged_as_deadline_exceeded():
+    """The client's cancel at its deadline can reach the server a few ms before the server's deadline."""
+    ok = grpc.StatusCode.OK
+    assert seen_by_client(Ctx(remaining=0.011, active=False), ok) == grpc.StatusCode.DEADLINE_EXCEEDED
+    assert seen_by_client(Ctx(remaining=-0.2, active=False), ok) == grpc.StatusCode.DEADLINE_EXCEEDED
+    assert seen_by_client(Ctx(remaining=10 * DEADLINE_SLACK_S, active=False), ok) == grpc.StatusCode.CANCELLED
+    assert seen_by_client(Ctx(remaining=None, active=False), ok) == grpc.StatusCode.CANCELLED
+    assert seen_by_client(Ctx(remaining=0.011, active=True), ok) == ok  # still there: the handler's code

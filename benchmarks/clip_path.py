@@ -150,8 +150,9 @@ def score(out: Path, seed: int, data: Path, variants: list[str]) -> dict:
             continue
         key = hashlib.sha256((pkg / "manifest.json").read_bytes()).hexdigest()
         kept = out / f"score-{name}.json"  # the package's scores, kept while its manifest is the same
-        if kept.is_file() and json.loads(kept.read_text())["manifest_sha256"] == key:
-            q = json.loads(kept.read_text())["quality"]
+        stored = json.loads(kept.read_text()) if kept.is_file() else {}
+        if stored.get("manifest_sha256") == key:
+            q = stored["quality"]
         else:
             engine = SceneEngine.open(pkg)
             q = scene_quality(engine, ds, enc, test, data, names)

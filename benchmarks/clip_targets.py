@@ -76,21 +76,25 @@ def target_candidates(
     cfg = PyramidConfig(crop_px=enc.image_size)
     C = len(names)
     acc: dict[str, np.ndarray] = {}
+    took = {} if seconds is None else seconds
+    clock = time.process_time  # CPU time: other jobs on a shared machine do not count
+
+    def add(key: str, value: float) -> None:
+        took[key] = took.get(key, 0.0) + value
+
     for p in sorted((data / "images").iterdir())[:views]:
         img = torch.from_numpy(np.asarray(Image.open(p).convert("RGB"), np.float32) / 255.0)
         lab = torch.from_numpy(np.asarray(Image.open(data / "labels" / p.name)).astype(np.int64))
         H, W = lab.shape
-        took = {} if seconds is None else seconds
-        clock = time.process_time  # CPU time: other jobs on a shared machine do not count
         with torch.inference_mode():
             t0 = clock()
             sm = scale_maps(enc, img, cfg, (H, W))
             t1 = clock()
             dense = dino.dense(img, (H, W))
             t2 = clock()
-            took["views"] = took.get("views", 0.0) + 1
-            took["pyramid"] = took.get("pyramid", 0.0) + t1 - t0
-            took["dino"] = took.get("dino", 0.0) + t2 - t1
+            add("views", 1.0)
+            add("pyramid", t1 - t0)
+            add("dino", t2 - t1)
             radius = max(1, round(POOL_RADIUS * min(H, W)))
             maps: dict = {f"{s} alone": torch.nn.functional.normalize(m, dim=-1)
                           for s, m in zip(cfg.scales, sm.maps, strict=True)}  # fmt: skip
@@ -101,8 +105,8 @@ def target_candidates(
                 maps[b] = t
                 maps[f"{b} + pooled"] = pool_regions(t, dense, radius)
                 t2 = clock()
-                took[b] = took.get(b, 0.0) + t1 - t0
-                took[f"{b} + pooled"] = took.get(f"{b} + pooled", 0.0) + t2 - t0
+                add(b, t1 - t0)
+                add(f"{b} + pooled", t2 - t0)
             maps["lerf (max over scales)"] = list(sm.maps)
             scores = candidate_scores(maps, table)
         valid = lab >= 1

@@ -129,6 +129,18 @@ def score_presence(engine, encoder, label_names: list[str]) -> list[dict]:
     return out
 
 
+def synth_scene(
+    data: Path, seed: int, views: int, size: str, synth_flags: tuple[str, ...] = (), preset: str = "cluttered"
+) -> Path:
+    """``fmgs synth`` of a ten-object scene into ``data`` unless it is there already; returns ``data``."""
+    from fmgs.cli import main as fmgs
+
+    if not (data / "scene.json").is_file():
+        cmd = ["synth", "--out", str(data), "--preset", preset, "--objects", "10", "--seed", str(seed)]
+        assert fmgs([*cmd, "--views", str(views), "--size", size, *synth_flags]) == 0
+    return data
+
+
 def build_scene(
     out: Path,
     seed: int,
@@ -144,10 +156,7 @@ def build_scene(
     flags, e.g. the camera rig); returns the data folder."""
     from fmgs.cli import main as fmgs
 
-    data = out / f"scene-{seed}"
-    if not (data / "scene.json").is_file():
-        cmd = ["synth", "--out", str(data), "--preset", preset, "--objects", "10", "--seed", str(seed)]
-        assert fmgs([*cmd, "--views", str(views), "--size", size, *synth_flags]) == 0
+    data = synth_scene(out / f"scene-{seed}", seed, views, size, synth_flags, preset)
     build = ["build", str(data), "--name", f"s{seed}", "--models", str(out / "models"), "--targets", "labels"]
     build += ["--gs-steps", str(gs_steps)]
     if grad is not None:

@@ -18,14 +18,10 @@ LERF = "lerf (max over scales)"
 def world_scene(work: Path, seed: int, sz: TargetSizes) -> Path:
     """A generated world scene as benchmarks.clip_path makes them (three held-out-name objects)."""
     from benchmarks.clip_path import synth_flags
-    from fmgs.cli import main as fmgs
+    from benchmarks.unseen import synth_scene
 
     data = work / f"world-{seed}-{sz.width}x{sz.height}-{sz.scene_views}"
-    if not (data / "scene.json").is_file():
-        cmd = ["synth", "--out", str(data), "--preset", "world", "--objects", "10", "--seed", str(seed)]
-        cmd += ["--views", str(sz.scene_views), "--size", f"{sz.width}x{sz.height}", *synth_flags(seed)]
-        assert fmgs(cmd) == 0
-    return data
+    return synth_scene(data, seed, sz.scene_views, f"{sz.width}x{sz.height}", synth_flags(seed), "world")
 
 
 def section(sz: TargetSizes, work: Path) -> dict:

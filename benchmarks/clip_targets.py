@@ -9,7 +9,8 @@ pixels with geometry): pixel accuracy on all of them and on object pixels, objec
 (held-out colour-shape pairs), and mIoU. Candidates: every scale alone, the blends of
 fmgs.features.scale_blend, each blend pooled within DINO-coherent neighbourhoods (pool_regions), and
 LERF's query-time scale selection (each name's score the best over the scales' maps: what a multi-scale
-field would answer, with a map per scale).
+field would answer, with a map per scale), and region crops (benchmarks.region_crops: one tight crop per
+DINO-grown region, and per label mask as the upper bound better masks could reach).
 """
 
 from __future__ import annotations
@@ -26,6 +27,8 @@ STANDIN = ROOT / "benchmarks" / "standin"
 STANDIN_DINO = ROOT / "benchmarks" / "standin_dino"
 POOL_RADIUS = 0.1
 """pool_regions' window half-edge, a fraction of the map's shorter side (the scale of the median crop)."""
+REGIONS_DINO = "region crops (DINO regions)"
+REGIONS_MASKS = "region crops (label masks: upper bound)"
 
 
 def _novel_labels(data: Path) -> set[int]:
@@ -61,6 +64,7 @@ def target_candidates(
 
     from PIL import Image
 
+    from benchmarks.region_crops import grow_regions, label_regions, region_target
     from fmgs.features.dino import load_dense_encoder
     from fmgs.features.pyramid import PyramidConfig, scale_maps
     from fmgs.features.scale_blend import BLENDS, blend_scales, pool_regions, scale_weights
@@ -108,6 +112,11 @@ def target_candidates(
                 add(b, t1 - t0)
                 add(f"{b} + pooled", t2 - t0)
             maps["lerf (max over scales)"] = list(sm.maps)
+            finest = sm.maps[int(torch.tensor(sm.edges).argmin())]
+            t0 = clock()
+            maps[REGIONS_DINO] = region_target(enc, img, grow_regions(dense), finest, enc.image_size)
+            add(REGIONS_DINO, clock() - t0)
+            maps[REGIONS_MASKS] = region_target(enc, img, label_regions(lab), finest, enc.image_size)
             scores = candidate_scores(maps, table)
         valid = lab >= 1
         obj = lab >= 2

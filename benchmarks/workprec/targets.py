@@ -25,7 +25,7 @@ def world_scene(work: Path, seed: int, sz: TargetSizes) -> Path:
 
 
 def section(sz: TargetSizes, work: Path) -> dict:
-    from benchmarks.clip_targets import rates, target_candidates
+    from benchmarks.clip_targets import REGIONS_DINO, rates, target_candidates
     from fmgs.features.pyramid import PyramidConfig
     from fmgs.features.sizes import SCALE_BLEND, SCALE_BLENDS
 
@@ -37,7 +37,8 @@ def section(sz: TargetSizes, work: Path) -> dict:
     scales = len(PyramidConfig().scales)
     points = []
     kinds = [(b, "blend", b) for b in SCALE_BLENDS] + [(f"{b} + pooled", "blend + DINO pooling", b) for b in
-             SCALE_BLENDS] + [(LERF, "LERF scale selection", "lerf")]  # fmt: skip
+             SCALE_BLENDS] + [(LERF, "LERF scale selection", "lerf"),
+                              (REGIONS_DINO, "region crops (DINO regions)", "regions")]  # fmt: skip
     for key, curve, label in kinds:
         dino = key != LERF and (key != "mean")  # the equal mean and LERF use no DINO
         own = ms.get(key, 0.0)

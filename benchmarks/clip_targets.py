@@ -185,7 +185,10 @@ def report(d: dict) -> str:
             "candidate's target map is scored as segmentation is (argmax over the scene's names but the "
             "background, on pixels with geometry): pixel accuracy on all of them, on object pixels and on "
             "the held-out-name objects' pixels, pooled over the scenes; mIoU averaged over the scenes. "
-            "These are the dev scenes the build's default blend was chosen on.",
+            "These are the dev scenes the build's default blend was chosen on. Region crops "
+            "(benchmarks.region_crops, the mask-based methods' way): one tight square crop per region "
+            "grown over the DINO map, its embedding averaged with the finest scale's map; with the label "
+            "masks as the regions, the bound that better masks (SAM's) could reach.",
             "",
             *table(d["rates"]),
             "",

@@ -58,7 +58,7 @@ def grow_regions(
         members, todo = [(y, x)], deque([(y, x)])
         while todo:
             cy, cx = todo.popleft()
-            mean = total / np.linalg.norm(total)
+            mean = total / max(float(np.linalg.norm(total)), 1e-12)  # an all-zero map grows nothing
             for ny, nx in ((cy - 1, cx), (cy + 1, cx), (cy, cx - 1), (cy, cx + 1)):
                 if 0 <= ny < h and 0 <= nx < w and not seg[ny, nx] and float(d[ny, nx] @ mean) > cosine:
                     seg[ny, nx] = n

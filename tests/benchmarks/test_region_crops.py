@@ -78,3 +78,10 @@ def test_target_is_the_finest_outside_regions_and_the_mean_inside():
     r = 2**-0.5
     torch.testing.assert_close(t[2, 2], torch.tensor([r, r, 0.0, 0.0]))
     assert torch.isfinite(t).all()
+
+
+def test_an_all_zero_map_gives_no_region_and_no_nan():
+    seg = grow_regions(torch.zeros(5, 6, 8))
+    assert (seg == 0).all()
+    t = region_target(lambda c: torch.ones(len(c), 3), torch.rand(5, 6, 3), seg, torch.zeros(5, 6, 3), 4)
+    assert torch.isfinite(t).all()

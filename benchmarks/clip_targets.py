@@ -54,12 +54,13 @@ def target_candidates(
     standin_dino: Path = STANDIN_DINO,
     views: int = 6,
     seconds: dict[str, float] | None = None,
+    regions: bool = True,
 ) -> dict[str, dict]:
     """{candidate: scores} over the first ``views`` views of scene ``data`` (see the module docstring):
     hits and totals, to be pooled over scenes by ``rates``. ``seconds``, when given, gathers the time
     spent (added to what it holds): "views", "pyramid" (every crop through the CLIP stand-in), "dino" (the
     dense map) and each candidate's own (its weights, blend and pooling on top of those), in CPU seconds
-    of this process."""
+    of this process. ``regions``: also the region-crop candidates."""
     import time
 
     from PIL import Image
@@ -112,11 +113,12 @@ def target_candidates(
                 add(b, t1 - t0)
                 add(f"{b} + pooled", t2 - t0)
             maps["lerf (max over scales)"] = list(sm.maps)
-            finest = sm.maps[int(torch.tensor(sm.edges).argmin())]
-            t0 = clock()
-            maps[REGIONS_DINO] = region_target(enc, img, grow_regions(dense), finest, enc.image_size)
-            add(REGIONS_DINO, clock() - t0)
-            maps[REGIONS_MASKS] = region_target(enc, img, label_regions(lab), finest, enc.image_size)
+            if regions:
+                finest = sm.maps[int(torch.tensor(sm.edges).argmin())]
+                t0 = clock()
+                maps[REGIONS_DINO] = region_target(enc, img, grow_regions(dense), finest, enc.image_size)
+                add(REGIONS_DINO, clock() - t0)
+                maps[REGIONS_MASKS] = region_target(enc, img, label_regions(lab), finest, enc.image_size)
             scores = candidate_scores(maps, table)
         valid = lab >= 1
         obj = lab >= 2

@@ -94,17 +94,18 @@ def label_regions(labels: torch.Tensor, min_pixels: int = MIN_PIXELS) -> np.ndar
 def region_boxes(seg: np.ndarray) -> list[tuple[int, tuple[int, int, int, int]]]:
     """[(region id, (x0, y0, x1, y1))]: the square on each region's bounding box's longer side, centred on
     the box and shifted inside the image (x1, y1 exclusive)."""
+    from scipy import ndimage
+
     h, w = seg.shape
     out = []
-    for r in range(1, int(seg.max()) + 1):
-        ys, xs = np.nonzero(seg == r)
-        if len(ys) == 0:
+    for i, box in enumerate(ndimage.find_objects(seg)):  # every region's bounding box in one pass
+        if box is None:
             continue
-        y0, y1, x0, x1 = ys.min(), ys.max() + 1, xs.min(), xs.max() + 1
-        e = int(min(h, w, max(y1 - y0, x1 - x0)))
+        (y0, y1), (x0, x1) = (box[0].start, box[0].stop), (box[1].start, box[1].stop)
+        e = min(h, w, max(y1 - y0, x1 - x0))
         bx = round(min(max((x0 + x1 - e) / 2, 0), w - e))
         by = round(min(max((y0 + y1 - e) / 2, 0), h - e))
-        out.append((r, (bx, by, bx + e, by + e)))
+        out.append((i + 1, (bx, by, bx + e, by + e)))
     return out
 
 
@@ -127,8 +128,9 @@ def region_target(
     crops = torch.cat([_cut(img, torch.tensor([b]), crop_px) for _, b in boxes])  # sizes differ: one by one
     emb = torch.cat([embed_fn(crops[i : i + BATCH]) for i in range(0, len(crops), BATCH)])
     emb = safe_normalize(emb.float())
+    table = torch.zeros(int(seg.max()) + 1, emb.shape[1])  # region id -> its crop's embedding (0: none)
+    table[torch.tensor([r for r, _ in boxes])] = emb
     ids = torch.from_numpy(seg)
-    for (r, _), e in zip(boxes, emb, strict=True):
-        m = ids == r
-        out[m] = safe_normalize(out[m] + e)
+    inside = ids > 0
+    out[inside] = safe_normalize(out[inside] + table[ids[inside]])
     return out

@@ -12,7 +12,8 @@ label names when it was built from label targets) embedded by the scene's text e
 ``exclude`` negatives nearest to q by text similarity: a query may mean the same as its nearest names
 ("coffee cup" and "mug"), so those cannot speak against it. The query is found when presence > 0.5: some
 best Gaussian is closer to the query than to any name the query does not mean. A mug's Gaussians are
-closer to "mug" than to "laptop", so "laptop" is not found there.
+closer to "mug" than to "laptop", so "laptop" is not found there. With ``PresenceConfig.quorum`` = k the
+max is the k-th best margin instead: k best Gaussians must each be closer to the query.
 
 A query that names a colour (fmgs.query.colours) asks the colour question on its own too: its text is
 first put in canonical form (colour synonyms mapped to the plain word: "scarlet cube" -> "red cube"),
@@ -60,10 +61,17 @@ class PresenceConfig:
     """Negatives nearest to the query (text similarity) that are taken as possible paraphrases."""
     temperature: float = 10.0
     """Sharpness of the score (the relevancy's); the found/not-found decision does not depend on it."""
+    quorum: int = 1
+    """Best Gaussians that must each beat every negative (capped at the rows there are): the margin is
+    the quorum-th best. 1 lets one Gaussian decide; a distilled field's embeddings are noisy, and an
+    instance's worth (``InstanceConfig.min_points``) asks that a group agree (CLIP_PATH.md measures
+    both)."""
 
     def __post_init__(self) -> None:
-        if self.rows < 1 or self.exclude < 0 or not self.temperature > 0:
-            raise ValueError(f"presence: rows >= 1, exclude >= 0 and temperature > 0 required, got {self}")
+        if self.rows < 1 or self.exclude < 0 or not self.temperature > 0 or self.quorum < 1:
+            raise ValueError(
+                f"presence: rows >= 1, exclude >= 0, temperature > 0 and quorum >= 1 required, got {self}"
+            )
 
 
 class Presence(NamedTuple):
@@ -74,10 +82,10 @@ class Presence(NamedTuple):
     found: bool
     """margin > 0: some best Gaussian is closer to the query than to any negative it does not mean."""
     margin: float
-    """Best f.q - max f.n over the contrasted Gaussians (float64)."""
+    """The quorum-th best f.q - max f.n over the contrasted Gaussians (float64; with quorum 1 the best)."""
     rival: int
     """Index into the negatives, then the query's contrasts (V + s), of the one that decided the margin
-    at the best Gaussian."""
+    at the Gaussian whose margin it is."""
 
 
 class Probe(NamedTuple):
@@ -150,7 +158,8 @@ def presence(
         kept = torch.cat([kept, torch.arange(V, V + fc.shape[1])])
     rival_dot, rival = fn[:, kept].max(1)
     margins = fq - rival_dot
-    b = int(torch.argmax(margins))
+    # The quorum-th best margin; a stable sort keeps the first row among equal margins.
+    b = int(torch.sort(margins, descending=True, stable=True).indices[min(cfg.quorum, T) - 1])
     m = float(margins[b])
     return Presence(_sigmoid(cfg.temperature * m), m > 0, m, int(kept[rival[b]]))
 
@@ -176,11 +185,11 @@ def presence_reference(
     excluded = set(order[: cfg.exclude])
     if contrasts is not None:
         negs += [[float(x) for x in row] for row in contrasts.double()]
-    best_m, best_r = None, -1
-    for row in best.double():
+    per_row = []
+    for t, row in enumerate(best.double()):
         f = [float(x) for x in row]
         r = max((i for i in range(len(negs)) if i not in excluded), key=lambda i: (dot(f, negs[i]), -i))
-        m = dot(f, q) - dot(f, negs[r])
-        if best_m is None or m > best_m:
-            best_m, best_r = m, r
-    return Presence(_sigmoid(cfg.temperature * best_m), best_m > 0, best_m, best_r)
+        per_row.append((dot(f, q) - dot(f, negs[r]), t, r))
+    ordered = sorted(per_row, key=lambda x: (-x[0], x[1]))
+    m, _, r = ordered[min(cfg.quorum, len(ordered)) - 1]
+    return Presence(_sigmoid(cfg.temperature * m), m > 0, m, r)

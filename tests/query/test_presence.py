@@ -28,7 +28,7 @@ ABSENT = ("laptop", "giraffe", "umbrella", "fire truck", "piano", "sofa", "tenni
 def test_presence_equals_its_one_at_a_time_twin(seed):
     g = torch.Generator().manual_seed(seed)
     D, T, V = 24, (1, 5, 64)[seed % 3], (9, 40)[seed % 2]
-    cfg = PresenceConfig(exclude=(0, 3, 8)[seed % 3])
+    cfg = PresenceConfig(exclude=(0, 3, 8)[seed % 3], quorum=(1, 2, 7, 100)[seed % 4])
     q = safe_normalize(torch.randn(D, generator=g, dtype=torch.float64))
     best = safe_normalize(torch.randn(T, D, generator=g, dtype=torch.float64) + (seed % 4) * q)
     negs = safe_normalize(torch.randn(V, D, generator=g, dtype=torch.float64))
@@ -40,6 +40,24 @@ def test_presence_equals_its_one_at_a_time_twin(seed):
     assert fast.found == ref.found and fast.rival == ref.rival
     assert abs(fast.margin - ref.margin) < 1e-12 and abs(fast.score - ref.score) < 1e-12
     assert 0.0 <= fast.score <= 1.0 and math.isfinite(fast.margin)
+
+
+def test_a_quorum_needs_that_many_gaussians_and_ties_keep_the_first_row():
+    q = torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64)
+    negs = safe_normalize(torch.tensor([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0]], dtype=torch.float64))
+    # one Gaussian of the query, two closer to the first negative, one tied with it
+    rows = [[1.0, 0.0, 0.0], [0.3, 0.9, 0.0], [0.2, 0.0, 0.9], [0.3, 0.9, 0.0]]
+    f = torch.tensor(rows, dtype=torch.float64)
+    dots = (f @ q, f @ negs.T, negs @ q)
+    one = presence(*dots, PresenceConfig(exclude=0))
+    assert one.found and one.margin == pytest.approx(1.0)
+    two = presence(*dots, PresenceConfig(exclude=0, quorum=2))
+    assert not two.found and two.margin == pytest.approx(-0.6) and two.rival == 0
+    assert two == presence_reference(q, f, negs, PresenceConfig(exclude=0, quorum=2))
+    capped = presence(*dots, PresenceConfig(exclude=0, quorum=99))  # more than the rows: the worst row
+    assert capped.margin == pytest.approx(-0.7) and capped.rival == 1
+    with pytest.raises(ValueError, match="quorum"):
+        PresenceConfig(quorum=0)
 
 
 def test_paraphrases_are_not_negatives_and_extremes_stay_finite():

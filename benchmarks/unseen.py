@@ -102,8 +102,10 @@ def presence_queries(label_names: list[str]) -> list[tuple[str, str]]:
     return out
 
 
-def score_presence(engine, encoder, label_names: list[str]) -> list[dict]:
-    """Presence and top relevancy of every query, as the server computes them."""
+def score_presence(engine, encoder, label_names: list[str], cfg=None) -> list[dict]:
+    """Presence and top relevancy of every query, as the server computes them (with PresenceConfig
+    ``cfg``, the engine's default when None)."""
+    from fmgs.query.engine import PRESENCE
     from fmgs.query.presence import negative_names, probes
 
     queries = presence_queries(label_names)
@@ -112,7 +114,7 @@ def score_presence(engine, encoder, label_names: list[str]) -> list[dict]:
     texts = [t for _, t in queries]
     vecs = encoder.encode_text(texts)
     pr = probes(texts, vecs, encoder.encode_text)
-    answers = engine.text_query_many(vecs, 10, negatives=negs, probes=pr)
+    answers = engine.text_query_many(vecs, 10, negatives=negs, probes=pr, presence_cfg=cfg or PRESENCE)
     out = []
     for (kind, text), a, p in zip(queries, answers, pr, strict=True):
         rivals = [*names, *p.names]

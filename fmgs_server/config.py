@@ -92,6 +92,9 @@ class ServerConfig:
     recorded revision cannot be had, or whose cached files differ, fails its queries naming the model."""
     text_cache: int = 4096
     """Text embeddings cached per encoder."""
+    presence_quorum: int = 1
+    """Best Gaussians of a text query that must each beat every presence negative for ``found``
+    (fmgs.query.presence.PresenceConfig.quorum); 1: one suffices."""
     tls_cert: Path | None = None
     """Server certificate (PEM); with tls_key enables TLS."""
     tls_key: Path | None = None
@@ -141,7 +144,7 @@ class ServerConfig:
         positive = (
             "max_concurrent_rpcs max_streams max_receive_bytes chunk_bytes max_send_bytes max_image_side "
             "max_image_pixels max_top_k default_top_k max_texts max_text_chars max_points text_cache "
-            "point_chunk default_geometry max_geometry"
+            "point_chunk default_geometry max_geometry presence_quorum"
         ).split()
         for name in positive:
             if getattr(self, name) < 1:

@@ -216,10 +216,14 @@ class ShardedSceneService:
             return shard_text(engine, rows, gi, sq)
 
     def finish_text(self, plan: TextPlan, parts: list) -> Iterator[pb.TextQueryChunk]:
+        from fmgs.query.presence import PresenceConfig
         from fmgs.query.sharded import merge_text
 
         sq, n = plan.query, len(plan.texts)
-        answers = [merge_text([p[j] for p in parts], sq, j, plan.instances, plan.means_box) for j in range(n)]
+        pcfg = PresenceConfig(quorum=self.cfg.presence_quorum)
+        answers = [
+            merge_text([p[j] for p in parts], sq, j, plan.instances, plan.means_box, pcfg) for j in range(n)
+        ]
         ms = (time.perf_counter() - plan.t0) * 1e3 / max(1, n)
         for i, (text, a) in enumerate(zip(plan.texts, answers, strict=True)):
             yield from responses.text_chunks(

@@ -226,18 +226,19 @@ class ShardedSceneEngine:
         negatives: torch.Tensor | None = None,
         columns: tuple[str, ...] = (),
         probes: Sequence[Probe] | None = None,
+        presence_cfg: PresenceConfig = PRESENCE,
     ) -> list[TextAnswer]:
         """As SceneEngine.text_query_many, the shards scored one after another here."""
         np32 = lambda t: None if t is None else t.detach().float().cpu().numpy()  # noqa: E731
         sq = ShardQuery(
             np32(queries), int(top_k), float(threshold), np32(canonical), np32(negatives),
-            shard_probes(probes), instances is not None, tuple(columns),
+            shard_probes(probes), instances is not None, tuple(columns), presence_cfg.rows,
         )  # fmt: skip
         per_shard = [
             shard_text(e, rows, gi, sq) for e, (gi, rows) in zip(self.engines, self.maps, strict=True)
         ]
         return [
-            merge_text([p[j] for p in per_shard], sq, j, instances, self.manifest.means_box)
+            merge_text([p[j] for p in per_shard], sq, j, instances, self.manifest.means_box, presence_cfg)
             for j in range(len(sq.queries))
         ]
 

@@ -117,6 +117,33 @@ def test_query_matches_engine(client, models):
     assert e.value.code == "FAILED_PRECONDITION"
 
 
+def test_presence_quorum_is_the_servers_setting(models):
+    """--presence-quorum reaches the engine: presence as PresenceConfig(quorum=...) decides it."""
+    from fmgs.query.presence import PresenceConfig
+
+    eng = SceneEngine.open(models / "blobs")
+    enc = FakeEncoder()
+    names = negative_names(eng.manifest.label_names)
+    negs = enc.encode_text(names)
+    texts = [*CLASS_NAMES, "giraffe"]
+    vecs = enc.encode_text(texts)
+    srv = _start(models, presence_quorum=40)
+    try:
+        with FmgsClient(srv.address, timeout=30) as c:
+            got = c.query("blobs", texts, top_k=3)
+    finally:
+        srv.stop(0)
+    margins = []
+    for a, v, pr in zip(got, vecs, probes(texts, vecs, enc.encode_text), strict=True):
+        p = eng.text_query(v, 3, negatives=negs, probe=pr, presence_cfg=PresenceConfig(quorum=40)).presence
+        one = eng.text_query(v, 3, negatives=negs, probe=pr).presence
+        assert a.presence.margin == p.margin and a.found == p.found
+        margins.append((p.margin, one.margin))
+    assert any(m < m1 for m, m1 in margins)  # the quorum made a difference somewhere
+    with pytest.raises(ValueError, match="presence_quorum"):
+        ServerConfig(models=models, presence_quorum=0).validate()
+
+
 def test_render_float_and_png(client):
     cam = _cam()
     r = client.render("blobs", cam, "green ball", outputs=("relevancy", "rgb", "depth", "alpha"))

@@ -33,6 +33,7 @@ import numpy as np
 from benchmarks.common import machine, machine_words, save_report
 from benchmarks.unseen import PRESENT_KINDS, build_scene, presence_rates, scene_quality, score_presence
 from fmgs.query.instances import InstanceConfig
+from fmgs.query.presence import PresenceConfig
 
 ROOT = Path(__file__).resolve().parents[1]
 STANDIN = ROOT / "benchmarks" / "standin"
@@ -142,7 +143,6 @@ def score(out: Path, seed: int, data: Path, variants: list[str]) -> dict:
     from fmgs.data.dataset import load_dataset
     from fmgs.features.text import MiniLMTextEncoder
     from fmgs.query.engine import SceneEngine
-    from fmgs.query.presence import PresenceConfig
 
     ds = load_dataset(data)
     enc = MiniLMTextEncoder()
@@ -157,6 +157,7 @@ def score(out: Path, seed: int, data: Path, variants: list[str]) -> dict:
         key = hashlib.sha256((pkg / "manifest.json").read_bytes()).hexdigest()
         kept = out / f"score-{name}.json"  # the package's scores, kept while its manifest is the same
         stored = json.loads(kept.read_text()) if kept.is_file() else {}
+        engine = None  # opened only when something is to be scored
         if stored.get("manifest_sha256") == key:
             q = stored["quality"]
         else:
@@ -167,9 +168,8 @@ def score(out: Path, seed: int, data: Path, variants: list[str]) -> dict:
             q["bytes"] = package_bytes(pkg)
             kept.write_text(json.dumps({"manifest_sha256": key, "quality": q}, default=float))
         if "presence_quorum" not in q:  # scored apart so that older scores are kept
-            q["presence_quorum"] = score_presence(
-                SceneEngine.open(pkg), enc, names, PresenceConfig(quorum=QUORUM)
-            )
+            engine = engine or SceneEngine.open(pkg)
+            q["presence_quorum"] = score_presence(engine, enc, names, PresenceConfig(quorum=QUORUM))
             kept.write_text(json.dumps({"manifest_sha256": key, "quality": q}, default=float))
         rec = out / f"build-{seed if kind == 'labels' else name}.json"  # build_scene names the label one
         q["build_seconds"] = json.loads(rec.read_text())["seconds"]
@@ -297,8 +297,8 @@ def report(d: dict) -> str:
         "",
         f"## Presence with a quorum of {QUORUM} Gaussians",
         "",
-        "Presence as served lets the single best of the query's 64 best Gaussians decide "
-        "(`PresenceConfig.quorum` 1); with a quorum of "
+        "Presence as served lets the single best of the query's "
+        f"{PresenceConfig().rows} best Gaussians decide (`PresenceConfig.quorum` 1); with a quorum of "
         f"{QUORUM} (instance grouping's `min_points`), the {QUORUM} best must each be closer to the query "
         "than to every negative it does not mean. Same packages, same queries:",
         "",

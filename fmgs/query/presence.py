@@ -80,7 +80,8 @@ class Presence(NamedTuple):
     score: float
     """In [0,1]: sigmoid(temperature * margin)."""
     found: bool
-    """margin > 0: some best Gaussian is closer to the query than to any negative it does not mean."""
+    """margin > 0: quorum best Gaussians (some one, at quorum 1) are each closer to the query than to any
+    negative it does not mean."""
     margin: float
     """The quorum-th best f.q - max f.n over the contrasted Gaussians (float64; with quorum 1 the best)."""
     rival: int

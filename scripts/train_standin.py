@@ -10,7 +10,7 @@ Seeds no evaluation uses (the benchmarks score 7 and 101-299).
 
 From each view, square crops at the CLIP pyramid's scales (PyramidConfig.scales x the image's short
 side), centred at random pixels. What a crop shows is its content, not only its centre, as with CLIP: each
-label's share of the crop under a Gaussian window about the centre (fmgs.features.standin.WINDOW_SIGMA)
+label's share of the crop under a Gaussian window about the centre (fmgs.features.crop_content.WINDOW_SIGMA)
 is its weight in a soft target over captions, and an object's weight is spread over captions of varying
 detail, as image captions vary ("red striped cube", "red cube", "cube"), so that colour and shape words
 each get a direction of their own. The loss is the cross-entropy of a softmax over every training
@@ -31,6 +31,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from fmgs.features.crop_content import caption_matrix, captions, salient, world
 from fmgs.features.standin import sample_crop_targets
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -40,12 +41,6 @@ VIEWS = 12
 """Views per training scene: many scenes (object instances, layouts) generalise better than many views."""
 IMAGE_SIZE = 32
 MEAN, STD = (0.5, 0.5, 0.5), (0.25, 0.25, 0.25)
-CAPTION_WEIGHTS = (0.5, 0.3, 0.2)
-"""An object's weight spread over its full name, "<colour> <shape>" and "<shape>" (merged when equal) in
-the text-space target."""
-STUFF_SALIENCE = 0.25
-"""Weight of floor, wall and backdrop against objects in what a crop shows: captions name things more
-than the surfaces they stand on, and CLIP follows its captions."""
 OBJECT_SHARE = 0.5
 """Fraction of training crops centred on an object pixel (objects are a small part of most views)."""
 TEMPERATURE = 0.05
@@ -73,33 +68,6 @@ def scene(work: Path, seed: int, novel: int = 0, views: int = VIEWS) -> Path:
     return data
 
 
-def world(name: str):
-    """The WorldObject a label name names, or None for stuff (floor, wall, background)."""
-    from fmgs.synthworld import world_object
-
-    try:
-        return world_object(name)
-    except ValueError:
-        return None
-
-
-def captions(name: str) -> list[tuple[str, float]]:
-    """(caption, weight) of one label name: world objects get captions of varying detail."""
-    o = world(name)
-    if o is None:
-        return [(name, 1.0)]
-    out: dict[str, float] = {}
-    for cap, w in zip((name, f"{o.colour} {o.shape}", o.shape), CAPTION_WEIGHTS, strict=True):
-        out[cap] = out.get(cap, 0.0) + w
-    return list(out.items())
-
-
-def salient(shares: torch.Tensor, names: list[str]) -> torch.Tensor:
-    """[N,L] label weights: shares with stuff (floor, wall, backdrop) down-weighted, rows summing to 1."""
-    w = shares * torch.tensor([STUFF_SALIENCE if world(n) is None else 1.0 for n in names])
-    return w / w.sum(1, keepdim=True)
-
-
 def soft_targets(
     weights: torch.Tensor, names: list[str], vocab: dict[str, int]
 ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -107,12 +75,9 @@ def soft_targets(
     its own name), and the text-space target's caption mixture [N,V] (objects spread over captions of
     varying detail)."""
     name_m = torch.zeros(len(names), len(vocab))
-    caption_m = torch.zeros(len(names), len(vocab))
     for i, n in enumerate(names):
         name_m[i, vocab[n]] = 1.0
-        for cap, w in captions(n):
-            caption_m[i, vocab[cap]] += w
-    return weights @ name_m, weights @ caption_m
+    return weights @ name_m, weights @ caption_matrix(names, vocab)
 
 
 def dataset(work: Path, seed_list: list[int], per_view: int, rng, novel: int = 0) -> list:

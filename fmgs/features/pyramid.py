@@ -193,11 +193,18 @@ def scale_map(
     """One scale's map: img [3,H,W] -> [h,w,D] float32 (out_hw = (h, w)), the grid's crop embeddings
     interpolated bilinearly through the crop centres to the output pixels' centres (not normalised)."""
     H, W = img.shape[1:]
-    h, w = out_hw
-    emb = scale_grid_embeddings(embed_fn, img, grid, cfg, bar)  # [ny, nx, D]
-    ay = interp_matrix(grid.centers_y, h, H).to(img.device, torch.float32)  # [h, ny]
-    ax = interp_matrix(grid.centers_x, w, W).to(img.device, torch.float32)  # [w, nx]
-    return torch.einsum("hy,ywd->hwd", ay, torch.einsum("yxd,wx->ywd", emb, ax))
+    return grid_map(scale_grid_embeddings(embed_fn, img, grid, cfg, bar), grid, (H, W), out_hw)
+
+
+def grid_map(
+    emb: torch.Tensor, grid: CropGrid, image_hw: tuple[int, int], out_hw: tuple[int, int]
+) -> torch.Tensor:
+    """The grid's crop embeddings emb [ny,nx,D] of an image of ``image_hw`` interpolated bilinearly
+    through the crop centres to the output pixels' centres: [h,w,D] float32 (out_hw = (h, w))."""
+    (H, W), (h, w) = image_hw, out_hw
+    ay = interp_matrix(grid.centers_y, h, H).to(emb.device, torch.float32)  # [h, ny]
+    ax = interp_matrix(grid.centers_x, w, W).to(emb.device, torch.float32)  # [w, nx]
+    return torch.einsum("hy,ywd->hwd", ay, torch.einsum("yxd,wx->ywd", emb.float(), ax))
 
 
 def _check_image(image: torch.Tensor, out_hw: tuple[int, int]) -> tuple[int, int]:

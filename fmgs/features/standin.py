@@ -26,6 +26,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from fmgs.errors import ValidationError
+from fmgs.features.crop_content import window as crop_window
 from fmgs.features.models import MINILM_ID, ModelFiles, ModelNotFoundError, local_weight_hashes
 from fmgs.features.pyramid import PyramidConfig
 from fmgs.vecmath import safe_normalize
@@ -143,9 +144,6 @@ def load_standin(model_id: str, device: str | torch.device = "cpu") -> StandinIm
 WALL = "wall"
 """The name of backdrop geometry (label 0 with a depth: the world's room walls) in crop targets; label 0
 without geometry keeps its scene name ("background")."""
-WINDOW_SIGMA = 0.25
-"""A crop's content is weighed by a Gaussian window of this sigma (a fraction of the crop edge) about its
-centre: what a crop shows, with what lies at its middle counting most."""
 
 
 class CropSample(NamedTuple):
@@ -214,8 +212,8 @@ def sample_crop_targets(
             # as the pyramid cuts crops (fmgs.features.pyramid._cut): bilinear, antialiased
             out.append(F.interpolate(c, size=(image_size, image_size), mode="bilinear", antialias=True))
             window = lab[y0 : y0 + side, x0 : x0 + side]
-            t = (np.arange(side) + 0.5 - side / 2) / (WINDOW_SIGMA * side)
-            w = np.exp(-0.5 * (t[:, None] ** 2 + t[None, :] ** 2))
+            g = crop_window(side)
+            w = g[:, None] * g[None, :]
             sh = np.bincount(window.reshape(-1), w.reshape(-1), minlength=L)
             shares.append(sh / sh.sum())
             centre.append([*names, WALL][int(window[side // 2, side // 2])])

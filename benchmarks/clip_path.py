@@ -48,13 +48,18 @@ VARIANTS: dict[str, dict] = {
     "coherence": {"blend": "coherence", "dino": True, "dotsim": True},
     "paper no-dotsim": {"blend": "mean", "dino": True, "dotsim": False},
     "paper no-DINO": {"blend": "mean", "dino": False, "dotsim": False},
+    "oracle": {"blend": "dominant", "dino": True, "dotsim": True, "oracle": True},
+    "oracle paper": {"blend": "mean", "dino": True, "dotsim": True, "oracle": True},
 }
 """The CLIP builds: scale blend (fmgs.features.scale_blend), DINO targets and the dotsim loss. "dominant"
-with DINO and dotsim is the build's default."""
+with DINO and dotsim is the build's default. "oracle" variants name every crop without error
+(benchmarks.clip_oracle) and distil with ``fmgs train-field``: the method apart from the stand-in."""
 DESCRIBE = {
     "paper": "the paper's equal mean of the 7 scales, DINO head and dotsim (the FMGS recipe)",
     "dominant": "the default: the scales whose crop is at least half the pixel's DINO region, equally",
     "coherence": "each scale weighed by its crop's DINO coherence with the pixel",
+    "oracle": "the default with every crop named without error (benchmarks.clip_oracle), not the stand-in",
+    "oracle paper": "the paper's equal mean with every crop named without error",
 }
 
 
@@ -87,6 +92,8 @@ def clip_build(
     v = VARIANTS[variant]
     name = variant_name(seed, variant)
     ply = out / "models" / ".work" / f"s{seed}" / "gs" / "point_cloud.ply"
+    if v.get("oracle"):
+        return oracle_build(out, name, data, v, ply, field_steps, standin, dino, threads)
     cmd = ["build", str(data), "--name", name, "--models", str(out / "models"), "--targets", "clip",
            "--clip-model", f"standin:{standin}", "--ply", str(ply), "--scale-blend", v["blend"],
            "--dino-model", f"standin-dino:{dino}" if v["dino"] else "none"]  # fmt: skip
@@ -100,6 +107,34 @@ def clip_build(
     if record.is_file() and json.loads(record.read_text())["command"] == cmd:
         return out / "models" / name
     t0 = time.perf_counter()
+    assert fmgs(cmd) == 0
+    record.write_text(json.dumps({"seconds": time.perf_counter() - t0, "command": cmd}))
+    return out / "models" / name
+
+
+def oracle_build(
+    out: Path, name: str, data: Path, v: dict, ply: Path, field_steps: int | None, standin: Path, dino: Path,
+    threads: int,
+) -> Path:  # fmt: skip
+    """An oracle variant (benchmarks.clip_oracle): its feature cache, then ``fmgs train-field`` on the
+    label build's 3DGS into package ``name``."""
+    from benchmarks.clip_oracle import oracle_cache
+    from fmgs.cli import main as fmgs
+
+    work = out / "models" / ".work" / name
+    record = out / f"build-{name}.json"
+    cmd = ["train-field", str(data), "--gaussians", str(ply), "--features", str(work / "features"),
+           "--out", str(work / "field"), "--package", str(out / "models" / name)]  # fmt: skip
+    if not v["dotsim"]:
+        cmd.append("--no-dotsim")
+    if field_steps is not None:
+        cmd += ["--field-steps", str(field_steps)]
+    if threads:
+        cmd += ["--threads", str(threads)]
+    if record.is_file() and json.loads(record.read_text())["command"] == cmd:
+        return out / "models" / name
+    t0 = time.perf_counter()
+    oracle_cache(data, work / "features", standin, dino if v["dino"] else None, v["blend"])
     assert fmgs(cmd) == 0
     record.write_text(json.dumps({"seconds": time.perf_counter() - t0, "command": cmd}))
     return out / "models" / name
@@ -231,6 +266,54 @@ def standin_errors(cfg: dict) -> str:
     )
 
 
+REFIT = "the label path on the added variants' builds"
+"""Section of the report on the label builds an addition (``--add-to``) was made on."""
+
+
+def refit_section(rows: list[dict]) -> list[str]:
+    """The label path on the label builds the added variants were distilled on, beside the one in the
+    tables (the 3DGS is fitted again, so figures may differ); empty when nothing was added."""
+    if not any("refit_labels" in r for r in rows):
+        return []
+    lines = [
+        "",
+        f"## {REFIT[0].upper()}{REFIT[1:]}",
+        "",
+        "Variants added to this report later were distilled on label builds made again from the same "
+        "scenes with the same settings (the 3DGS fitted again), compare them with these label figures:",
+        "",
+        "| seed | label build | 2D loc. | 3D loc. | mIoU | present found | absent rejected |",
+        "|---|---|---:|---:|---:|---:|---:|",
+    ]
+    for r in (r for r in rows if "refit_labels" in r):
+        for which, q in (("in the tables", r["kinds"]["labels"]), ("made again", r["refit_labels"])):
+            pf, pn, af, an = presence_accuracy(q)
+            lines.append(
+                f"| {r['seed']} | {which} | {q['localisation_2d']:.3f} | {q['localisation_3d']:.3f} | "
+                f"{q['miou']:.3f} | {pf}/{pn} | {af}/{an} |"
+            )
+    return lines
+
+
+def add_to(stored: dict, rows: list[dict], variants: list[str], addition: dict) -> dict:
+    """``stored`` (a clip_path.json) with ``variants`` of ``rows`` (scored on label builds made again)
+    added to its rows of the same seeds, those label figures as ``refit_labels``, and ``addition``
+    (command, machine) listed."""
+    by_seed = {r["seed"]: r for r in rows}
+    missing = [r["seed"] for r in stored["rows"] if r["seed"] not in by_seed]
+    if missing:
+        raise ValueError(f"no new scores for seeds {missing} of the stored report")
+    for r in stored["rows"]:
+        new = by_seed[r["seed"]]
+        r["refit_labels"] = new["kinds"]["labels"]
+        for v in variants:
+            if v in new["kinds"]:
+                r["kinds"][v] = new["kinds"][v]
+    stored["variants"] = [*stored["variants"], *(v for v in variants if v not in stored["variants"])]
+    stored["additions"] = [*stored.get("additions", []), addition]
+    return stored
+
+
 def report(d: dict) -> str:
     rows, info, cmd = d["rows"], d["machine"], d["command"]
     kinds = ["labels", *d["variants"]]
@@ -239,7 +322,12 @@ def report(d: dict) -> str:
     lines = [
         "# The CLIP-target path on meaning, in the wider world",
         "",
-        f"Measured {info['date']} on {machine_words(info)}, one run of `{cmd}`.",
+        f"Measured {info['date']} on {machine_words(info)}, one run of `{cmd}`."
+        + "".join(
+            f" Added {a['machine']['date']} on {machine_words(a['machine'])}: {', '.join(a['variants'])}, "
+            f"one run of `{a['command']}`, on label builds made again for it (see {REFIT})."
+            for a in d.get("additions", [])
+        ),
         "",
         f"Scenes: `fmgs synth --preset world --objects 10 --novel {NOVEL}` (fmgs.synthworld: objects of "
         'distinct shapes from 15, each in one of 12 colours and one of 11 surface textures, named "<colour> '
@@ -350,6 +438,7 @@ def report(d: dict) -> str:
             "",
             *table(d["target_maps"]),
         ]
+    lines += refit_section(rows)
     if d.get("notes"):
         lines += ["", "## Notes on this run", "", *(f"- {n}" for n in d["notes"])]
     lines += [
@@ -389,6 +478,12 @@ def main() -> int:
     ap.add_argument("--report", action="store_true", help="also write benchmarks/results/CLIP_PATH.md")
     ap.add_argument("--note", action="append", default=[], help="a line for the report's notes (repeatable)")
     ap.add_argument(
+        "--add-to",
+        metavar="JSON",
+        help="add the variants scored here (on label builds made again in OUT) to a stored clip_path.json "
+        "and write the report from it; its target-map table and notes are kept (with --note: appended)",
+    )
+    ap.add_argument(
         "--no-build",
         action="store_true",
         help="build nothing: score the builds already in OUT (a variant "
@@ -422,13 +517,18 @@ def main() -> int:
         rows.append(score(out, seed, data, variants))
         datas.append(data)
         (out / "clip_path.json").write_text(json.dumps({"rows": rows}, indent=1, default=float))
-    from benchmarks.clip_targets import rates, target_candidates
-
-    maps = rates([target_candidates(d, standin, dino, a.target_views) for d in datas])
     info = {**machine(), "date": time.strftime("%Y-%m-%d")}
     argv = sys.argv[1:]
     argv = [x for i, x in enumerate(argv) if x != "--note" and (i == 0 or argv[i - 1] != "--note")]
     cmd = "python -m benchmarks.clip_path " + shlex.join(argv)
+    if a.add_to:
+        addition = {"command": cmd, "variants": variants, "machine": info}
+        d = add_to(json.loads(Path(a.add_to).read_text()), rows, variants, addition)
+        d["notes"] = [*d.get("notes", []), *a.note]
+        return write(d, out, a.report)
+    from benchmarks.clip_targets import rates, target_candidates
+
+    maps = rates([target_candidates(d, standin, dino, a.target_views) for d in datas])
     d = {
         "rows": rows,
         "variants": variants,
@@ -440,13 +540,19 @@ def main() -> int:
         "standin_dino": json.loads((dino / "standin_dino.json").read_text()),
         "notes": a.note,
     }
-    (out / "clip_path.json").write_text(json.dumps(d, indent=1, default=float))
-    if a.report:  # the report's figures, committed beside it (tests/benchmarks/test_clip_path_report.py)
-        figures = json.dumps(d, indent=1, default=float)
+    return write(d, out, a.report)
+
+
+def write(d: dict, out: Path, committed: bool) -> int:
+    """Store the figures ``d`` in OUT/clip_path.json and the report written from them in OUT/CLIP_PATH.md;
+    ``committed``: both into benchmarks/results/ too (CLIP_PATH.json beside CLIP_PATH.md,
+    tests/benchmarks/test_clip_path_report.py)."""
+    figures = json.dumps(d, indent=1, default=float)
+    (out / "clip_path.json").write_text(figures)
+    if committed:
         (ROOT / "benchmarks" / "results" / "CLIP_PATH.json").write_text(figures)
-    d = json.loads((out / "clip_path.json").read_text())  # the report is written from what is stored
-    text = report(d)
-    save_report(text, out, "CLIP_PATH.md", a.report)
+    text = report(json.loads(figures))  # the report is written from what is stored
+    save_report(text, out, "CLIP_PATH.md", committed)
     print(text)
     return 0
 

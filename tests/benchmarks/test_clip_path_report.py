@@ -7,6 +7,8 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import pytest
+
 from benchmarks.clip_path import report, summary
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -40,3 +42,35 @@ def test_committed_target_report_is_written_from_its_figures_and_backs_the_defau
     assert targets_report(d) == (RESULTS / "CLIP_TARGETS.md").read_text()
     best = max(SCALE_BLENDS, key=lambda b: d["rates"][b]["object_pixels"])
     assert best == SCALE_BLEND
+
+
+def test_an_added_variant_joins_every_table_and_its_label_builds_are_shown():
+    """``--add-to``: a variant scored on label builds made again joins the stored rows of its seeds; the
+    report lists it in every table and shows both label builds per seed."""
+    import copy
+
+    from benchmarks.clip_path import REFIT, add_to
+
+    d = _figures()
+    new_rows = []
+    for r in d["rows"]:
+        labels = copy.deepcopy(r["kinds"]["labels"])
+        labels["miou"] = 0.5  # the label build made again scored otherwise
+        new_rows.append({"seed": r["seed"], "kinds": {"labels": labels, "oracle": r["kinds"]["dominant"]}})
+    machine = {**d["machine"], "date": "2099-01-01"}
+    merged = add_to(
+        copy.deepcopy(d), new_rows, ["oracle"], {"command": "cmd", "machine": machine, "variants": ["oracle"]}
+    )
+    text = report(merged)
+    assert merged["variants"][-1] == "oracle" and summary(merged["rows"], "oracle")["scenes"] == len(
+        d["rows"]
+    )
+    assert "Added 2099-01-01" in text and REFIT in text
+    assert sum(line.startswith("| oracle |") for line in text.splitlines()) == 3  # means, quorum, held-out
+    for r in d["rows"]:
+        assert f"| {r['seed']} | made again | " in text and f"| {r['seed']} | oracle | " in text
+    assert "| 0.500 |" in text
+    with pytest.raises(ValueError, match="no new scores"):
+        add_to(
+            copy.deepcopy(d), new_rows[:1], ["oracle"], {"command": "cmd", "machine": machine, "variants": []}
+        )

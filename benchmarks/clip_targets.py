@@ -29,6 +29,8 @@ POOL_RADIUS = 0.1
 """pool_regions' window half-edge, a fraction of the map's shorter side (the scale of the median crop)."""
 REGIONS_DINO = "region crops (DINO regions)"
 REGIONS_MASKS = "region crops (label masks: upper bound)"
+ORACLE = "no naming error ({blend})"
+"""The oracle candidates (benchmarks.clip_oracle): every crop named as the stand-in is trained to name it."""
 
 
 def _novel_labels(data: Path) -> set[int]:
@@ -55,12 +57,14 @@ def target_candidates(
     views: int = 6,
     seconds: dict[str, float] | None = None,
     regions: bool = True,
+    oracle: bool = False,
 ) -> dict[str, dict]:
     """{candidate: scores} over the first ``views`` views of scene ``data`` (see the module docstring):
     hits and totals, to be pooled over scenes by ``rates``. ``seconds``, when given, gathers the time
     spent (added to what it holds): "views", "pyramid" (every crop through the CLIP stand-in), "dino" (the
     dense map) and each candidate's own (its weights, blend and pooling on top of those), in CPU seconds
-    of this process. ``regions``: also the region-crop candidates."""
+    of this process. ``regions``: also the region-crop candidates; ``oracle``: also each blend with every
+    crop named without error (benchmarks.clip_oracle)."""
     import time
 
     from PIL import Image
@@ -74,6 +78,12 @@ def target_candidates(
 
     names = json.loads((data / "scene.json").read_text())["label_names"]
     novel = _novel_labels(data)
+    if oracle:
+        from benchmarks.clip_oracle import oracle_map
+        from fmgs.features.crop_content import caption_points
+        from fmgs.features.standin import WALL, _extended_labels
+
+        points = caption_points([*names, WALL], MiniLMTextEncoder())
     enc = load_standin(f"standin:{standin}")
     dino = load_dense_encoder(f"standin-dino:{standin_dino}")
     with torch.inference_mode():
@@ -119,6 +129,13 @@ def target_candidates(
                 maps[REGIONS_DINO] = region_target(enc, img, grow_regions(dense), finest, enc.image_size)
                 add(REGIONS_DINO, clock() - t0)
                 maps[REGIONS_MASKS] = region_target(enc, img, label_regions(lab), finest, enc.image_size)
+            if oracle:
+                ext = _extended_labels(data, p.stem, names)
+                for b in BLENDS:
+                    ocfg = PyramidConfig(crop_px=enc.image_size, blend=b)
+                    maps[ORACLE.format(blend=b)] = oracle_map(
+                        ext, [*names, WALL], points, ocfg, (H, W), dense
+                    )
             scores = candidate_scores(maps, table)
         valid = lab >= 1
         obj = lab >= 2

@@ -28,14 +28,13 @@ from fmgs.features.pyramid import PyramidConfig, crop_grid, grid_map
 from fmgs.features.scale_blend import blend_scales, scale_weights
 
 
-def oracle_map(
-    labels: np.ndarray, names: list[str], points: torch.Tensor, cfg: PyramidConfig, out_hw: tuple[int, int],
-    dense: torch.Tensor | None,
-) -> torch.Tensor:  # fmt: skip
-    """The hybrid target of one view with every crop named without error: labels [H,W] ids into ``names``
+def oracle_scale_maps(
+    labels: np.ndarray, names: list[str], points: torch.Tensor, cfg: PyramidConfig, out_hw: tuple[int, int]
+) -> tuple[list[torch.Tensor], list[float]]:
+    """Every scale's map of one view with every crop named without error: labels [H,W] ids into ``names``
     (the scene's names, then the stand-in's WALL), ``points`` [L,D] their caption mixtures
-    (caption_points), the pyramid ``cfg`` (its blend; ``dense`` [h,w,Dd] the DINO map it needs) ->
-    [h,w,D] unit."""
+    (caption_points), the pyramid ``cfg`` -> (one [h,w,D] map per scale, not normalised; each scale's crop
+    edge in map pixels), as fmgs.features.pyramid.scale_maps gives them for an encoder."""
     H, W = labels.shape
     maps, edges = [], []
     for s in cfg.scales:
@@ -45,8 +44,17 @@ def oracle_map(
         emb = caption_embeddings(sh.reshape(-1, len(names)), names, points).reshape(*sh.shape[:2], -1)
         maps.append(grid_map(emb, g, (H, W), out_hw))
         edges.append(g.size * out_hw[0] / H)
-    weights = scale_weights(cfg.blend, dense, edges) if cfg.blend != "mean" else None
-    return blend_scales(maps, weights)
+    return maps, edges
+
+
+def oracle_map(
+    labels: np.ndarray, names: list[str], points: torch.Tensor, cfg: PyramidConfig, out_hw: tuple[int, int],
+    dense: torch.Tensor | None,
+) -> torch.Tensor:  # fmt: skip
+    """The hybrid target of one view with every crop named without error (``oracle_scale_maps``) blended
+    as ``cfg.blend`` says (``dense`` [h,w,Dd]: the DINO map the weighted blends need) -> [h,w,D] unit."""
+    maps, edges = oracle_scale_maps(labels, names, points, cfg, out_hw)
+    return blend_scales(maps, scale_weights(cfg.blend, dense, edges))
 
 
 def oracle_cache(data: Path, cache_dir: Path, standin: Path, dino: Path | None, blend: str) -> Path:
@@ -58,7 +66,7 @@ def oracle_cache(data: Path, cache_dir: Path, standin: Path, dino: Path | None, 
     from fmgs.features.dino import load_dense_encoder
     from fmgs.features.extract import ExtractConfig, feature_size
     from fmgs.features.pyramid import pyramid_for
-    from fmgs.features.standin import WALL, _extended_labels, load_standin
+    from fmgs.features.standin import WALL, extended_labels, load_standin
     from fmgs.features.text import load_text_encoder
 
     ds = load_dataset(data)
@@ -77,7 +85,7 @@ def oracle_cache(data: Path, cache_dir: Path, standin: Path, dino: Path | None, 
             hw = feature_size(fr.camera, ExtractConfig().feature_scale)
             image, _ = ds.image(i)
             dense = dense_enc.dense(image, hw) if dense_enc is not None else None
-            labels = _extended_labels(data, Path(fr.name).stem, names[:-1])
+            labels = extended_labels(data, Path(fr.name).stem, names[:-1])
             if labels.shape != tuple(image.shape[:2]):
                 raise ValueError(
                     f"{fr.name}: label map {labels.shape} is not the image's {tuple(image.shape[:2])}"

@@ -26,6 +26,7 @@ import json
 import shlex
 import sys
 import time
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -85,56 +86,42 @@ def clip_build(
     dino: Path,
     threads: int = 0,
 ) -> Path:
-    """``fmgs build --targets clip`` of ``variant`` on the label build's 3DGS; returns the package.
-    ``threads``: the field's CPU threads (0: the build's own choice)."""
+    """``fmgs build --targets clip`` of ``variant`` on the label build's 3DGS (an oracle variant: its feature
+    cache, then ``fmgs train-field`` on that 3DGS); returns the package. ``threads``: the field's CPU
+    threads (0: the build's own choice)."""
     from fmgs.cli import main as fmgs
 
     v = VARIANTS[variant]
     name = variant_name(seed, variant)
     ply = out / "models" / ".work" / f"s{seed}" / "gs" / "point_cloud.ply"
-    if v.get("oracle"):
-        return oracle_build(out, name, data, v, ply, field_steps, standin, dino, threads)
-    cmd = ["build", str(data), "--name", name, "--models", str(out / "models"), "--targets", "clip",
-           "--clip-model", f"standin:{standin}", "--ply", str(ply), "--scale-blend", v["blend"],
-           "--dino-model", f"standin-dino:{dino}" if v["dino"] else "none"]  # fmt: skip
+    prepare = None  # what the command needs first
+    if v.get("oracle"):  # the oracle's feature cache, then train-field (benchmarks.clip_oracle)
+        from benchmarks.clip_oracle import oracle_cache
+
+        work = out / "models" / ".work" / name
+        cmd = ["train-field", str(data), "--gaussians", str(ply), "--features", str(work / "features"),
+               "--out", str(work / "field"), "--package", str(out / "models" / name)]  # fmt: skip
+        threads_flag = "--threads"
+        prepare = partial(
+            oracle_cache, data, work / "features", standin, dino if v["dino"] else None, v["blend"]
+        )
+    else:
+        cmd = ["build", str(data), "--name", name, "--models", str(out / "models"), "--targets", "clip",
+               "--clip-model", f"standin:{standin}", "--ply", str(ply), "--scale-blend", v["blend"],
+               "--dino-model", f"standin-dino:{dino}" if v["dino"] else "none"]  # fmt: skip
+        threads_flag = "--field-threads"
     if not v["dotsim"]:
         cmd.append("--no-dotsim")
     if field_steps is not None:
         cmd += ["--field-steps", str(field_steps)]
     if threads:
-        cmd += ["--field-threads", str(threads)]
+        cmd += [threads_flag, str(threads)]
     record = out / f"build-{name}.json"
     if record.is_file() and json.loads(record.read_text())["command"] == cmd:
         return out / "models" / name
     t0 = time.perf_counter()
-    assert fmgs(cmd) == 0
-    record.write_text(json.dumps({"seconds": time.perf_counter() - t0, "command": cmd}))
-    return out / "models" / name
-
-
-def oracle_build(
-    out: Path, name: str, data: Path, v: dict, ply: Path, field_steps: int | None, standin: Path, dino: Path,
-    threads: int,
-) -> Path:  # fmt: skip
-    """An oracle variant (benchmarks.clip_oracle): its feature cache, then ``fmgs train-field`` on the
-    label build's 3DGS into package ``name``."""
-    from benchmarks.clip_oracle import oracle_cache
-    from fmgs.cli import main as fmgs
-
-    work = out / "models" / ".work" / name
-    record = out / f"build-{name}.json"
-    cmd = ["train-field", str(data), "--gaussians", str(ply), "--features", str(work / "features"),
-           "--out", str(work / "field"), "--package", str(out / "models" / name)]  # fmt: skip
-    if not v["dotsim"]:
-        cmd.append("--no-dotsim")
-    if field_steps is not None:
-        cmd += ["--field-steps", str(field_steps)]
-    if threads:
-        cmd += ["--threads", str(threads)]
-    if record.is_file() and json.loads(record.read_text())["command"] == cmd:
-        return out / "models" / name
-    t0 = time.perf_counter()
-    oracle_cache(data, work / "features", standin, dino if v["dino"] else None, v["blend"])
+    if prepare is not None:
+        prepare()
     assert fmgs(cmd) == 0
     record.write_text(json.dumps({"seconds": time.perf_counter() - t0, "command": cmd}))
     return out / "models" / name

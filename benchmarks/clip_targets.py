@@ -79,9 +79,9 @@ def target_candidates(
     names = json.loads((data / "scene.json").read_text())["label_names"]
     novel = _novel_labels(data)
     if oracle:
-        from benchmarks.clip_oracle import oracle_map
+        from benchmarks.clip_oracle import oracle_scale_maps
         from fmgs.features.crop_content import caption_points
-        from fmgs.features.standin import WALL, _extended_labels
+        from fmgs.features.standin import WALL, extended_labels
 
         points = caption_points([*names, WALL], MiniLMTextEncoder())
     enc = load_standin(f"standin:{standin}")
@@ -130,12 +130,10 @@ def target_candidates(
                 add(REGIONS_DINO, clock() - t0)
                 maps[REGIONS_MASKS] = region_target(enc, img, label_regions(lab), finest, enc.image_size)
             if oracle:
-                ext = _extended_labels(data, p.stem, names)
+                ext = extended_labels(data, p.stem, names)
+                omaps, oedges = oracle_scale_maps(ext, [*names, WALL], points, cfg, (H, W))
                 for b in BLENDS:
-                    ocfg = PyramidConfig(crop_px=enc.image_size, blend=b)
-                    maps[ORACLE.format(blend=b)] = oracle_map(
-                        ext, [*names, WALL], points, ocfg, (H, W), dense
-                    )
+                    maps[ORACLE.format(blend=b)] = blend_scales(omaps, scale_weights(b, dense, oedges))
             scores = candidate_scores(maps, table)
         valid = lab >= 1
         obj = lab >= 2

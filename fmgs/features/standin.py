@@ -159,7 +159,7 @@ class CropSample(NamedTuple):
     """The scene's label names, then WALL."""
 
 
-def _extended_labels(data: Path, stem: str, names: list[str]) -> np.ndarray:
+def extended_labels(data: Path, stem: str, names: list[str]) -> np.ndarray:
     """[H,W] label ids with backdrop geometry (label 0 with a depth) as len(names): WALL."""
     from PIL import Image
 
@@ -196,7 +196,7 @@ def sample_crop_targets(
     for k in views if views is not None else range(len(paths)):
         img_path = paths[k]
         img = torch.from_numpy(np.asarray(Image.open(img_path).convert("RGB"), np.float32) / 255.0)
-        lab = _extended_labels(data, img_path.stem, names)
+        lab = extended_labels(data, img_path.stem, names)
         H, W = lab.shape
         oy, ox = np.nonzero((lab >= 2) & (lab < len(names))) if object_share > 0 else (None, None)
         for _ in range(per_view):

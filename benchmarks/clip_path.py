@@ -272,8 +272,9 @@ REFIT = "the label path on the added variants' builds"
 
 
 def refit_section(rows: list[dict]) -> list[str]:
-    """The label path on the label builds the added variants were distilled on, beside the one in the
-    tables (the 3DGS is fitted again, so figures may differ); empty when nothing was added."""
+    """The label path (and any variant built again) on the label builds the added variants were distilled
+    on, beside the builds in the tables (the 3DGS is fitted again, so figures may differ); empty when
+    nothing was added."""
     if not any("refit_labels" in r for r in rows):
         return []
     lines = [
@@ -281,34 +282,47 @@ def refit_section(rows: list[dict]) -> list[str]:
         f"## {REFIT[0].upper()}{REFIT[1:]}",
         "",
         "Variants added to this report later were distilled on label builds made again from the same "
-        "scenes with the same settings (the 3DGS fitted again), compare them with these label figures:",
+        "scenes with the same settings (the 3DGS fitted again), compare them with these label figures; "
+        "a variant already in the tables and built again on them is shown both ways too:",
         "",
-        "| seed | label build | 2D loc. | 3D loc. | mIoU | present found | absent rejected |",
-        "|---|---|---:|---:|---:|---:|---:|",
+        "| seed | targets | build | 2D loc. | 3D loc. | mIoU | present found | absent rejected |",
+        "|---|---|---|---:|---:|---:|---:|---:|",
     ]
     for r in (r for r in rows if "refit_labels" in r):
-        for which, q in (("in the tables", r["kinds"]["labels"]), ("made again", r["refit_labels"])):
-            pf, pn, af, an = presence_accuracy(q)
-            lines.append(
-                f"| {r['seed']} | {which} | {q['localisation_2d']:.3f} | {q['localisation_3d']:.3f} | "
-                f"{q['miou']:.3f} | {pf}/{pn} | {af}/{an} |"
-            )
+        again = {"labels": r["refit_labels"], **r.get("refit_variants", {})}
+        for kind, new in again.items():
+            for which, q in (("in the tables", r["kinds"].get(kind)), ("made again", new)):
+                if q is None:  # a variant the first run did not build for this seed
+                    continue
+                pf, pn, af, an = presence_accuracy(q)
+                lines.append(
+                    f"| {r['seed']} | {kind} | {which} | {q['localisation_2d']:.3f} | "
+                    f"{q['localisation_3d']:.3f} | {q['miou']:.3f} | {pf}/{pn} | {af}/{an} |"
+                )
     return lines
 
 
 def add_to(stored: dict, rows: list[dict], variants: list[str], addition: dict) -> dict:
     """``stored`` (a clip_path.json) with ``variants`` of ``rows`` (scored on label builds made again)
     added to its rows of the same seeds, those label figures as ``refit_labels``, and ``addition``
-    (command, machine) listed."""
+    (command, machine) listed. A variant the stored rows already hold keeps them: its new figures go to
+    ``refit_variants``, shown beside them. Every addition must be made on the same label builds (the
+    refit section compares with one)."""
     by_seed = {r["seed"]: r for r in rows}
     missing = [r["seed"] for r in stored["rows"] if r["seed"] not in by_seed]
     if missing:
         raise ValueError(f"no new scores for seeds {missing} of the stored report")
     for r in stored["rows"]:
         new = by_seed[r["seed"]]
+        if r.get("refit_labels", new["kinds"]["labels"]) != new["kinds"]["labels"]:
+            raise ValueError(
+                f"seed {r['seed']}: the label build differs from the one earlier additions were made on"
+            )
         r["refit_labels"] = new["kinds"]["labels"]
-        for v in variants:
-            if v in new["kinds"]:
+        for v in (v for v in variants if v in new["kinds"]):
+            if v in r["kinds"]:
+                r.setdefault("refit_variants", {})[v] = new["kinds"][v]
+            else:
                 r["kinds"][v] = new["kinds"][v]
     stored["variants"] = [*stored["variants"], *(v for v in variants if v not in stored["variants"])]
     stored["additions"] = [*stored.get("additions", []), addition]

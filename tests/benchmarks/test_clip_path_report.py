@@ -52,6 +52,9 @@ def test_an_added_variant_joins_every_table_and_its_label_builds_are_shown():
     from benchmarks.clip_path import REFIT, add_to
 
     d = _figures()
+    for r in d["rows"]:  # as before any addition
+        r.pop("refit_labels", None)
+        r.pop("refit_variants", None)
     new_rows = []
     for r in d["rows"]:
         labels = copy.deepcopy(r["kinds"]["labels"])
@@ -68,9 +71,38 @@ def test_an_added_variant_joins_every_table_and_its_label_builds_are_shown():
     assert "Added 2099-01-01" in text and REFIT in text
     assert sum(line.startswith("| oracle |") for line in text.splitlines()) == 3  # means, quorum, held-out
     for r in d["rows"]:
-        assert f"| {r['seed']} | made again | " in text and f"| {r['seed']} | oracle | " in text
+        assert f"| {r['seed']} | labels | made again | " in text and f"| {r['seed']} | oracle | " in text
     assert "| 0.500 |" in text
     with pytest.raises(ValueError, match="no new scores"):
         add_to(
             copy.deepcopy(d), new_rows[:1], ["oracle"], {"command": "cmd", "machine": machine, "variants": []}
         )
+
+
+def test_a_variant_built_again_keeps_its_rows_and_is_shown_beside_them():
+    """``--add-to`` with a variant the report holds: its stored rows stay in the tables, the new build is
+    shown beside them per seed; a later addition on other label builds is refused."""
+    import copy
+
+    from benchmarks.clip_path import add_to
+
+    d = _figures()
+    new_rows = []
+    for r in d["rows"]:
+        again = copy.deepcopy(r["kinds"]["dominant"])
+        again["miou"] = 0.123  # the default built again scored otherwise
+        labels = r.get("refit_labels", r["kinds"]["labels"])  # the label builds of earlier additions
+        new_rows.append({"seed": r["seed"], "kinds": {"labels": labels, "dominant": again}})
+    add = {"command": "cmd", "machine": {**d["machine"], "date": "2099-01-01"}, "variants": ["dominant"]}
+    merged = add_to(copy.deepcopy(d), new_rows, ["dominant"], add)
+    text = report(merged)
+    assert merged["variants"] == d["variants"]
+    assert summary(merged["rows"], "dominant") == summary(d["rows"], "dominant")
+    for r in d["rows"]:
+        assert f"| {r['seed']} | dominant | in the tables | " in text
+        assert f"| {r['seed']} | dominant | made again | " in text
+    assert "| 0.123 |" in text
+    other = copy.deepcopy(new_rows)
+    other[0]["kinds"]["labels"] = {**other[0]["kinds"]["labels"], "miou": 0.5}
+    with pytest.raises(ValueError, match="label build differs"):
+        add_to(merged, other, ["dominant"], add)

@@ -130,9 +130,10 @@ def clip_build(
 def scene_targets(out: Path, data: Path, standin: Path, dino: Path, views: int, oracle: bool = False) -> dict:
     """benchmarks.clip_targets.target_candidates of one scene, kept in OUT/targets-SCENE.json for the same
     views, stand-ins and oracle flag."""
-    from benchmarks.clip_targets import target_candidates
+    from benchmarks.clip_targets import CANDIDATE_SET, target_candidates
 
     key = {"views": views, "oracle": oracle, "standin": str(standin), "standin_dino": str(dino)}
+    key["candidates"] = CANDIDATE_SET
     kept = out / f"targets-{data.name}.json"
     stored = json.loads(kept.read_text()) if kept.is_file() else {}
     if stored.get("key") != key:
@@ -448,8 +449,12 @@ def report(d: dict) -> str:
             f"The CLIP targets of the first {d['target_views']} views of every scene, per candidate, scored "
             "as segmentation is (argmax over the scene's names but the background, on pixels with "
             "geometry), pixels pooled over the scenes, mIoU averaged: each scale alone, the blends, each "
-            "blend pooled within DINO-coherent neighbourhoods (`pool_regions`), and LERF's query-time scale "
-            "selection (each name scored by its best scale: what a field with a map per scale answers)."
+            "blend pooled within DINO-coherent neighbourhoods (`pool_regions`), LERF's query-time scale "
+            "selection (each name scored by its best scale: what a field with a map per scale answers), and "
+            "region crops (benchmarks.region_crops, the mask-based methods' way: one tight crop per region "
+            "grown over the DINO map, or per label mask as the bound better masks could reach, averaged with "
+            "the finest scale's map; *masked*: each crop black outside its region, as LangSplat crops its "
+            "SAM masks)."
             + (
                 " *No naming error*: each blend with every crop embedded as the stand-in is trained to embed "
                 "it, from the label map (benchmarks.clip_oracle)."
@@ -546,12 +551,16 @@ def main() -> int:
         addition = {"command": cmd, "variants": variants, "machine": info}
         d = add_to(json.loads(Path(a.add_to).read_text()), rows, variants, addition)
         d["notes"] = [*d.get("notes", []), *a.note]
-        if any(VARIANTS[v].get("oracle") for v in variants):  # the table again, with the oracle's rows
-            from benchmarks.clip_targets import rates
+        from benchmarks.clip_targets import ORACLE, rates
 
-            d["target_maps"] = rates(
-                [scene_targets(out, x, standin, dino, d["target_views"], True) for x in datas]
-            )
+        # The table again (its candidates may have grown), with the oracle's rows if it had them or an
+        # oracle variant is added.
+        oracle = any(VARIANTS[v].get("oracle") for v in variants) or any(
+            k.startswith(ORACLE.split("(")[0]) for k in d.get("target_maps", {})
+        )
+        d["target_maps"] = rates(
+            [scene_targets(out, x, standin, dino, d["target_views"], oracle) for x in datas]
+        )
         return write(d, out, a.report)
     from benchmarks.clip_targets import rates
 

@@ -10,7 +10,8 @@ pixels with geometry): pixel accuracy on all of them and on object pixels, objec
 fmgs.features.scale_blend, each blend pooled within DINO-coherent neighbourhoods (pool_regions), and
 LERF's query-time scale selection (each name's score the best over the scales' maps: what a multi-scale
 field would answer, with a map per scale), and region crops (benchmarks.region_crops: one tight crop per
-DINO-grown region, and per label mask as the upper bound better masks could reach).
+DINO-grown region, and per label mask as the upper bound better masks could reach; each also masked, black
+outside its region, as LangSplat crops its SAM masks).
 """
 
 from __future__ import annotations
@@ -29,6 +30,10 @@ POOL_RADIUS = 0.1
 """pool_regions' window half-edge, a fraction of the map's shorter side (the scale of the median crop)."""
 REGIONS_DINO = "region crops (DINO regions)"
 REGIONS_MASKS = "region crops (label masks: upper bound)"
+MASKED = "masked {regions}"
+"""The region-crop candidates with every crop black outside its region."""
+CANDIDATE_SET = 2
+"""Bumped when candidates are added, so that kept target tables (benchmarks.clip_path) are computed again."""
 ORACLE = "no naming error ({blend})"
 """The oracle candidates (benchmarks.clip_oracle): every crop named as the stand-in is trained to name it."""
 
@@ -126,9 +131,15 @@ def target_candidates(
             if regions:
                 finest = sm.maps[int(torch.tensor(sm.edges).argmin())]
                 t0 = clock()
-                maps[REGIONS_DINO] = region_target(enc, img, grow_regions(dense), finest, enc.image_size)
+                grown = grow_regions(dense)
+                maps[REGIONS_DINO] = region_target(enc, img, grown, finest, enc.image_size)
                 add(REGIONS_DINO, clock() - t0)
-                maps[REGIONS_MASKS] = region_target(enc, img, label_regions(lab), finest, enc.image_size)
+                masks = label_regions(lab)
+                maps[REGIONS_MASKS] = region_target(enc, img, masks, finest, enc.image_size)
+                for name, seg in ((REGIONS_DINO, grown), (REGIONS_MASKS, masks)):
+                    maps[MASKED.format(regions=name)] = region_target(
+                        enc, img, seg, finest, enc.image_size, masked=True
+                    )
             if oracle:
                 ext = extended_labels(data, p.stem, names)
                 omaps, oedges = oracle_scale_maps(ext, [*names, WALL], points, cfg, (H, W))

@@ -7,7 +7,9 @@ SAM: regions grown over the dense map (``grow_regions``), or, as the upper bound
 could give, the label masks themselves (``label_regions``). Each region's crop is the square on its
 bounding box's longer side, centred on the box and shifted inside the image (``region_boxes``); its
 embedding is averaged with the finest scale's map at every pixel of the region (``region_target``), since
-the finest crops already speak for the pixel where no region does.
+the finest crops already speak for the pixel where no region does. With ``masked``, the pixels of the crop
+outside the region are black first, as LangSplat feeds CLIP its SAM masks, so a region's crop shows that
+region alone (a floor region's crop is otherwise the whole image, named after the objects on it).
 
 Benchmark code (benchmarks/clip_targets.py scores it beside the blends); not a build option.
 """
@@ -115,9 +117,11 @@ def region_target(
     seg: np.ndarray,
     finest: torch.Tensor,
     crop_px: int,
+    masked: bool = False,
 ) -> torch.Tensor:
     """image [H,W,3] (same size as seg), finest [H,W,D] the finest scale's map -> [H,W,D] unit target: at a
-    region's pixels the mean of its crop's unit embedding and the unit finest map, elsewhere the finest."""
+    region's pixels the mean of its crop's unit embedding and the unit finest map, elsewhere the finest.
+    ``masked``: each crop black outside its region (see the module docstring)."""
     from fmgs.features.pyramid import _cut
 
     out = safe_normalize(finest.float())
@@ -125,12 +129,14 @@ def region_target(
     if not boxes:
         return out
     img = image.permute(2, 0, 1).float()
-    crops = torch.cat([_cut(img, torch.tensor([b]), crop_px) for _, b in boxes])  # sizes differ: one by one
+    ids = torch.from_numpy(seg)
+    crops = torch.cat(
+        [_cut(img * (ids == r) if masked else img, torch.tensor([b]), crop_px) for r, b in boxes]
+    )  # sizes differ: one by one
     emb = torch.cat([embed_fn(crops[i : i + BATCH]) for i in range(0, len(crops), BATCH)])
     emb = safe_normalize(emb.float())
     table = torch.zeros(int(seg.max()) + 1, emb.shape[1])  # region id -> its crop's embedding (0: none)
     table[torch.tensor([r for r, _ in boxes])] = emb
-    ids = torch.from_numpy(seg)
     inside = ids > 0
     out[inside] = safe_normalize(out[inside] + table[ids[inside]])
     return out

@@ -85,3 +85,25 @@ def test_an_all_zero_map_gives_no_region_and_no_nan():
     assert (seg == 0).all()
     t = region_target(lambda c: torch.ones(len(c), 3), torch.rand(5, 6, 3), seg, torch.zeros(5, 6, 3), 4)
     assert torch.isfinite(t).all()
+
+
+def test_a_masked_crop_shows_its_region_alone():
+    """masked: the crop is black outside its region (LangSplat's masked crops); unmasked it is the image."""
+    h, w = 6, 8
+    seg = np.zeros((h, w), np.int64)
+    seg[1, 1:4] = 1  # an L: its box (rows 1-3, columns 1-3) holds pixels of no region
+    seg[2:4, 3] = 1
+    image = torch.rand(h, w, 3) + 0.5  # no black pixel of its own
+    seen = []
+
+    def embed(crops: torch.Tensor) -> torch.Tensor:
+        seen.append(crops.clone())
+        return torch.ones(len(crops), 2)
+
+    for masked in (False, True):
+        region_target(embed, image, seg, torch.ones(h, w, 2), crop_px=3, masked=masked)
+    plain, masked_crop = seen[0][0], seen[1][0]  # [3,3,3]: no resize at crop_px = the box's edge
+    inside = torch.from_numpy(seg[1:4, 1:4] == 1)
+    torch.testing.assert_close(plain, image[1:4, 1:4].permute(2, 0, 1))
+    torch.testing.assert_close(masked_crop[:, inside], plain[:, inside])
+    assert (masked_crop[:, ~inside] == 0).all() and (plain[:, ~inside] > 0).all()

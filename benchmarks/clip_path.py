@@ -132,8 +132,8 @@ def scene_targets(out: Path, data: Path, standin: Path, dino: Path, views: int, 
     views, stand-ins and oracle flag."""
     from benchmarks.clip_targets import CANDIDATE_SET, target_candidates
 
-    key = {"views": views, "oracle": oracle, "standin": str(standin), "standin_dino": str(dino)}
-    key["candidates"] = CANDIDATE_SET
+    key = {"views": views, "oracle": oracle, "standin": str(standin), "standin_dino": str(dino),
+           "candidates": CANDIDATE_SET}  # fmt: skip
     kept = out / f"targets-{data.name}.json"
     stored = json.loads(kept.read_text()) if kept.is_file() else {}
     if stored.get("key") != key:
@@ -440,7 +440,7 @@ def report(d: dict) -> str:
             )
     lines += ["", "Objects: " + "; ".join(f"seed {r['seed']}: {', '.join(r['objects'])}" for r in rows)]
     if d.get("target_maps"):
-        from benchmarks.clip_targets import table
+        from benchmarks.clip_targets import has_oracle_rows, table
 
         lines += [
             "",
@@ -458,7 +458,7 @@ def report(d: dict) -> str:
             + (
                 " *No naming error*: each blend with every crop embedded as the stand-in is trained to embed "
                 "it, from the label map (benchmarks.clip_oracle)."
-                if any(k.startswith("no naming error") for k in d["target_maps"])
+                if has_oracle_rows(d["target_maps"])
                 else ""
             ),
             "",
@@ -551,13 +551,11 @@ def main() -> int:
         addition = {"command": cmd, "variants": variants, "machine": info}
         d = add_to(json.loads(Path(a.add_to).read_text()), rows, variants, addition)
         d["notes"] = [*d.get("notes", []), *a.note]
-        from benchmarks.clip_targets import ORACLE, rates
+        from benchmarks.clip_targets import has_oracle_rows, rates
 
         # The table again (its candidates may have grown), with the oracle's rows if it had them or an
         # oracle variant is added.
-        oracle = any(VARIANTS[v].get("oracle") for v in variants) or any(
-            k.startswith(ORACLE.split("(")[0]) for k in d.get("target_maps", {})
-        )
+        oracle = any(VARIANTS[v].get("oracle") for v in variants) or has_oracle_rows(d.get("target_maps", {}))
         d["target_maps"] = rates(
             [scene_targets(out, x, standin, dino, d["target_views"], oracle) for x in datas]
         )

@@ -38,6 +38,12 @@ ORACLE = "no naming error ({blend})"
 """The oracle candidates (benchmarks.clip_oracle): every crop named as the stand-in is trained to name it."""
 
 
+def has_oracle_rows(rates_or_candidates: dict) -> bool:
+    """Whether a target table (candidate name -> figures) holds the oracle candidates."""
+    head = ORACLE.split("{")[0]
+    return any(k.startswith(head) for k in rates_or_candidates)
+
+
 def _novel_labels(data: Path) -> set[int]:
     meta = json.loads((data / "scene.json").read_text())
     return {o["label"] for o in meta["objects"] if o.get("novel")}

@@ -92,8 +92,15 @@ class ServerConfig:
     recorded revision cannot be had, or whose cached files differ, fails its queries naming the model."""
     text_cache: int = 4096
     """Text embeddings cached per encoder."""
+    presence_rule: str = "mean"
+    """How a text query's best Gaussians decide ``found`` (fmgs.query.presence.PresenceConfig.rule):
+    "mean", the mean embedding of presence_pool of them must beat every presence negative; "each",
+    presence_quorum of them must each beat it."""
+    presence_pool: int = 10
+    """With presence_rule "mean": best Gaussians whose mean embedding decides
+    (fmgs.query.presence.PresenceConfig.pool)."""
     presence_quorum: int = 1
-    """Best Gaussians of a text query that must each beat every presence negative for ``found``
+    """With presence_rule "each": best Gaussians that must each beat every presence negative
     (fmgs.query.presence.PresenceConfig.quorum); 1: one suffices."""
     tls_cert: Path | None = None
     """Server certificate (PEM); with tls_key enables TLS."""
@@ -134,6 +141,12 @@ class ServerConfig:
             return False
         return self.admin_open or (self.token_file is None and loopback_only(self.host))
 
+    def presence(self):
+        """The text queries' fmgs.query.presence.PresenceConfig (imported here: this module has no torch)."""
+        from fmgs.query.presence import PresenceConfig
+
+        return PresenceConfig(rule=self.presence_rule, pool=self.presence_pool, quorum=self.presence_quorum)
+
     @property
     def compute_slots(self) -> int:
         return self.workers or os.cpu_count() or 1
@@ -144,11 +157,16 @@ class ServerConfig:
         positive = (
             "max_concurrent_rpcs max_streams max_receive_bytes chunk_bytes max_send_bytes max_image_side "
             "max_image_pixels max_top_k default_top_k max_texts max_text_chars max_points text_cache "
-            "point_chunk default_geometry max_geometry presence_quorum"
+            "point_chunk default_geometry max_geometry presence_quorum presence_pool"
         ).split()
         for name in positive:
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1")
+        rules = ("mean", "each")  # fmgs.query.presence.RULES (no torch here)
+        if self.presence_rule not in rules:
+            raise ValueError(f"presence_rule must be one of {rules}, got {self.presence_rule!r}")
+        if self.presence_quorum != 1 and self.presence_rule != "each":
+            raise ValueError("presence_quorum needs presence_rule 'each' (the mean decides with one margin)")
         if self.work_memory_bytes < 0 or self.memory_budget_bytes < 0:
             raise ValueError("work_memory_bytes and memory_budget_bytes must be >= 0 (0: no limit)")
         backends = ("auto", "cpu", "reference", "cuda", "triton")  # fmgs.render.BACKENDS (no torch here)

@@ -16,7 +16,7 @@ from fmgs.errors import FmgsError
 from fmgs.query.geometry import select_geometry
 from fmgs.query.points import query_points
 from fmgs.query.pose import render_pose
-from fmgs.query.presence import PresenceConfig, negative_names
+from fmgs.query.presence import negative_names
 from fmgs.query.presence import probes as presence_probes
 from fmgs.query.segment import segment
 from fmgs.scene.manifest import Manifest
@@ -154,7 +154,7 @@ class FmgsService(pb_grpc.FmgsServicer):
             t0 = time.perf_counter()
             between = lambda i: stop_if_gone(context, f"text {i} of {n}")  # noqa: E731
             many = engine.text_query_many(  # one pass for all texts
-                q, k, thr, canon, inst_cfg, between, negs, PresenceConfig(quorum=cfg.presence_quorum), probes
+                q, k, thr, canon, inst_cfg, between, negs, cfg.presence(), probes
             )
             ms = (time.perf_counter() - t0) * 1e3 / max(1, len(values))
             answers = [(i, text, a, ms) for i, (text, a) in enumerate(zip(values, many, strict=True))]

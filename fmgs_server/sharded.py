@@ -216,11 +216,10 @@ class ShardedSceneService:
             return shard_text(engine, rows, gi, sq)
 
     def finish_text(self, plan: TextPlan, parts: list) -> Iterator[pb.TextQueryChunk]:
-        from fmgs.query.presence import PresenceConfig
         from fmgs.query.sharded import merge_text
 
         sq, n = plan.query, len(plan.texts)
-        pcfg = PresenceConfig(quorum=self.cfg.presence_quorum)
+        pcfg = self.cfg.presence()
         answers = [
             merge_text([p[j] for p in parts], sq, j, plan.instances, plan.means_box, pcfg) for j in range(n)
         ]

@@ -1,19 +1,26 @@
 """Is the queried thing in this scene? A presence score from the scene's best Gaussians for the query.
 
 Relevancy contrasts a query with four generic phrases, so the most similar thing in a scene often scores
-above 0.5 ("laptop" finds a mug at 0.53). Presence contrasts it with named things instead: at each of
-the query's best Gaussians (the first ``PresenceConfig.rows`` of its ranking), the query must beat every
-negative it is not a paraphrase of:
+above 0.5 ("laptop" finds a mug at 0.53). Presence contrasts it with named things instead: the query's
+``PresenceConfig.pool`` best Gaussians (of the first ``PresenceConfig.rows`` of its ranking) are taken as
+one group, and the group's mean embedding must be closer to the query than to every negative the query is
+not a paraphrase of:
 
-    margin(f) = f.q - max_{n in N \\ S(q)} f.n,    presence = sigmoid(t * max_f margin(f)),
+    margin = mean_f f.q - max_{n in N \\ S(q)} mean_f f.n    (f over the pool best),
+    presence = sigmoid(t * margin),
 
 where N is the scene's negatives (``VOCABULARY``, a broad list of everyday things, plus the scene's own
 label names when it was built from label targets) embedded by the scene's text encoder, and S(q) the
 ``exclude`` negatives nearest to q by text similarity: a query may mean the same as its nearest names
-("coffee cup" and "mug"), so those cannot speak against it. The query is found when presence > 0.5: some
-best Gaussian is closer to the query than to any name the query does not mean. A mug's Gaussians are
-closer to "mug" than to "laptop", so "laptop" is not found there. With ``PresenceConfig.quorum`` = k the
-max is the k-th best margin instead: k best Gaussians must each be closer to the query.
+("coffee cup" and "mug"), so those cannot speak against it. The query is found when presence > 0.5. A
+mug's Gaussians are closer on average to "mug" than to "laptop", so "laptop" is not found there.
+
+Why a group, and why this one: a distilled field's embeddings are noisy, and the best of 64 noisy
+margins is biased upwards, so one Gaussian of a blurred mix finds absent things; mask-based
+open-vocabulary methods classify a segment by its mean feature. The group is an instance's worth
+(``InstanceConfig.min_points``, the fewest Gaussians the server calls an object), not all the rows: a
+small object's best rows run on into its neighbours, whose mean is neither. ``rule`` "each" is the rule
+before it: each row's own margin f.q - max_n f.n, the ``quorum``-th best deciding (quorum 1: the best).
 
 A query that names a colour (fmgs.query.colours) asks the colour question on its own too: its text is
 first put in canonical form (colour synonyms mapped to the plain word: "scarlet cube" -> "red cube"),
@@ -40,6 +47,7 @@ from fmgs.query.colours import colour_probe
 from fmgs.query.vocabulary import VOCABULARY
 
 __all__ = [
+    "RULES",
     "VOCABULARY",
     "Presence",
     "PresenceConfig",
@@ -49,6 +57,10 @@ __all__ = [
     "presence_reference",
     "probes",
 ]
+
+
+RULES = ("mean", "each")
+"""How the best rows decide presence (``PresenceConfig.rule``)."""
 
 
 @dataclass(frozen=True)
@@ -61,17 +73,26 @@ class PresenceConfig:
     """Negatives nearest to the query (text similarity) that are taken as possible paraphrases."""
     temperature: float = 10.0
     """Sharpness of the score (the relevancy's); the found/not-found decision does not depend on it."""
+    rule: str = "mean"
+    """How the best rows decide: "mean", the margin of the mean embedding of the ``pool`` best (one margin
+    for the group); "each", each row's own margin, the ``quorum``-th best deciding."""
+    pool: int = 10
+    """With rule "mean": best Gaussians whose mean embedding decides (capped at the rows there are); an
+    instance's worth (``InstanceConfig.min_points``)."""
     quorum: int = 1
-    """Best Gaussians that must each beat every negative (capped at the rows there are): the margin is
-    the quorum-th best. 1 lets one Gaussian decide; a distilled field's embeddings are noisy, and an
-    instance's worth (``InstanceConfig.min_points``) asks that a group agree (CLIP_PATH.md measures
-    both)."""
+    """With rule "each": best Gaussians that must each beat every negative (capped at the rows there are).
+    1 lets one Gaussian decide (CLIP_PATH.md measures the rules)."""
 
     def __post_init__(self) -> None:
-        if self.rows < 1 or self.exclude < 0 or not self.temperature > 0 or self.quorum < 1:
+        if self.rows < 1 or self.exclude < 0 or not self.temperature > 0 or self.quorum < 1 or self.pool < 1:
             raise ValueError(
-                f"presence: rows >= 1, exclude >= 0, temperature > 0 and quorum >= 1 required, got {self}"
+                "presence: rows >= 1, exclude >= 0, temperature > 0, pool >= 1 and quorum >= 1 required, "
+                f"got {self}"
             )
+        if self.rule not in RULES:
+            raise ValueError(f"presence: rule must be one of {RULES}, got {self.rule!r}")
+        if self.quorum != 1 and self.rule != "each":
+            raise ValueError(f"presence: a quorum needs rule 'each' (the mean has one margin), got {self}")
 
 
 class Presence(NamedTuple):
@@ -80,13 +101,14 @@ class Presence(NamedTuple):
     score: float
     """In [0,1]: sigmoid(temperature * margin)."""
     found: bool
-    """margin > 0: quorum best Gaussians (some one, at quorum 1) are each closer to the query than to any
-    negative it does not mean."""
+    """margin > 0: the pool best Gaussians' mean embedding is closer to the query than to any negative it does
+    not mean (rule "each": quorum best Gaussians each are)."""
     margin: float
-    """The quorum-th best f.q - max f.n over the contrasted Gaussians (float64; with quorum 1 the best)."""
+    """mean f.q - max mean f.n over the pool best Gaussians (float64; rule "each": the quorum-th best
+    f.q - max f.n)."""
     rival: int
     """Index into the negatives, then the query's contrasts (V + s), of the one that decided the margin
-    at the Gaussian whose margin it is."""
+    (at the mean; rule "each": at the Gaussian whose margin it is)."""
 
 
 class Probe(NamedTuple):
@@ -157,6 +179,11 @@ def presence(
             raise ValueError(f"presence: contrast dots must be [{T},S], got {list(fc.shape)}")
         fn = torch.cat([fn, fc.double()], 1)
         kept = torch.cat([kept, torch.arange(V, V + fc.shape[1])])
+    if cfg.rule == "mean":  # the mean embedding's dots are the dots' means
+        p = min(cfg.pool, T)
+        rival_dot, rival = fn[:p, kept].mean(0).max(0)
+        m = float(fq[:p].mean() - rival_dot)
+        return Presence(_sigmoid(cfg.temperature * m), m > 0, m, int(kept[rival]))
     rival_dot, rival = fn[:, kept].max(1)
     margins = fq - rival_dot
     # The quorum-th best margin; a stable sort keeps the first row among equal margins.
@@ -176,9 +203,9 @@ def presence_reference(
     cfg: PresenceConfig = PresenceConfig(),
     contrasts: torch.Tensor | None = None,
 ) -> Presence:
-    """Twin of ``presence`` from the vectors: unit query [D], best Gaussians' embeddings [T,D], unit
-    negatives [V,D] and unit contrasts [S,D], one Gaussian and one negative at a time (sorting for the
-    exclusion)."""
+    """Twin of ``presence`` from the vectors: unit query [D], best Gaussians' embeddings [T,D] (best
+    first), unit negatives [V,D] and unit contrasts [S,D], one Gaussian and one negative at a time
+    (sorting for the exclusion); with rule "mean", the pool first rows' mean vector is the one Gaussian."""
     q = [float(x) for x in query.double().reshape(-1)]
     dot = lambda a, b: sum(x * y for x, y in zip(a, b, strict=True))  # noqa: E731
     negs = [[float(x) for x in row] for row in negatives.double()]
@@ -186,8 +213,11 @@ def presence_reference(
     excluded = set(order[: cfg.exclude])
     if contrasts is not None:
         negs += [[float(x) for x in row] for row in contrasts.double()]
+    rows = best.double()
+    if cfg.rule == "mean":
+        rows = rows[: cfg.pool].mean(0, keepdim=True)
     per_row = []
-    for t, row in enumerate(best.double()):
+    for t, row in enumerate(rows):
         f = [float(x) for x in row]
         r = max((i for i in range(len(negs)) if i not in excluded), key=lambda i: (dot(f, negs[i]), -i))
         per_row.append((dot(f, q) - dot(f, negs[r]), t, r))

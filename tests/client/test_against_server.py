@@ -117,8 +117,10 @@ def test_query_matches_engine(client, models):
     assert e.value.code == "FAILED_PRECONDITION"
 
 
-def test_presence_quorum_is_the_servers_setting(models):
-    """--presence-quorum reaches the engine: presence as PresenceConfig(quorum=...) decides it."""
+@pytest.mark.parametrize("rule", [{"rule": "each", "quorum": 40}, {"rule": "each"}, {"pool": 40}])
+def test_the_presence_rule_is_the_servers_setting(models, rule):
+    """--presence-rule, --presence-quorum and --presence-pool reach the engine: presence as
+    PresenceConfig(...) decides it (the default rule, the mean of 10, in the module's other tests)."""
     from fmgs.query.presence import PresenceConfig
 
     eng = SceneEngine.open(models / "blobs")
@@ -127,7 +129,7 @@ def test_presence_quorum_is_the_servers_setting(models):
     negs = enc.encode_text(names)
     texts = [*CLASS_NAMES, "giraffe"]
     vecs = enc.encode_text(texts)
-    srv = _start(models, presence_quorum=40)
+    srv = _start(models, **{f"presence_{k}": v for k, v in rule.items()})
     try:
         with FmgsClient(srv.address, timeout=30) as c:
             got = c.query("blobs", texts, top_k=3)
@@ -135,13 +137,19 @@ def test_presence_quorum_is_the_servers_setting(models):
         srv.stop(0)
     margins = []
     for a, v, pr in zip(got, vecs, probes(texts, vecs, enc.encode_text), strict=True):
-        p = eng.text_query(v, 3, negatives=negs, probe=pr, presence_cfg=PresenceConfig(quorum=40)).presence
-        one = eng.text_query(v, 3, negatives=negs, probe=pr).presence
+        p = eng.text_query(v, 3, negatives=negs, probe=pr, presence_cfg=PresenceConfig(**rule)).presence
+        mean = eng.text_query(v, 3, negatives=negs, probe=pr).presence  # the default
         assert a.presence.margin == p.margin and a.found == p.found
-        margins.append((p.margin, one.margin))
-    assert any(m < m1 for m, m1 in margins)  # the quorum made a difference somewhere
+        margins.append((p.margin, mean.margin))
+    assert any(m != m1 for m, m1 in margins)  # the rule made a difference somewhere
     with pytest.raises(ValueError, match="presence_quorum"):
         ServerConfig(models=models, presence_quorum=0).validate()
+    with pytest.raises(ValueError, match="presence_pool"):
+        ServerConfig(models=models, presence_pool=0).validate()
+    with pytest.raises(ValueError, match="presence_rule must be one of"):
+        ServerConfig(models=models, presence_rule="max").validate()
+    with pytest.raises(ValueError, match="presence_quorum needs presence_rule 'each'"):
+        ServerConfig(models=models, presence_quorum=4).validate()
 
 
 def test_render_float_and_png(client):

@@ -24,11 +24,13 @@ from tests.helpers.query_scenes import CLASS_NAMES, FakeEncoder, blob_scene
 ABSENT = ("laptop", "giraffe", "umbrella", "fire truck", "piano", "sofa", "tennis racket", "toaster")
 
 
-@pytest.mark.parametrize("seed", range(12))
+@pytest.mark.parametrize("seed", range(24))
 def test_presence_equals_its_one_at_a_time_twin(seed):
     g = torch.Generator().manual_seed(seed)
     D, T, V = 24, (1, 5, 64)[seed % 3], (9, 40)[seed % 2]
-    cfg = PresenceConfig(exclude=(0, 3, 8)[seed % 3], quorum=(1, 2, 7, 100)[seed % 4])
+    rule, quorum, pool = (("each", 1, 10), ("each", 2, 10), ("each", 100, 10), ("mean", 1, 1), ("mean", 1, 4),
+                          ("mean", 1, 100))[seed % 6]  # fmt: skip
+    cfg = PresenceConfig(exclude=(0, 3, 8)[seed % 3], rule=rule, quorum=quorum, pool=pool)
     q = safe_normalize(torch.randn(D, generator=g, dtype=torch.float64))
     best = safe_normalize(torch.randn(T, D, generator=g, dtype=torch.float64) + (seed % 4) * q)
     negs = safe_normalize(torch.randn(V, D, generator=g, dtype=torch.float64))
@@ -49,15 +51,45 @@ def test_a_quorum_needs_that_many_gaussians_and_ties_keep_the_first_row():
     rows = [[1.0, 0.0, 0.0], [0.3, 0.9, 0.0], [0.2, 0.0, 0.9], [0.3, 0.9, 0.0]]
     f = torch.tensor(rows, dtype=torch.float64)
     dots = (f @ q, f @ negs.T, negs @ q)
-    one = presence(*dots, PresenceConfig(exclude=0))
+    one = presence(*dots, PresenceConfig(exclude=0, rule="each"))
     assert one.found and one.margin == pytest.approx(1.0)
-    two = presence(*dots, PresenceConfig(exclude=0, quorum=2))
+    two = presence(*dots, PresenceConfig(exclude=0, rule="each", quorum=2))
     assert not two.found and two.margin == pytest.approx(-0.6) and two.rival == 0
-    assert two == presence_reference(q, f, negs, PresenceConfig(exclude=0, quorum=2))
-    capped = presence(*dots, PresenceConfig(exclude=0, quorum=99))  # more than the rows: the worst row
+    assert two == presence_reference(q, f, negs, PresenceConfig(exclude=0, rule="each", quorum=2))
+    # more than the rows: the worst row
+    capped = presence(*dots, PresenceConfig(exclude=0, rule="each", quorum=99))
     assert capped.margin == pytest.approx(-0.7) and capped.rival == 1
     with pytest.raises(ValueError, match="quorum"):
-        PresenceConfig(quorum=0)
+        PresenceConfig(rule="each", quorum=0)
+    with pytest.raises(ValueError, match="needs rule 'each'"):
+        PresenceConfig(quorum=2)  # the mean has one margin
+
+
+def test_the_mean_rule_decides_by_the_best_gaussians_mean_embedding():
+    q = torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64)
+    negs = safe_normalize(torch.tensor([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0]], dtype=torch.float64))
+    # the best Gaussian is the query's; the next two lean to the first negative, the last to the second
+    f = torch.tensor(
+        [[1.0, 0.0, 0.0], [0.3, 0.9, 0.0], [0.6, 0.5, 0.0], [0.0, 0.0, 1.0]], dtype=torch.float64
+    )
+    dots = (f @ q, f @ negs.T, negs @ q)
+    assert presence(*dots, PresenceConfig(exclude=0, rule="each")).found  # one Gaussian suffices
+    two = presence(*dots, PresenceConfig(exclude=0, pool=2))  # mean (0.65, 0.45, 0): still the query's
+    assert two.found and two.margin == pytest.approx(0.2) and two.rival == 0
+    three = presence(*dots, PresenceConfig(exclude=0, pool=3))  # mean (0.633, 0.467, 0)
+    assert three.found and three.margin == pytest.approx(1.9 / 3 - 1.4 / 3)
+    four = presence(*dots, PresenceConfig(exclude=0))  # the default pool, capped: (0.475, 0.35, 0.25)
+    assert four.found and four.margin == pytest.approx(0.125) and four.rival == 0
+    lean = torch.tensor([[0.8, 0.6, 0.0], [0.2, 0.9, 0.0]], dtype=torch.float64)  # best 0.2, mean -0.25
+    d2 = (lean @ q, lean @ negs.T, negs @ q)
+    assert presence(*d2, PresenceConfig(exclude=0, rule="each")).found
+    mean = presence(*d2, PresenceConfig(exclude=0))
+    assert not mean.found and mean.margin == pytest.approx(-0.25) and mean.rival == 0
+    assert mean == presence_reference(q, lean, negs, PresenceConfig(exclude=0))
+    with pytest.raises(ValueError, match="rule must be one of"):
+        PresenceConfig(rule="max")
+    with pytest.raises(ValueError, match="pool >= 1"):
+        PresenceConfig(pool=0)
 
 
 def test_paraphrases_are_not_negatives_and_extremes_stay_finite():

@@ -184,16 +184,22 @@ def test_sharded_text_answers_equal_the_unsharded_bit_for_bit(source, tmp_path, 
     # a presence quorum (PresenceConfig.quorum) and fewer rows decide alike on the merged rows
     from fmgs.query.presence import PresenceConfig
 
-    pcfg = PresenceConfig(rows=32, quorum=5)
+    pcfg = PresenceConfig(rows=32, rule="each", quorum=5)
     ref = whole.text_query_many(q, 20, 0.0, None, None, negatives=negs, probes=probes, presence_cfg=pcfg)
     got = sharded.text_query_many(q, 20, 0.0, None, None, negatives=negs, probes=probes, presence_cfg=pcfg)
-    ones = whole.text_query_many(
-        q, 20, 0.0, None, None, negatives=negs, probes=probes, presence_cfg=PresenceConfig(rows=32)
-    )
+    best = PresenceConfig(rows=32, rule="each")
+    ones = whole.text_query_many(q, 20, 0.0, None, None, negatives=negs, probes=probes, presence_cfg=best)
     for a, b, one in zip(got, ref, ones, strict=True):
         _same_answer(a, b)
         assert b.presence.margin <= one.presence.margin  # the 5th best of 32 rows: never above the best
     assert any(b.presence.margin < one.presence.margin for b, one in zip(ref, ones, strict=True))
+    # and the mean of the best rows (the default rule), in the merged ranking's order
+    pcfg = PresenceConfig(rows=32, pool=7)
+    ref = whole.text_query_many(q, 20, 0.0, None, None, negatives=negs, probes=probes, presence_cfg=pcfg)
+    got = sharded.text_query_many(q, 20, 0.0, None, None, negatives=negs, probes=probes, presence_cfg=pcfg)
+    for a, b in zip(got, ref, strict=True):
+        _same_answer(a, b)
+    assert any(b.presence.margin != one.presence.margin for b, one in zip(ref, ones, strict=True))
     # custom canonical phrases go through the exact dots of both
     canon = safe_normalize(torch.randn(3, D, generator=torch.Generator().manual_seed(9)))
     ref = whole.text_query_many(sets["clip"], 50, 0.0, canon)

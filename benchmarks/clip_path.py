@@ -70,6 +70,13 @@ def synth_flags(seed: int) -> tuple[str, ...]:
 
 QUORUM = InstanceConfig().min_points
 """The presence quorum measured beside the served one: an instance's worth of Gaussians."""
+APART = {
+    "presence_best": PresenceConfig(rule="each"),
+    "presence_quorum": PresenceConfig(rule="each", quorum=QUORUM),
+    "presence_mean": PresenceConfig(rule="mean"),
+}
+"""Presence rules scored beside the served one, each under its own key (added to kept scores that lack it,
+so that older scores are kept)."""
 
 
 def variant_name(seed: int, variant: str) -> str:
@@ -204,18 +211,22 @@ def score(out: Path, seed: int, data: Path, variants: list[str]) -> dict:
             q["embedded"] = engine.num_embedded
             q["bytes"] = package_bytes(pkg)
             kept.write_text(json.dumps({"manifest_sha256": key, "quality": q}, default=float))
-        if "presence_quorum" not in q:  # scored apart so that older scores are kept
-            engine = engine or SceneEngine.open(pkg)
-            q["presence_quorum"] = score_presence(engine, enc, names, PresenceConfig(quorum=QUORUM))
-            kept.write_text(json.dumps({"manifest_sha256": key, "quality": q}, default=float))
+        for rule, cfg in APART.items():
+            if rule not in q:
+                engine = engine or SceneEngine.open(pkg)
+                q[rule] = score_presence(engine, enc, names, cfg)
+                kept.write_text(json.dumps({"manifest_sha256": key, "quality": q}, default=float))
         rec = out / f"build-{seed if kind == 'labels' else name}.json"  # build_scene names the label one
         q["build_seconds"] = json.loads(rec.read_text())["seconds"]
         row["kinds"][kind] = q
     return row
 
 
-def presence_accuracy(q: dict, key: str = "presence") -> tuple[int, int, int, int]:
-    """(present found, present, absent not found, absent) of the presence rows q[key]."""
+def presence_accuracy(q: dict, key: str = "") -> tuple[int, int, int, int]:
+    """(present found, present, absent not found, absent) of the presence rows q[key]; by default those of
+    the single best Gaussian's rule (the served one until the mean replaced it; ``q["presence"]``, as
+    served, in scores made before)."""
+    key = key or ("presence_best" if "presence_best" in q else "presence")
     sums = [[0, 0], [0, 0]]
     for kind, (ok, n) in presence_rates(q[key]).items():
         s = sums[0 if kind in PRESENT_KINDS else 1]
@@ -224,12 +235,25 @@ def presence_accuracy(q: dict, key: str = "presence") -> tuple[int, int, int, in
     return sums[0][0], sums[0][1], sums[1][0], sums[1][1]
 
 
+def rule_rates(qs: list[dict], key: str) -> dict:
+    """Presence, present found and absent rejected of the rows q[key] pooled over the scores ``qs``; None
+    where some score lacks them (a rule added after its build was gone)."""
+    if key == "presence_best":  # scores made while it was served have it as "presence"
+        qs = [q if key in q else {**q, key: q["presence"]} for q in qs]
+    if not qs or any(key not in q for q in qs):
+        return dict.fromkeys(("presence", "present_found", "absent_rejected"))
+    f, p, a, n = (sum(x) for x in zip(*(presence_accuracy(q, key) for q in qs), strict=True))
+    return {
+        "presence": (f + a) / max(p + n, 1),
+        "present_found": f / max(p, 1),
+        "absent_rejected": a / max(n, 1),
+    }
+
+
 def summary(rows: list[dict], kind: str) -> dict:
     """Means over the scenes of one kind's scores, presence pooled, novel objects pooled."""
     qs = [r["kinds"][kind] for r in rows if kind in r["kinds"]]
     pf, pn, af, an = (sum(x) for x in zip(*(presence_accuracy(q) for q in qs), strict=True))
-    quorum = (presence_accuracy(q, "presence_quorum") for q in qs)
-    qf, qp, qa, qn = (sum(x) for x in zip(*quorum, strict=True))
     nov = [q["novel"] for q in qs]
     ious = [i for n in nov for i in n["iou"]]
     return {
@@ -240,9 +264,7 @@ def summary(rows: list[dict], kind: str) -> dict:
         "present_found": pf / max(pn, 1),
         "absent_rejected": af / max(an, 1),
         "presence": (pf + af) / max(pn + an, 1),
-        "quorum_present_found": qf / max(qp, 1),
-        "quorum_absent_rejected": qa / max(qn, 1),
-        "quorum_presence": (qf + qa) / max(qp + qn, 1),
+        **{f"{rule.split('_')[1]}_{k}": v for rule in APART for k, v in rule_rates(qs, rule).items()},
         "build_seconds": float(np.mean([q["build_seconds"] for q in qs])),
         "language_bytes": float(np.mean([q["bytes"]["language_per_embedded"] for q in qs])),
         "package_bytes": float(np.mean([q["bytes"]["package_per_gaussian"] for q in qs])),
@@ -303,31 +325,104 @@ def refit_section(rows: list[dict]) -> list[str]:
     return lines
 
 
+def build_scores(q: dict) -> dict:
+    """A build's scores without the presence rules scored apart (``APART``): what tells builds apart."""
+    return {k: v for k, v in q.items() if k not in APART}
+
+
 def add_to(stored: dict, rows: list[dict], variants: list[str], addition: dict) -> dict:
     """``stored`` (a clip_path.json) with ``variants`` of ``rows`` (scored on label builds made again)
     added to its rows of the same seeds, those label figures as ``refit_labels``, and ``addition``
     (command, machine) listed. A variant the stored rows already hold keeps them: its new figures go to
     ``refit_variants``, shown beside them. Every addition must be made on the same label builds (the
-    refit section compares with one)."""
+    refit section compares with one). A build the report holds already (the same scores but for the rules
+    scored apart) is scored again in place: its ``APART`` rules are added (``addition["rescored"]``)."""
     by_seed = {r["seed"]: r for r in rows}
     missing = [r["seed"] for r in stored["rows"] if r["seed"] not in by_seed]
     if missing:
         raise ValueError(f"no new scores for seeds {missing} of the stored report")
+    rescored = set()
     for r in stored["rows"]:
         new = by_seed[r["seed"]]
-        if r.get("refit_labels", new["kinds"]["labels"]) != new["kinds"]["labels"]:
+        if build_scores(r.get("refit_labels", new["kinds"]["labels"])) != build_scores(
+            new["kinds"]["labels"]
+        ):
             raise ValueError(
                 f"seed {r['seed']}: the label build differs from the one earlier additions were made on"
             )
         r["refit_labels"] = new["kinds"]["labels"]
         for v in (v for v in variants if v in new["kinds"]):
-            if v in r["kinds"]:
-                r.setdefault("refit_variants", {})[v] = new["kinds"][v]
+            q, again = new["kinds"][v], r.setdefault("refit_variants", {})
+            held = [d for d in (r["kinds"], again) if v in d and build_scores(d[v]) == build_scores(q)]
+            if held:
+                held[0][v] = q
+                rescored.add(v)
+            elif v in r["kinds"]:
+                again[v] = q
             else:
-                r["kinds"][v] = new["kinds"][v]
+                r["kinds"][v] = q
+            if not again:
+                del r["refit_variants"]
     stored["variants"] = [*stored["variants"], *(v for v in variants if v not in stored["variants"])]
-    stored["additions"] = [*stored.get("additions", []), addition]
+    stored["additions"] = [*stored.get("additions", []), {**addition, "rescored": sorted(rescored)}]
     return stored
+
+
+def mean_section(rows: list[dict], kinds: list[str]) -> list[str]:
+    """Presence by the three rules (``APART``) on every build scored with the mean, the tables' and those
+    made again; empty when none was."""
+    builds = [(k, "in the tables", [r["kinds"][k] for r in rows if k in r["kinds"]]) for k in kinds]
+    again = {"labels": [r["refit_labels"] for r in rows if "refit_labels" in r]}
+    for r in rows:
+        for k, q in r.get("refit_variants", {}).items():
+            again.setdefault(k, []).append(q)
+    builds += [(k, "made again", qs) for k, qs in again.items()]
+    have = [(k, w, qs) for k, w, qs in builds if qs and all("presence_mean" in q for q in qs)]
+    if not have:
+        return []
+    cfg = PresenceConfig()
+    lines = [
+        "",
+        "## Presence by the best Gaussians' mean (the served rule)",
+        "",
+        f'The served rule (`PresenceConfig.rule` "{cfg.rule}") takes the query\'s {cfg.pool} best '
+        f"Gaussians (`PresenceConfig.pool`, an instance's worth) as one group: their mean embedding must be "
+        "closer to the query than to every negative the query does not mean, as mask-based methods "
+        "classify a segment by its mean feature. The tables above were measured with the rule before it "
+        f'("each", quorum 1: the single best of the {cfg.rows} best Gaussians decides). It was chosen on '
+        "a scene no table here scores (seed 301, see docs/presence.md). On every build scored with the "
+        "mean, the same queries, pooled over the build's scenes:",
+        "",
+        f"| targets | build | scenes | best Gaussian | quorum of {QUORUM} | mean | present found | "
+        "absent rejected |",
+        "|---|---|---:|---:|---:|---:|---:|---:|",
+    ]
+    for k, which, qs in have:
+        one, q, m = (rule_rates(qs, key) for key in APART)
+        lines.append(
+            f"| {k} | {which} | {len(qs)} | {one['presence']:.3f} | {q['presence']:.3f} | "
+            f"{m['presence']:.3f} | {m['present_found']:.3f} | {m['absent_rejected']:.3f} |"
+        )
+    return lines
+
+
+def addition_words(a: dict) -> str:
+    """The report's sentence on one ``--add-to`` run: variants built, or builds the report holds scored
+    again (their presence rules)."""
+    when = f"{a['machine']['date']} on {machine_words(a['machine'])}"
+    built = [v for v in a["variants"] if v not in a.get("rescored", ())]
+    out = ""
+    if built:
+        out += (
+            f" Added {when}: {', '.join(built)}, one run of `{a['command']}`, on label builds made again "
+            f"for it (see {REFIT})."
+        )
+    if a.get("rescored"):
+        out += (
+            f" Scored again {when}, the presence rules of the builds the report holds for "
+            f"{', '.join(a['rescored'])} (and their label builds), one run of `{a['command']}`."
+        )
+    return out
 
 
 def report(d: dict) -> str:
@@ -339,11 +434,7 @@ def report(d: dict) -> str:
         "# The CLIP-target path on meaning, in the wider world",
         "",
         f"Measured {info['date']} on {machine_words(info)}, one run of `{cmd}`."
-        + "".join(
-            f" Added {a['machine']['date']} on {machine_words(a['machine'])}: {', '.join(a['variants'])}, "
-            f"one run of `{a['command']}`, on label builds made again for it (see {REFIT})."
-            for a in d.get("additions", [])
-        ),
+        + "".join(map(addition_words, d.get("additions", []))),
         "",
         f"Scenes: `fmgs synth --preset world --objects 10 --novel {NOVEL}` (fmgs.synthworld: objects of "
         'distinct shapes from 15, each in one of 12 colours and one of 11 surface textures, named "<colour> '
@@ -401,8 +492,9 @@ def report(d: dict) -> str:
         "",
         f"## Presence with a quorum of {QUORUM} Gaussians",
         "",
-        "Presence as served lets the single best of the query's "
-        f"{PresenceConfig().rows} best Gaussians decide (`PresenceConfig.quorum` 1); with a quorum of "
+        "Presence in the tables is the single best's of the query's "
+        f'{PresenceConfig().rows} best Gaussians (`PresenceConfig.rule` "each", quorum 1: the rule served '
+        "when they were measured); with a quorum of "
         f"{QUORUM} (instance grouping's `min_points`), the {QUORUM} best must each be closer to the query "
         "than to every negative it does not mean. Same packages, same queries:",
         "",
@@ -413,6 +505,7 @@ def report(d: dict) -> str:
             f"{s[k]['quorum_present_found']:.3f} | {s[k]['quorum_absent_rejected']:.3f} |"
             for k in kinds
         ),
+        *mean_section(rows, kinds),
         "",
         f"## Held-out names ({NOVEL} objects per scene, colour-shape pairs no stand-in saw)",
         "",

@@ -51,16 +51,20 @@ VARIANTS: dict[str, dict] = {
     "paper no-DINO": {"blend": "mean", "dino": False, "dotsim": False},
     "oracle": {"blend": "dominant", "dino": True, "dotsim": True, "oracle": True},
     "oracle paper": {"blend": "mean", "dino": True, "dotsim": True, "oracle": True},
+    "region crops": {"blend": "dominant", "dino": True, "dotsim": True, "regions": True},
 }
 """The CLIP builds: scale blend (fmgs.features.scale_blend), DINO targets and the dotsim loss. "dominant"
 with DINO and dotsim is the build's default. "oracle" variants name every crop without error
-(benchmarks.clip_oracle) and distil with ``fmgs train-field``: the method apart from the stand-in."""
+(benchmarks.clip_oracle) and distil with ``fmgs train-field``: the method apart from the stand-in; "region
+crops" distils benchmarks.region_crops' targets the same way (not a build option)."""
 DESCRIBE = {
     "paper": "the paper's equal mean of the 7 scales, DINO head and dotsim (the FMGS recipe)",
     "dominant": "the default: the scales whose crop is at least half the pixel's DINO region, equally",
     "coherence": "each scale weighed by its crop's DINO coherence with the pixel",
     "oracle": "the default with every crop named without error (benchmarks.clip_oracle), not the stand-in",
     "oracle paper": "the paper's equal mean with every crop named without error",
+    "region crops": "one tight crop per DINO-grown region averaged with the finest scale "
+    "(benchmarks.region_crops: the mask-based methods' way, DINO regions for masks), DINO head and dotsim",
 }
 
 
@@ -102,16 +106,20 @@ def clip_build(
     name = variant_name(seed, variant)
     ply = out / "models" / ".work" / f"s{seed}" / "gs" / "point_cloud.ply"
     prepare = None  # what the command needs first
-    if v.get("oracle"):  # the oracle's feature cache, then train-field (benchmarks.clip_oracle)
+    if v.get("oracle") or v.get("regions"):  # a feature cache made here, then train-field
         from benchmarks.clip_oracle import oracle_cache
+        from benchmarks.region_crops import region_cache
 
         work = out / "models" / ".work" / name
         cmd = ["train-field", str(data), "--gaussians", str(ply), "--features", str(work / "features"),
                "--out", str(work / "field"), "--package", str(out / "models" / name)]  # fmt: skip
         threads_flag = "--threads"
-        prepare = partial(
-            oracle_cache, data, work / "features", standin, dino if v["dino"] else None, v["blend"]
-        )
+        if v.get("regions"):
+            prepare = partial(region_cache, data, work / "features", standin, dino, v["blend"])
+        else:
+            prepare = partial(
+                oracle_cache, data, work / "features", standin, dino if v["dino"] else None, v["blend"]
+            )
     else:
         cmd = ["build", str(data), "--name", name, "--models", str(out / "models"), "--targets", "clip",
                "--clip-model", f"standin:{standin}", "--ply", str(ply), "--scale-blend", v["blend"],

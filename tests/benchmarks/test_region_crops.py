@@ -107,3 +107,36 @@ def test_a_masked_crop_shows_its_region_alone():
     torch.testing.assert_close(plain, image[1:4, 1:4].permute(2, 0, 1))
     torch.testing.assert_close(masked_crop[:, inside], plain[:, inside])
     assert (masked_crop[:, ~inside] == 0).all() and (plain[:, ~inside] > 0).all()
+
+
+def test_the_region_cache_holds_the_candidate_for_train_field(tmp_path):
+    """``region_cache`` (the clip_path variant "region crops"): each frame's CLIP target is the region-crop
+    target of the stand-ins' own maps, and the DINO target is the DINO stand-in's map, in the build's cache
+    format, so ``fmgs train-field`` distils exactly the candidate."""
+    from benchmarks.clip_path import STANDIN, STANDIN_DINO
+    from benchmarks.region_crops import region_cache
+    from fmgs.data.dataset import load_dataset
+    from fmgs.features.cache import FeatureCache
+    from fmgs.features.dino import load_dense_encoder
+    from fmgs.features.pyramid import pyramid_for, scale_maps
+    from fmgs.features.standin import load_standin
+    from fmgs.synth import SynthConfig, generate
+
+    data = tmp_path / "scene"
+    generate(data, SynthConfig(views=2, width=64, height=48, objects=4, seed=5, points=3000, preset="world"))
+    cache = FeatureCache.open(region_cache(data, tmp_path / "cache", STANDIN, STANDIN_DINO))
+    ds = load_dataset(data)
+    clip = load_standin(f"standin:{STANDIN}")
+    dino = load_dense_encoder(f"standin-dino:{STANDIN_DINO}")
+    image, _ = ds.image(1)
+    with torch.inference_mode():
+        sm = scale_maps(clip, image, pyramid_for(clip), (48, 64))
+        dense = dino.dense(image, (48, 64))
+        want = region_target(
+            clip, image, grow_regions(dense), sm.maps[int(torch.tensor(sm.edges).argmin())], clip.image_size
+        )
+    got = cache.load(ds.frames[1].name)
+    assert got.clip.shape == (48, 64, clip.dim) and got.dino.shape == dense.shape
+    torch.testing.assert_close(got.clip, want, atol=2e-3, rtol=0)  # the cache stores float16
+    torch.testing.assert_close(got.dino, dense, atol=2e-3, rtol=0)
+    assert set(cache.entries) == {f.name for f in ds.frames}

@@ -108,3 +108,22 @@ def test_a_variant_built_again_keeps_its_rows_and_is_shown_beside_them():
     other[0]["kinds"]["labels"] = {**other[0]["kinds"]["labels"], "miou": 0.5}
     with pytest.raises(ValueError, match="label build differs"):
         add_to(merged, other, ["dominant"], add)
+
+
+def test_presence_docs_quote_the_rules_on_the_kept_builds():
+    """docs/presence.md's figures for the served rule (the mean) and the rule before it are the report's,
+    on the builds scored with both (the label builds and the default made again)."""
+    from benchmarks.clip_path import rule_rates
+
+    rows = _figures()["rows"]
+    labels = [r["refit_labels"] for r in rows]
+    default = [r["refit_variants"]["dominant"] for r in rows]
+    docs = (ROOT / "docs" / "presence.md").read_text()
+    lm, lb = rule_rates(labels, "presence_mean"), rule_rates(labels, "presence_best")
+    dm, db = rule_rates(default, "presence_mean"), rule_rates(default, "presence_best")
+    for x in (dm["presence"], db["presence"], dm["absent_rejected"], db["absent_rejected"], lm["presence"]):
+        assert f"{x:.3f}" in docs, x
+    assert dm["present_found"] == db["present_found"] and f"presents found {dm['present_found']:.3f}" in docs
+    assert f"({dm['presence']:.3f} against {lm['presence']:.3f}, from {db['presence']:.3f} against " in docs
+    assert f"{lb['presence']:.3f})" in docs and lm["presence"] - dm["presence"] > 0.05  # docs: "wider than 5"
+    assert dm["presence"] > db["presence"] and dm["absent_rejected"] > db["absent_rejected"]

@@ -1,0 +1,50 @@
+"""The committed presence-rules report (benchmarks/results/PRESENCE_RULES.md, the dev scenes the served
+presence rule was chosen on) is written from its figures, and the served rule is the best there on the
+CLIP path among the rules it measures."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from benchmarks.presence_rules import RULES, report
+from fmgs.query.presence import PresenceConfig
+
+RESULTS = Path(__file__).resolve().parents[2] / "benchmarks" / "results"
+
+
+def _presence(d: dict, variant: str, rule: str) -> float:
+    f, p, a, n = (sum(x) for x in zip(*(s[variant][rule]["counts"] for s in d["scenes"]), strict=True))
+    return (f + a) / (p + n)
+
+
+def test_committed_report_is_written_from_its_figures():
+    d = json.loads((RESULTS / "PRESENCE_RULES.json").read_text())
+    assert report(d) == (RESULTS / "PRESENCE_RULES.md").read_text()
+
+
+def test_the_served_rule_is_the_best_on_the_clip_path_there():
+    d = json.loads((RESULTS / "PRESENCE_RULES.json").read_text())
+    served = [name for name, cfg in RULES.items() if cfg == PresenceConfig()]
+    assert served == ["mean of 10"]
+    clip = [v for v in d["variants"] if v != "labels"]
+    assert clip and "labels" in d["variants"]
+    for v in clip:
+        best = max(_presence(d, v, r) for r in RULES)
+        assert _presence(d, v, served[0]) == best, v
+        assert best > _presence(d, v, "best (each, quorum 1)"), v  # the rule before it is not
+
+
+def test_presence_docs_quote_the_dev_figures():
+    d = json.loads((RESULTS / "PRESENCE_RULES.json").read_text())
+    docs = (RESULTS.parents[1] / "docs" / "presence.md").read_text()
+    for v, rules in (
+        ("dominant", ["best (each, quorum 1)", "quorum 10 (each)", "mean of 10"]),
+        ("labels", []),
+    ):
+        for r in rules:
+            assert f"{_presence(d, v, r):.3f}" in docs, (v, r)
+    assert len({_presence(d, "labels", r) for r in RULES}) == 1  # docs: "under every rule"
+    assert f"{_presence(d, 'labels', 'mean of 10'):.3f} under every rule" in docs
+    seeds = d["seeds"]
+    assert (f"seed {seeds[0]}," if len(seeds) == 1 else "seeds " + " and ".join(map(str, seeds))) in docs

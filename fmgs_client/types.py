@@ -153,12 +153,13 @@ class Presence:
     score: float
     """In [0,1]: sigmoid(10 * margin)."""
     found: bool
-    """False is the "not found" answer: at the query's best Gaussians some name the query does not
-    mean (``rival``) fits better than the query."""
+    """False is the "not found" answer: the mean embedding of the query's best Gaussians (10 by default)
+    fits some name the query does not mean (``rival``) better than the query (server rule "each": the
+    quorum-th best Gaussian does)."""
     margin: float
-    """Best f.q - max f.n over the query's best Gaussians."""
+    """mean f.q - max mean f.n over those Gaussians (rule "each": the quorum-th best f.q - max f.n)."""
     rival: str
-    """The name that decided the margin at the best Gaussian."""
+    """The name that decided the margin (what the scene has there instead)."""
 
     @classmethod
     def from_proto(cls, m: pb.Presence) -> Presence:

@@ -165,6 +165,10 @@ class ServerConfig:
         rules = ("mean", "each")  # fmgs.query.presence.RULES (no torch here)
         if self.presence_rule not in rules:
             raise ValueError(f"presence_rule must be one of {rules}, got {self.presence_rule!r}")
+        if self.presence_pool > 64:  # fmgs.query.presence.PresenceConfig.rows: the rows ranked
+            raise ValueError(
+                f"presence_pool must be <= 64 (the rows a query ranks for presence), got {self.presence_pool}"
+            )
         if self.presence_quorum != 1 and self.presence_rule != "each":
             raise ValueError("presence_quorum needs presence_rule 'each' (the mean decides with one margin)")
         if self.work_memory_bytes < 0 or self.memory_budget_bytes < 0:

@@ -89,6 +89,8 @@ class PresenceConfig:
                 "presence: rows >= 1, exclude >= 0, temperature > 0, pool >= 1 and quorum >= 1 required, "
                 f"got {self}"
             )
+        if self.pool > self.rows:
+            raise ValueError(f"presence: pool must not exceed rows (the rows ranked), got {self}")
         if self.rule not in RULES:
             raise ValueError(f"presence: rule must be one of {RULES}, got {self.rule!r}")
         if self.quorum != 1 and self.rule != "each":

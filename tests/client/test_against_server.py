@@ -146,6 +146,8 @@ def test_the_presence_rule_is_the_servers_setting(models, rule):
         ServerConfig(models=models, presence_quorum=0).validate()
     with pytest.raises(ValueError, match="presence_pool"):
         ServerConfig(models=models, presence_pool=0).validate()
+    with pytest.raises(ValueError, match="presence_pool must be <= 64"):
+        ServerConfig(models=models, presence_pool=65).validate()
     with pytest.raises(ValueError, match="presence_rule must be one of"):
         ServerConfig(models=models, presence_rule="max").validate()
     with pytest.raises(ValueError, match="presence_quorum needs presence_rule 'each'"):

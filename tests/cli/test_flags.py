@@ -83,8 +83,8 @@ def test_every_server_setting_is_a_flag():
         if isinstance(v, bool):
             argv.append(flag if not v else "--no-" + flag[2:])
             expect[f.name] = not v
-        elif f.name in ("tls_cert", "tls_key", "client_ca", "backend"):
-            continue  # validated (these go together; a backend name): set below
+        elif f.name in ("tls_cert", "tls_key", "client_ca", "backend", "presence_rule"):
+            continue  # validated (these go together; a backend or rule name): set below
         elif isinstance(v, int | float):
             argv += [flag, str(v + 1)]
             expect[f.name] = v + 1
@@ -92,9 +92,10 @@ def test_every_server_setting_is_a_flag():
             argv += [flag, "x"]
             expect[f.name] = Path("x") if f.type in ("Path", "Path | None") else "x"
     argv += ["--tls-cert", "c.pem", "--tls-key", "k.pem", "--client-ca", "ca.pem", "--index-rerank", "3"]
-    argv += ["--default-top-k", "5", "--backend", "triton"]
+    argv += ["--default-top-k", "5", "--backend", "triton", "--presence-rule", "each"]
     expect["default_top_k"] = 5
     expect["backend"] = "triton"
+    expect["presence_rule"] = "each"  # the quorum set above needs it
     cfg = config_from_args(build_parser().parse_args(argv))
     for k, v in expect.items():
         assert getattr(cfg, k) == v, k

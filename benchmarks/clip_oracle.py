@@ -57,24 +57,15 @@ def oracle_map(
     return blend_scales(maps, scale_weights(cfg.blend, dense, edges))
 
 
-def oracle_cache(data: Path, cache_dir: Path, standin: Path, dino: Path | None, blend: str) -> Path:
-    """A feature cache of ``data`` (a generated scene) with oracle CLIP targets blended by ``blend`` and the
-    DINO stand-in's maps (``dino``; None: no DINO target), at the build's sizes, for every frame as the
-    build extracts them. Resumes: frames already in the cache are kept."""
+def write_cache(data: Path, cache_dir: Path, clip, dense_enc, target) -> Path:
+    """A feature cache of ``data`` at the build's sizes, every frame as the build extracts it: its CLIP
+    target ``target(frame, image [H,W,3], hw, dense [h,w,Dd] or None) -> [h,w,D]`` and the dense encoder's
+    map (``dense_enc`` None: no DINO target). Resumes: frames already in the cache are kept."""
     from fmgs.data.dataset import load_dataset
     from fmgs.features.cache import FeatureCacheWriter, TargetInfo
-    from fmgs.features.dino import load_dense_encoder
     from fmgs.features.extract import ExtractConfig, feature_size
-    from fmgs.features.pyramid import pyramid_for
-    from fmgs.features.standin import WALL, extended_labels, load_standin
-    from fmgs.features.text import load_text_encoder
 
     ds = load_dataset(data)
-    clip = load_standin(f"standin:{standin}")
-    dense_enc = load_dense_encoder(f"standin-dino:{dino}") if dino is not None else None
-    names = [*json.loads((data / "scene.json").read_text())["label_names"], WALL]
-    points = caption_points(names, load_text_encoder(clip.text_encoder_id))
-    cfg = pyramid_for(clip, blend=blend)
     targets = {"clip": TargetInfo(clip.id, clip.dim, True)}
     if dense_enc is not None:
         targets["dino"] = TargetInfo(dense_enc.id, dense_enc.dim, False)
@@ -85,10 +76,31 @@ def oracle_cache(data: Path, cache_dir: Path, standin: Path, dino: Path | None, 
             hw = feature_size(fr.camera, ExtractConfig().feature_scale)
             image, _ = ds.image(i)
             dense = dense_enc.dense(image, hw) if dense_enc is not None else None
-            labels = extended_labels(data, Path(fr.name).stem, names[:-1])
-            if labels.shape != tuple(image.shape[:2]):
-                raise ValueError(
-                    f"{fr.name}: label map {labels.shape} is not the image's {tuple(image.shape[:2])}"
-                )
-            writer.add(fr.name, oracle_map(labels, names, points, cfg, hw, dense), dense)
+            writer.add(fr.name, target(fr, image, hw, dense), dense)
     return cache_dir
+
+
+def oracle_cache(data: Path, cache_dir: Path, standin: Path, dino: Path | None, blend: str) -> Path:
+    """A feature cache of ``data`` (a generated scene) with oracle CLIP targets blended by ``blend`` and the
+    DINO stand-in's maps (``dino``; None: no DINO target), at the build's sizes, for every frame as the
+    build extracts them (``write_cache``)."""
+    from fmgs.features.dino import load_dense_encoder
+    from fmgs.features.pyramid import pyramid_for
+    from fmgs.features.standin import WALL, extended_labels, load_standin
+    from fmgs.features.text import load_text_encoder
+
+    clip = load_standin(f"standin:{standin}")
+    dense_enc = load_dense_encoder(f"standin-dino:{dino}") if dino is not None else None
+    names = [*json.loads((data / "scene.json").read_text())["label_names"], WALL]
+    points = caption_points(names, load_text_encoder(clip.text_encoder_id))
+    cfg = pyramid_for(clip, blend=blend)
+
+    def target(fr, image, hw, dense):
+        labels = extended_labels(data, Path(fr.name).stem, names[:-1])
+        if labels.shape != tuple(image.shape[:2]):
+            raise ValueError(
+                f"{fr.name}: label map {labels.shape} is not the image's {tuple(image.shape[:2])}"
+            )
+        return oracle_map(labels, names, points, cfg, hw, dense)
+
+    return write_cache(data, cache_dir, clip, dense_enc, target)

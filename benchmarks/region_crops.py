@@ -145,37 +145,25 @@ def region_target(
 def region_cache(data, cache_dir, standin, dino, blend: str = "dominant"):
     """A feature cache of ``data`` whose CLIP targets are region crops over DINO-grown regions
     (``region_target``: each region's crop averaged with the finest scale of the CLIP stand-in's pyramid),
-    with the DINO stand-in's maps as the DINO target, for every frame as the build extracts them, so that
-    ``fmgs train-field`` distils the candidate as it distils the build's own targets. ``blend`` is only the
-    pyramid's setting (the finest scale does not depend on it). Resumes: frames already cached are kept."""
-    from fmgs.data.dataset import load_dataset
-    from fmgs.features.cache import FeatureCacheWriter, TargetInfo
+    with the DINO stand-in's maps as the DINO target, for every frame as the build extracts them
+    (benchmarks.clip_oracle.write_cache), so that ``fmgs train-field`` distils the candidate as it distils
+    the build's own targets. ``blend`` is only the pyramid's setting (the finest scale does not depend on
+    it)."""
+    from benchmarks.clip_oracle import write_cache
     from fmgs.features.dino import load_dense_encoder
-    from fmgs.features.extract import ExtractConfig, feature_size
     from fmgs.features.pyramid import pyramid_for, scale_maps
     from fmgs.features.standin import load_standin
 
-    ds = load_dataset(data)
     clip = load_standin(f"standin:{standin}")
-    dense_enc = load_dense_encoder(f"standin-dino:{dino}")
     cfg = pyramid_for(clip, blend=blend)
-    targets = {
-        "clip": TargetInfo(clip.id, clip.dim, True),
-        "dino": TargetInfo(dense_enc.id, dense_enc.dim, False),
-    }
-    with FeatureCacheWriter(cache_dir, targets) as writer, torch.inference_mode():
-        for i, fr in enumerate(ds.frames):
-            if writer.has(fr.name):
-                continue
-            hw = feature_size(fr.camera, ExtractConfig().feature_scale)
-            image, _ = ds.image(i)
-            if tuple(image.shape[:2]) != hw:
-                raise ValueError(
-                    f"{fr.name}: region crops need maps at the image's size {hw}, got {image.shape[:2]}"
-                )
-            sm = scale_maps(clip, image, cfg, hw)
-            finest = sm.maps[int(torch.tensor(sm.edges).argmin())]
-            dense = dense_enc.dense(image, hw)
-            target = region_target(clip, image, grow_regions(dense), finest, clip.image_size)
-            writer.add(fr.name, target, dense)
-    return cache_dir
+
+    def target(fr, image, hw, dense):
+        if tuple(image.shape[:2]) != hw:
+            raise ValueError(
+                f"{fr.name}: region crops need maps at the image's size {hw}, got {tuple(image.shape[:2])}"
+            )
+        sm = scale_maps(clip, image, cfg, hw)
+        finest = sm.maps[int(torch.tensor(sm.edges).argmin())]
+        return region_target(clip, image, grow_regions(dense), finest, clip.image_size)
+
+    return write_cache(data, cache_dir, clip, load_dense_encoder(f"standin-dino:{dino}"), target)

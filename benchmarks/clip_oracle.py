@@ -24,7 +24,7 @@ import numpy as np
 import torch
 
 from fmgs.features.crop_content import caption_embeddings, caption_points, window_shares
-from fmgs.features.pyramid import PyramidConfig, crop_grid, grid_map
+from fmgs.features.pyramid import CropGrid, PyramidConfig, crop_grid, grid_map
 from fmgs.features.scale_blend import blend_scales, scale_weights
 
 
@@ -39,12 +39,19 @@ def oracle_scale_maps(
     maps, edges = [], []
     for s in cfg.scales:
         g = crop_grid(H, W, s, cfg.overlap, cfg.max_stride)
-        ys, xs = g.boxes[:, 0, 1].numpy(), g.boxes[0, :, 0].numpy()
-        sh = torch.from_numpy(window_shares(labels, g.size, ys, xs, len(names)))  # [ny,nx,L]
-        emb = caption_embeddings(sh.reshape(-1, len(names)), names, points).reshape(*sh.shape[:2], -1)
-        maps.append(grid_map(emb, g, (H, W), out_hw))
+        maps.append(grid_map(oracle_grid_embeddings(labels, names, points, g), g, (H, W), out_hw))
         edges.append(g.size * out_hw[0] / H)
     return maps, edges
+
+
+def oracle_grid_embeddings(
+    labels: np.ndarray, names: list[str], points: torch.Tensor, grid: CropGrid
+) -> torch.Tensor:
+    """[ny,nx,D] unit: each crop of ``grid`` embedded without naming error (labels, names and points as
+    ``oracle_scale_maps`` takes them)."""
+    ys, xs = grid.boxes[:, 0, 1].numpy(), grid.boxes[0, :, 0].numpy()
+    sh = torch.from_numpy(window_shares(labels, grid.size, ys, xs, len(names)))  # [ny,nx,L]
+    return caption_embeddings(sh.reshape(-1, len(names)), names, points).reshape(*sh.shape[:2], -1)
 
 
 def oracle_map(

@@ -44,7 +44,7 @@ def has_oracle_rows(rates_or_candidates: dict) -> bool:
     return any(k.startswith(head) for k in rates_or_candidates)
 
 
-def _novel_labels(data: Path) -> set[int]:
+def novel_labels(data: Path) -> set[int]:
     meta = json.loads((data / "scene.json").read_text())
     return {o["label"] for o in meta["objects"] if o.get("novel")}
 
@@ -88,7 +88,7 @@ def target_candidates(
     from fmgs.features.text import MiniLMTextEncoder
 
     names = json.loads((data / "scene.json").read_text())["label_names"]
-    novel = _novel_labels(data)
+    novel = novel_labels(data)
     if oracle:
         from benchmarks.clip_oracle import oracle_scale_maps
         from fmgs.features.crop_content import caption_points
@@ -152,19 +152,28 @@ def target_candidates(
                 for b in BLENDS:
                     maps[ORACLE.format(blend=b)] = blend_scales(omaps, scale_weights(b, dense, oedges))
             scores = candidate_scores(maps, table)
-        valid = lab >= 1
-        obj = lab >= 2
-        nov = torch.zeros_like(lab, dtype=torch.bool)
-        for n in novel:
-            nov |= lab == n
-        for k, s in scores.items():
-            pred = s.argmax(-1) + 1
-            ok = (pred == lab) & valid
-            row = [ok.sum(), valid.sum(), (ok & obj).sum(), obj.sum(), (ok & nov).sum(), nov.sum()]
-            inter = [((pred == c) & (lab == c) & valid).sum() for c in range(1, C)]
-            union = [(((pred == c) | (lab == c)) & valid).sum() for c in range(1, C)]
-            acc[k] = acc.get(k, 0) + np.array([float(v) for v in row + inter + union])
+        tally(acc, scores, lab, novel, C)
     return {k: {"counts": v.tolist(), "classes": C - 1} for k, v in acc.items()}
+
+
+def tally(acc: dict[str, np.ndarray], scores: dict[str, torch.Tensor], lab: torch.Tensor, novel: set[int],
+          C: int) -> None:  # fmt: skip
+    """Adds one view's counts to ``acc`` per candidate: ``scores`` [h,w,C-1] of the floor and the objects
+    (label ids 1..C-1), ``lab`` [h,w] the label map, ``novel`` the held-out names' ids. Counts: pixels
+    right and with geometry, the same on object and on novel-object pixels, then each class's
+    intersection and union (``rates`` pools them)."""
+    valid = lab >= 1
+    obj = lab >= 2
+    nov = torch.zeros_like(lab, dtype=torch.bool)
+    for n in novel:
+        nov |= lab == n
+    for k, s in scores.items():
+        pred = s.argmax(-1) + 1
+        ok = (pred == lab) & valid
+        row = [ok.sum(), valid.sum(), (ok & obj).sum(), obj.sum(), (ok & nov).sum(), nov.sum()]
+        inter = [((pred == c) & (lab == c) & valid).sum() for c in range(1, C)]
+        union = [(((pred == c) | (lab == c)) & valid).sum() for c in range(1, C)]
+        acc[k] = acc.get(k, 0) + np.array([float(v) for v in row + inter + union])
 
 
 def rates(per_scene: list[dict[str, dict]]) -> dict[str, dict[str, float]]:

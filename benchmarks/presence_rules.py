@@ -66,12 +66,23 @@ def report(d: dict) -> str:
         "|---|---:|" + "---:|" * len(RULES),
     ]
     for v in d["variants"]:
-        cells = []
-        for rule in RULES:
-            f, p, a, n = (sum(x) for x in zip(*(s[v][rule]["counts"] for s in d["scenes"]), strict=True))
-            cells.append(f"{(f + a) / max(p + n, 1):.3f} ({f}/{p} found, {a}/{n} rejected)")
-        lines.append(f"| {v} | {len(d['scenes'])} | " + " | ".join(cells) + " |")
+        lines.append(f"| {v} | {len(d['scenes'])} | " + " | ".join(_cells(d["scenes"], v)) + " |")
+    if len(d["scenes"]) > 1:
+        lines += ["", "Per scene:", "", "| seed | targets | " + " | ".join(RULES) + " |",
+                  "|---:|---|" + "---:|" * len(RULES)]  # fmt: skip
+        for seed, scene in zip(d["seeds"], d["scenes"], strict=True):
+            for v in d["variants"]:
+                lines.append(f"| {seed} | {v} | " + " | ".join(_cells([scene], v)) + " |")
     return "\n".join([*lines, ""])
+
+
+def _cells(scenes: list[dict], variant: str) -> list[str]:
+    """Per rule: presence pooled over ``scenes`` with its counts, as the report's cells."""
+    cells = []
+    for rule in RULES:
+        f, p, a, n = (sum(x) for x in zip(*(s[variant][rule]["counts"] for s in scenes), strict=True))
+        cells.append(f"{(f + a) / max(p + n, 1):.3f} ({f}/{p} found, {a}/{n} rejected)")
+    return cells
 
 
 def main() -> int:

@@ -224,12 +224,12 @@ def main() -> int:
     ap.add_argument("--seeds", default="301,302", help="dev scenes (never CLIP_PATH.md's test seeds)")
     ap.add_argument("--sizes", default="128x96,256x192", help="image sizes, WxH")
     ap.add_argument("--views", type=int, default=6)
-    ap.add_argument("--report", action="store_true", help="also write benchmarks/results/CROP_ATTRIBUTION.md")
+    ap.add_argument("--report", action="store_true", help="also publish both to benchmarks/results/")
     ap.add_argument("--findings", help="a text file of the report's conclusions, one bullet per line")
     ap.add_argument("--from-json", action="store_true", help="only write the report again from OUT's figures")
     a = ap.parse_args()
     out = Path(a.out)
-    fig = out / "crop_attribution.json"
+    fig = out / "CROP_ATTRIBUTION.json"
     if a.from_json:
         d = json.loads(fig.read_text())
     else:
@@ -244,17 +244,12 @@ def main() -> int:
                 per.append(scene_counts(data, a.views))
                 print(f"seed {seed} {size} done", flush=True)
             d["rates"][size] = rates(per)
-        out.mkdir(parents=True, exist_ok=True)
-        fig.write_text(json.dumps(d, indent=1, default=float))
     if a.findings:
         d["findings"] = Path(a.findings).read_text().strip().splitlines()
-        fig.write_text(json.dumps(d, indent=1, default=float))
+    figures = json.dumps(d, indent=1, default=float)
+    save_report(figures, out, fig.name, a.report)  # the figures beside the report, published with it
+    save_report(report(d), out, "CROP_ATTRIBUTION.md", a.report)
     print("\n".join(table(d)))
-    if a.report:
-        from benchmarks.common import RESULTS
-
-        save_report(report(d), out, "CROP_ATTRIBUTION.md", True)
-        (RESULTS / "CROP_ATTRIBUTION.json").write_text(json.dumps(d, indent=1, default=float))
     return 0
 
 

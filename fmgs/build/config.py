@@ -14,6 +14,7 @@ from fmgs.sfm.config import SfMConfig
 from fmgs.train.config import FieldTrainConfig, GSTrainConfig
 
 TARGET_KINDS = ("clip", "labels")
+SEGMENT_MAPS = ("blend", "finest")
 EMBEDDING_NEIGHBOURS = 8
 """Default k of the stored embeddings' neighbour mean (fmgs.field.neighbours): 8, so that a text
 query's first Gaussian lies in the object's midst; Gaussians without a dense neighbourhood keep the
@@ -43,6 +44,13 @@ class TargetSpec:
     "mean" (the paper's equal mean), "coherence" or "dominant" (each scale weighed by how much of its
     crop the DINO map groups with the pixel; need a dino_model); none (default): "dominant" with a
     dino_model, "mean" without (set on construction)."""
+    segmenter: str | None = None
+    """Class-agnostic segmenter id (kind "clip"; ``standin-seg:FOLDER``, SAM's role): the target of each
+    pixel of a segment is the target map (segment_map) pooled over the segment
+    (fmgs.features.segment_pool); none (default): no pooling."""
+    segment_map: str = "blend"
+    """What a segmenter pools: "blend" (the pyramid's scales blended by scale_blend) or "finest" (the
+    finest scale alone, a seventh of the crops; scale_blend then does not apply)."""
     labels: str | None = None
     """Label image folder (kind "labels"); default DATA/labels."""
     names: str | None = None
@@ -61,8 +69,21 @@ class TargetSpec:
         check_feature_scale(self.feature_scale, self.feature_side)
         if self.crop_stride is not None and not 0.0 < self.crop_stride <= 1.0:
             raise ValueError(f"crop_stride must lie in (0, 1] or be none, got {self.crop_stride}")
+        if self.segment_map not in SEGMENT_MAPS:
+            raise ValueError(f"segment_map must be one of {SEGMENT_MAPS}, got {self.segment_map!r}")
+        finest = self.segmenter is not None and self.segment_map == "finest"
+        if finest and self.single_scale:
+            raise ValueError(
+                "single_scale (the one-scale ablation) and segment_map finest exclude each other"
+            )
+        if finest and self.scale_blend not in (None, "mean"):
+            raise ValueError(
+                f"scale_blend {self.scale_blend!r} blends the pyramid's scales; segment_map finest pools the "
+                "finest scale alone: leave scale_blend unset (or mean), or choose segment_map blend"
+            )
         if self.scale_blend is None:  # frozen: the default is resolved once, so manifests record it
-            object.__setattr__(self, "scale_blend", SCALE_BLEND if self.dino_model else "mean")
+            blend = SCALE_BLEND if self.dino_model and not finest else "mean"
+            object.__setattr__(self, "scale_blend", blend)
         if self.scale_blend not in SCALE_BLENDS:
             raise ValueError(f"scale_blend must be one of {SCALE_BLENDS}, got {self.scale_blend!r}")
         if self.kind == "clip" and self.scale_blend != "mean" and not self.dino_model:

@@ -44,6 +44,7 @@ from fmgs.features.extract import ExtractConfig, extract_labels, extract_targets
 from fmgs.features.models import DEFAULT_REVISION, ModelFiles, ModelPin
 from fmgs.features.pyramid import pyramid_for
 from fmgs.features.registry import query_encoder_id, resolve_encoders
+from fmgs.features.standin_seg import load_segmenter
 from fmgs.features.text import load_text_encoder
 from fmgs.field.model import FeatureField
 from fmgs.field.neighbours import neighbour_mean, reach_of
@@ -116,6 +117,31 @@ def _is_dataset(path: Path) -> bool:
     )
 
 
+TARGETS_RECORD = "targets.json"
+"""The target settings (TargetSpec) the work folder's feature cache and field were made with."""
+
+
+def restart_on_new_targets(work: Path, spec: TargetSpec) -> bool:
+    """Remove WORK/features and WORK/field when WORK/targets.json records other target settings than
+    ``spec`` (the cache resumes by file, so a changed blend or segmenter would otherwise be distilled from
+    the old maps); then record ``spec``. Returns whether anything was removed. A work folder without a
+    record (made before it existed) is trusted as it is."""
+    import shutil
+
+    path = work / TARGETS_RECORD
+    now = json.loads(json.dumps(dataclasses.asdict(spec)))
+    before = json.loads(path.read_text()) if path.is_file() else None
+    removed = False
+    if before is not None and before != now:
+        for d in (work / "features", work / "field"):
+            if d.exists():
+                shutil.rmtree(d)
+                removed = True
+    work.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(now, indent=1))
+    return removed
+
+
 WORK_MODELS = "models.json"
 """The models a build resolved, {role: {encoder, id, revision, files}}, in its work folder: a later run
 of the same build loads these revisions (its stages reuse what the earlier run made with them)."""
@@ -130,6 +156,8 @@ def build_models(spec: TargetSpec) -> dict[str, str]:
     out = {"clip": spec.clip_model}
     if spec.dino_model:
         out["dino"] = spec.dino_model
+    if spec.segmenter:
+        out["segmenter"] = spec.segmenter
     out["text_encoder"] = query_encoder_id(spec.clip_model)
     return out
 
@@ -214,8 +242,12 @@ def extract_features(
         dino = load_dense_encoder(
             spec.dino_model, device, revision=rev.get(spec.dino_model, DEFAULT_REVISION)
         )
-    pyr = pyramid_for(clip, spec.single_scale, spec.crop_stride, spec.scale_blend)
-    return extract_targets(ds, cache_dir, clip, dino, pyr, ecfg)
+    seg = None
+    if spec.segmenter:
+        seg = load_segmenter(spec.segmenter, device, revision=rev.get(spec.segmenter, DEFAULT_REVISION))
+    finest = seg is not None and spec.segment_map == "finest"
+    pyr = pyramid_for(clip, spec.single_scale, spec.crop_stride, spec.scale_blend, finest_only=finest)
+    return extract_targets(ds, cache_dir, clip, dino, pyr, ecfg, segmenter=seg)
 
 
 LOW_PSNR_DB = LOW_VIEW_PSNR_DB
@@ -364,6 +396,8 @@ def build_scene(
 
     cache_dir = work / "features"
     _stage(3, "features", f"{cfg.targets.kind} targets -> {cache_dir}")
+    if restart_on_new_targets(work, cfg.targets):
+        _stage(3, "features", "the targets' settings changed since the last run: cache and field start over")
     if cfg.ray:
         job = TargetJob(str(data), cfg.targets, cfg.device, revisions=tuple(sorted(revisions.items())))
         extract_features_ray(job, cache_dir, None if cfg.ray == "local" else cfg.ray, progress=progress)

@@ -25,6 +25,8 @@ BUILD_ALIASES = {
             "single_scale",
             "crop_stride",
             "scale_blend",
+            "segmenter",
+            "segment_map",
             "labels",
             "names",
             "text_encoder",

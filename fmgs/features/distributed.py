@@ -34,6 +34,7 @@ from fmgs.features.extract import (
 )
 from fmgs.features.models import DEFAULT_REVISION
 from fmgs.features.pyramid import pyramid_for
+from fmgs.features.standin_seg import load_segmenter
 from fmgs.features.text import load_text_encoder
 
 
@@ -78,7 +79,17 @@ class _Worker:
             if spec.dino_model:
                 dino_rev = rev.get(spec.dino_model, DEFAULT_REVISION)
                 self.dino = load_dense_encoder(spec.dino_model, device=device, revision=dino_rev)
-            self.pyramid = pyramid_for(self.clip, spec.single_scale, spec.crop_stride, spec.scale_blend)
+            self.seg = None
+            if spec.segmenter:
+                seg_rev = rev.get(spec.segmenter, DEFAULT_REVISION)
+                self.seg = load_segmenter(spec.segmenter, device, revision=seg_rev)
+            self.pyramid = pyramid_for(
+                self.clip,
+                spec.single_scale,
+                spec.crop_stride,
+                spec.scale_blend,
+                finest_only=self.seg is not None and spec.segment_map == "finest",
+            )
             self.targets = {"clip": TargetInfo(self.clip.id, self.clip.dim, True)}
             if self.dino is not None:
                 self.targets["dino"] = TargetInfo(self.dino.id, self.dino.dim, False)
@@ -89,7 +100,7 @@ class _Worker:
         if self.kind == "labels":
             out = image_label_targets(self.ds, i, self.labels, self.emb, frozenset({0}), self.cfg)
         else:
-            out = image_targets(self.ds, i, self.clip, self.dino, self.pyramid, self.cfg)
+            out = image_targets(self.ds, i, self.clip, self.dino, self.pyramid, self.cfg, self.seg)
         return {k: (v.detach().cpu().numpy() if isinstance(v, torch.Tensor) else v) for k, v in out.items()}
 
 

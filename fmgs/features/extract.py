@@ -23,6 +23,7 @@ from fmgs.features.clip import ImageEncoder
 from fmgs.features.dino import DinoEncoder
 from fmgs.features.labels import label_embedding_map
 from fmgs.features.pyramid import PyramidConfig, hybrid_map
+from fmgs.features.segment_pool import pool_segments, resize_segments
 from fmgs.features.sizes import FEATURE_SIDE, check_feature_scale, feature_scale_for
 from fmgs.features.text import TextEncoder
 
@@ -70,10 +71,12 @@ def extract_targets(
     pyramid: PyramidConfig | None = None,
     cfg: ExtractConfig = ExtractConfig(),
     indices: Sequence[int] | None = None,
+    segmenter=None,
 ) -> FeatureCache:
     """Hybrid CLIP maps (and DINO maps when ``dino_encoder`` is given) for the frames ``indices`` (all by
     default) into ``cache_dir``; both maps of an image go into one file. Returns the opened cache.
-    ``pyramid`` defaults to ``PyramidConfig()``.
+    ``pyramid`` defaults to ``PyramidConfig()``; ``segmenter`` (``segments(image) -> [H,W] ids``, e.g.
+    fmgs.features.standin_seg): each CLIP map pooled within the image's segments (``image_targets``).
     """
     pyramid = PyramidConfig() if pyramid is None else pyramid
     targets = {"clip": TargetInfo(clip_encoder.id, clip_encoder.dim, True)}
@@ -83,7 +86,7 @@ def extract_targets(
 
     with FeatureCacheWriter(cache_dir, targets) as writer:
         for i in tqdm(_todo(ds, writer, indices), desc="features", unit="image", disable=not cfg.progress):
-            writer.add(**image_targets(ds, i, clip_encoder, dino_encoder, pyramid, cfg))
+            writer.add(**image_targets(ds, i, clip_encoder, dino_encoder, pyramid, cfg, segmenter))
     return FeatureCache.open(cache_dir)
 
 
@@ -94,14 +97,21 @@ def image_targets(
     dino_encoder: DinoEncoder | None,
     pyramid: PyramidConfig,
     cfg: ExtractConfig,
+    segmenter=None,
 ) -> dict:
-    """One frame's maps, as FeatureCacheWriter.add's keyword arguments (image_name, clip, dino)."""
+    """One frame's maps, as FeatureCacheWriter.add's keyword arguments (image_name, clip, dino). With a
+    ``segmenter`` the CLIP map is pooled within its segments of the image (mask pooling,
+    fmgs.features.segment_pool; the segments cut at the image's size, taken to the map's by nearest
+    neighbour)."""
     frame = ds.frames[i]
     image, _ = ds.image(i, cfg.image_scale)
     image = image.to(cfg.device)
     hw = feature_size(frame.camera, cfg.feature_scale, cfg.feature_side)
     dino = dino_encoder.dense(image, hw) if dino_encoder is not None else None
     clip = hybrid_map(clip_encoder, image, pyramid, hw, dense=dino)
+    if segmenter is not None:
+        seg = torch.from_numpy(segmenter.segments(image)).to(clip.device)
+        clip = pool_segments(clip, resize_segments(seg, hw))
     return {"image_name": frame.name, "clip": clip, "dino": dino}
 
 

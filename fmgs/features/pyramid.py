@@ -78,12 +78,18 @@ def pyramid_for(
     single_scale: bool = False,
     max_stride: float | None = PyramidConfig.max_stride,
     blend: str = PyramidConfig.blend,
+    finest_only: bool = False,
 ) -> PyramidConfig:
     """The build's pyramid for an image encoder: crops resized once, to the encoder's own input size (224
     for the default ViT-B/16); ``single_scale``: the ablation's one scale (0.25); ``max_stride``: the
-    crop lattice's stride cap (PyramidConfig.max_stride); ``blend``: PyramidConfig.blend."""
+    crop lattice's stride cap (PyramidConfig.max_stride); ``blend``: PyramidConfig.blend;
+    ``finest_only``: the finest scale alone, what segment pooling takes (fmgs.features.segment_pool)."""
+    if single_scale and finest_only:
+        raise ValidationError("pyramid", "single_scale (0.25) and finest_only exclude each other")
     size = int(getattr(encoder, "image_size", PyramidConfig.crop_px))
     scales = (0.25,) if single_scale else PyramidConfig.scales
+    if finest_only:
+        scales, blend = (min(PyramidConfig.scales),), "mean"
     return PyramidConfig(scales=scales, crop_px=size, max_stride=max_stride, blend=blend)
 
 

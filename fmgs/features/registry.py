@@ -5,7 +5,8 @@ An id says where a model comes from; the model's own config says what it is.
 - ``sentence-transformers/all-MiniLM-L6-v2``: MiniLM from its wheel (the label-name text encoder).
 - ``hf:ORG/NAME``, ``ORG/NAME`` or a folder: a transformers model, fetched on first use
   (fmgs.features.models). Its config.json ``model_type`` picks the wrapper: ``clip`` and ``siglip``
-  (image and text towers), ``vit`` (DINO), ``dinov2`` and ``dinov2_with_registers`` (DINOv2).
+  (image and text towers), ``vit`` (DINO), ``dinov2`` and ``dinov2_with_registers`` (DINOv2), ``sam``
+  (SAM, the segmenter: fmgs.features.sam).
 - ``openclip-file:PATH``: an open_clip checkpoint file (``open_clip_model.safetensors``; the pickled
   ``.bin`` is refused) mapped onto the transformers CLIP architecture (fmgs.features.openclip), GELU blocks
   as the LAION models have; ``openclip-file+quickgelu:PATH`` for OpenAI-trained checkpoints.
@@ -13,6 +14,8 @@ An id says where a model comes from; the model's own config says what it is.
   image encoder whose scenes are queried with MiniLM.
 - ``standin-dino:FOLDER``: the DINO stand-in trained without labels (fmgs.features.standin_dino): a
   dense regulariser.
+- ``standin-seg:FOLDER``: the segmenter stand-in (fmgs.features.standin_seg, SAM's role): class-agnostic
+  segments whose pixels share one pooled CLIP target.
 
 Scenes and feature caches record the id as given, so queries load the same model the same way.
 ``resolve_encoders`` finds (or downloads) the files of several ids at once without loading them, naming
@@ -45,6 +48,7 @@ OPENCLIP_FILE = "openclip-file:"
 OPENCLIP_FILE_QUICKGELU = "openclip-file+quickgelu:"
 STANDIN = "standin:"
 STANDIN_DINO = "standin-dino:"
+STANDIN_SEG = "standin-seg:"
 TEXT_TYPES = ("clip", "siglip")
 """transformers ``model_type``s with a text tower our text encoder wraps."""
 IMAGE_TYPES = ("clip", "siglip")
@@ -58,7 +62,7 @@ class EncoderRef:
     """A parsed encoder id."""
 
     family: str
-    """"minilm", "hf", "openclip-file", "standin" or "standin-dino"."""
+    """"minilm", "hf", "openclip-file", "standin", "standin-dino" or "standin-seg"."""
     ref: str
     """The hub model id or folder (hf), the checkpoint path (openclip-file), or MiniLM's id."""
     quick_gelu: bool = False
@@ -77,7 +81,11 @@ def parse_encoder_id(encoder_id: str) -> EncoderRef:
             if not path:
                 raise ValidationError("encoder id", f"{encoder_id!r} names no checkpoint file")
             return EncoderRef("openclip-file", path, quick)
-    for prefix, family in ((STANDIN, "standin"), (STANDIN_DINO, "standin-dino")):
+    for prefix, family in (
+        (STANDIN, "standin"),
+        (STANDIN_DINO, "standin-dino"),
+        (STANDIN_SEG, "standin-seg"),
+    ):
         if encoder_id.startswith(prefix):
             path = encoder_id[len(prefix) :]
             if not path:

@@ -27,7 +27,8 @@ from torch import nn
 
 from fmgs.errors import ValidationError
 from fmgs.features.crop_content import window as crop_window
-from fmgs.features.models import MINILM_ID, ModelFiles, ModelNotFoundError, local_weight_hashes
+from fmgs.features.models import MINILM_ID, ModelFiles
+from fmgs.features.net_folder import read_net_folder, save_net_folder
 from fmgs.features.pyramid import PyramidConfig
 from fmgs.vecmath import safe_normalize
 
@@ -110,34 +111,19 @@ class StandinImageEncoder:
 
 
 def save_standin(folder: str | os.PathLike, net: StandinNet, config: dict) -> Path:
-    """Write FOLDER/standin.json and FOLDER/standin.safetensors (float16: half the size)."""
-    from safetensors.torch import save_file
-
-    folder = Path(folder)
-    folder.mkdir(parents=True, exist_ok=True)
-    state = {k: (v.detach().half() if v.is_floating_point() else v.detach()).contiguous()
-             for k, v in net.state_dict().items()}  # fmt: skip
-    save_file(state, str(folder / WEIGHTS))
-    (folder / CONFIG).write_text(json.dumps(config, indent=1))
-    return folder
+    """Write FOLDER/standin.json and FOLDER/standin.safetensors (fmgs.features.net_folder)."""
+    return save_net_folder(folder, net, config, CONFIG, WEIGHTS)
 
 
 def load_standin(model_id: str, device: str | torch.device = "cpu") -> StandinImageEncoder:
     """The encoder of a ``standin:FOLDER`` id."""
-    from safetensors.torch import load_file
-
-    folder = Path(model_id.removeprefix(PREFIX)).expanduser()
-    if not (folder / CONFIG).is_file() or not (folder / WEIGHTS).is_file():
-        raise ModelNotFoundError(model_id, [f"{folder} (needs {CONFIG} and {WEIGHTS})"])
-    config = json.loads((folder / CONFIG).read_text())
+    config, state, files = read_net_folder(model_id, PREFIX, CONFIG, WEIGHTS)
     net = StandinNet(
         int(config["dim"]), int(config["image_size"]), int(config["width"]), int(config.get("blocks", 1))
     )
-    net.load_state_dict(
-        {k: v.float() if v.is_floating_point() else v for k, v in load_file(str(folder / WEIGHTS)).items()}
-    )
+    net.load_state_dict(state)
     enc = StandinImageEncoder(net, config, model_id, device)
-    enc.files = ModelFiles(model_id, folder, "local", files=local_weight_hashes(folder))
+    enc.files = files
     return enc
 
 

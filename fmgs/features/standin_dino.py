@@ -15,7 +15,6 @@ object that look different, objects of one kind across scenes), which only pretr
 
 from __future__ import annotations
 
-import json
 import os
 from pathlib import Path
 
@@ -24,7 +23,8 @@ import torch.nn.functional as F
 from torch import nn
 
 from fmgs.errors import ValidationError
-from fmgs.features.models import ModelFiles, ModelNotFoundError, local_weight_hashes
+from fmgs.features.models import ModelFiles
+from fmgs.features.net_folder import read_net_folder, save_net_folder
 
 CONFIG = "standin_dino.json"
 WEIGHTS = "standin_dino.safetensors"
@@ -94,26 +94,15 @@ class DenseStandinEncoder:
 
 
 def save_standin_dino(folder: str | os.PathLike, net: DenseStandinNet, config: dict) -> Path:
-    """Write FOLDER/standin_dino.json and FOLDER/standin_dino.safetensors (float16: half the size)."""
-    from safetensors.torch import save_file
-
-    folder = Path(folder)
-    folder.mkdir(parents=True, exist_ok=True)
-    save_file({k: v.detach().half().contiguous() for k, v in net.state_dict().items()}, str(folder / WEIGHTS))
-    (folder / CONFIG).write_text(json.dumps(config, indent=1))
-    return folder
+    """Write FOLDER/standin_dino.json and FOLDER/standin_dino.safetensors (fmgs.features.net_folder)."""
+    return save_net_folder(folder, net, config, CONFIG, WEIGHTS)
 
 
 def load_standin_dino(model_id: str, device: str | torch.device = "cpu") -> DenseStandinEncoder:
     """The encoder of a ``standin-dino:FOLDER`` id."""
-    from safetensors.torch import load_file
-
-    folder = Path(model_id.removeprefix(PREFIX)).expanduser()
-    if not (folder / CONFIG).is_file() or not (folder / WEIGHTS).is_file():
-        raise ModelNotFoundError(model_id, [f"{folder} (needs {CONFIG} and {WEIGHTS})"])
-    config = json.loads((folder / CONFIG).read_text())
+    config, state, files = read_net_folder(model_id, PREFIX, CONFIG, WEIGHTS)
     net = DenseStandinNet(int(config["dim"]), int(config["width"]))
-    net.load_state_dict({k: v.float() for k, v in load_file(str(folder / WEIGHTS)).items()})
+    net.load_state_dict(state)
     enc = DenseStandinEncoder(net, config, model_id, device)
-    enc.files = ModelFiles(model_id, folder, "local", files=local_weight_hashes(folder))
+    enc.files = files
     return enc

@@ -39,6 +39,7 @@ from fmgs.query.presence import PresenceConfig
 ROOT = Path(__file__).resolve().parents[1]
 STANDIN = ROOT / "benchmarks" / "standin"
 STANDIN_DINO = ROOT / "benchmarks" / "standin_dino"
+STANDIN_SEG = ROOT / "benchmarks" / "standin_seg"
 NOVEL = 3
 """Objects per scene with a held-out colour-shape pair."""
 
@@ -52,6 +53,8 @@ VARIANTS: dict[str, dict] = {
     "oracle": {"blend": "dominant", "dino": True, "dotsim": True, "oracle": True},
     "oracle paper": {"blend": "mean", "dino": True, "dotsim": True, "oracle": True},
     "region crops": {"blend": "dominant", "dino": True, "dotsim": True, "regions": True},
+    "segments": {"blend": "dominant", "dino": True, "dotsim": True, "segments": "blend"},
+    "segments finest": {"blend": "mean", "dino": True, "dotsim": True, "segments": "finest"},
 }
 """The CLIP builds: scale blend (fmgs.features.scale_blend), DINO targets and the dotsim loss. "dominant"
 with DINO and dotsim is the build's default. "oracle" variants name every crop without error
@@ -63,6 +66,9 @@ DESCRIBE = {
     "coherence": "each scale weighed by its crop's DINO coherence with the pixel",
     "oracle": "the default with every crop named without error (benchmarks.clip_oracle), not the stand-in",
     "oracle paper": "the paper's equal mean with every crop named without error",
+    "segments": "the default blend pooled within the segmenter stand-in's segments (`--segmenter`, SAM's "
+    "role: mask pooling), DINO head and dotsim",
+    "segments finest": "the finest scale alone pooled within the same segments (`--segment-map finest`)",
     "region crops": "one tight crop per DINO-grown region averaged with the finest scale "
     "(benchmarks.region_crops: the mask-based methods' way, DINO regions for masks), DINO head and dotsim",
 }
@@ -124,6 +130,10 @@ def clip_build(
         cmd = ["build", str(data), "--name", name, "--models", str(out / "models"), "--targets", "clip",
                "--clip-model", f"standin:{standin}", "--ply", str(ply), "--scale-blend", v["blend"],
                "--dino-model", f"standin-dino:{dino}" if v["dino"] else "none"]  # fmt: skip
+        if v.get("segments"):
+            cmd += ["--segmenter", f"standin-seg:{STANDIN_SEG}"]
+            if v["segments"] == "finest":
+                cmd += ["--segment-map", "finest"]
         threads_flag = "--field-threads"
     if not v["dotsim"]:
         cmd.append("--no-dotsim")
@@ -433,6 +443,21 @@ def addition_words(a: dict) -> str:
     return out
 
 
+def segmenter_words(cfg: dict | None) -> str:
+    """The report's sentence on the segmenter stand-in (none without a segments variant)."""
+    if not cfg:
+        return ""
+    h = cfg["heldout"]
+    return (
+        f" The segmenter stand-in (a small U-Net, `{cfg['command']}`, SAM's role) is trained on the instance "
+        f"masks of {len(cfg['train_seeds'])} other world scenes (which neighbouring pixels lie on one "
+        "surface), never on names; its segments are the connected components of the pairs it joins with "
+        f"affinity above {cfg['join']}. On held-out scenes {h['objects_iou_over_half']:.0%} of objects have "
+        f"a segment overlapping their mask by more than half (mean best IoU {h['object_best_iou']:.2f}) and "
+        f"{h['object_pixels_in_own_segment']:.0%} of object pixels lie in a segment mostly their own."
+    )
+
+
 def report(d: dict) -> str:
     rows, info, cmd = d["rows"], d["machine"], d["command"]
     kinds = ["labels", *d["variants"]]
@@ -468,7 +493,8 @@ def report(d: dict) -> str:
         "neighbour in feature space has its label "
         f"{dino_cfg['heldout']['trained']['nearest_neighbour_label_agreement']:.0%} of the time (random "
         f"weights: {dino_cfg['heldout']['random_weights']['nearest_neighbour_label_agreement']:.0%}; raw "
-        f"colour: {dino_cfg['heldout']['raw_colour']['nearest_neighbour_label_agreement']:.0%}).",
+        f"colour: {dino_cfg['heldout']['raw_colour']['nearest_neighbour_label_agreement']:.0%})."
+        + segmenter_words(d.get("standin_seg")),
         "",
         "Variants: "
         + "; ".join(
@@ -652,6 +678,8 @@ def main() -> int:
         addition = {"command": cmd, "variants": variants, "machine": info}
         d = add_to(json.loads(Path(a.add_to).read_text()), rows, variants, addition)
         d["notes"] = [*d.get("notes", []), *a.note]
+        if any(VARIANTS[v].get("segments") for v in variants):
+            d["standin_seg"] = json.loads((STANDIN_SEG / "standin_seg.json").read_text())
         from benchmarks.clip_targets import has_oracle_rows, rates
 
         # The table again (its candidates may have grown), with the oracle's rows if it had them or an
@@ -673,6 +701,11 @@ def main() -> int:
         "command": cmd,
         "standin": json.loads((standin / "standin.json").read_text()),
         "standin_dino": json.loads((dino / "standin_dino.json").read_text()),
+        **(
+            {"standin_seg": json.loads((STANDIN_SEG / "standin_seg.json").read_text())}
+            if any(VARIANTS[v].get("segments") for v in variants)
+            else {}
+        ),
         "notes": a.note,
     }
     return write(d, out, a.report)

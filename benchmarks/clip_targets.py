@@ -26,13 +26,21 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 STANDIN = ROOT / "benchmarks" / "standin"
 STANDIN_DINO = ROOT / "benchmarks" / "standin_dino"
+STANDIN_SEG = ROOT / "benchmarks" / "standin_seg"
 POOL_RADIUS = 0.1
 """pool_regions' window half-edge, a fraction of the map's shorter side (the scale of the median crop)."""
 REGIONS_DINO = "region crops (DINO regions)"
 REGIONS_MASKS = "region crops (label masks: upper bound)"
 MASKED = "masked {regions}"
 """The region-crop candidates with every crop black outside its region."""
-CANDIDATE_SET = 2
+SEGMENTS = "{what} pooled in segments ({by})"
+"""Mask pooling (fmgs.features.segment_pool) of a map within the segmenter stand-in's segments or, as the
+bound a perfect segmenter reaches, the label masks."""
+SEGMENTER = "segmenter stand-in"
+LABEL_MASKS = "label masks: upper bound"
+SEGMENTED = SEGMENTS.format(what="finest", by=SEGMENTER)
+"""The build's ``--segmenter`` targets."""
+CANDIDATE_SET = 3
 """Bumped when candidates are added, so that kept target tables (benchmarks.clip_path) are computed again."""
 ORACLE = "no naming error ({blend})"
 """The oracle candidates (benchmarks.clip_oracle): every crop named as the stand-in is trained to name it."""
@@ -69,20 +77,22 @@ def target_candidates(
     seconds: dict[str, float] | None = None,
     regions: bool = True,
     oracle: bool = False,
+    segmenter: Path | None = STANDIN_SEG,
 ) -> dict[str, dict]:
     """{candidate: scores} over the first ``views`` views of scene ``data`` (see the module docstring):
     hits and totals, to be pooled over scenes by ``rates``. ``seconds``, when given, gathers the time
     spent (added to what it holds): "views", "pyramid" (every crop through the CLIP stand-in), "dino" (the
     dense map) and each candidate's own (its weights, blend and pooling on top of those), in CPU seconds
     of this process. ``regions``: also the region-crop candidates; ``oracle``: also each blend with every
-    crop named without error (benchmarks.clip_oracle)."""
+    crop named without error (benchmarks.clip_oracle); ``segmenter``: the segmenter stand-in's folder
+    for the mask-pooled candidates (SEGMENTS; None: none)."""
     import time
 
     from PIL import Image
 
     from benchmarks.region_crops import grow_regions, label_regions, region_target
     from fmgs.features.dino import load_dense_encoder
-    from fmgs.features.pyramid import PyramidConfig, scale_maps
+    from fmgs.features.pyramid import PyramidConfig, hybrid_map, pyramid_for, scale_maps
     from fmgs.features.scale_blend import BLENDS, blend_scales, pool_regions, scale_weights
     from fmgs.features.standin import load_standin
     from fmgs.features.text import MiniLMTextEncoder
@@ -97,6 +107,12 @@ def target_candidates(
         points = caption_points([*names, WALL], MiniLMTextEncoder())
     enc = load_standin(f"standin:{standin}")
     dino = load_dense_encoder(f"standin-dino:{standin_dino}")
+    seg_enc = None
+    if segmenter is not None:
+        from fmgs.features.segment_pool import pool_segments
+        from fmgs.features.standin_seg import load_standin_seg
+
+        seg_enc = load_standin_seg(f"standin-seg:{segmenter}")
     with torch.inference_mode():
         table = MiniLMTextEncoder().encode_text(names[1:])  # floor and objects: segmentation's classes
     cfg = PyramidConfig(crop_px=enc.image_size)
@@ -146,6 +162,17 @@ def target_candidates(
                     maps[MASKED.format(regions=name)] = region_target(
                         enc, img, seg, finest, enc.image_size, masked=True
                     )
+            if seg_enc is not None:
+                # the build's own path (--segmenter): the finest scale alone, cut again, then pooled
+                t0 = clock()
+                finest = hybrid_map(enc, img, pyramid_for(enc, finest_only=True), (H, W))
+                segs = torch.from_numpy(seg_enc.segments(img))
+                maps[SEGMENTED] = pool_segments(finest, segs)
+                add(SEGMENTED, clock() - t0)  # all of it: this target needs no other pyramid
+                masks = torch.from_numpy(label_regions(lab))
+                maps[SEGMENTS.format(what="dominant", by=SEGMENTER)] = pool_segments(maps["dominant"], segs)
+                for what, m in (("finest", finest), ("dominant", maps["dominant"])):
+                    maps[SEGMENTS.format(what=what, by=LABEL_MASKS)] = pool_segments(m, masks)
             if oracle:
                 ext = extended_labels(data, p.stem, names)
                 omaps, oedges = oracle_scale_maps(ext, [*names, WALL], points, cfg, (H, W))

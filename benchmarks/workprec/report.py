@@ -127,6 +127,7 @@ def write_report(res: dict, out: Path, report: Path, quick: bool) -> None:
         + ", ".join(
             f"{k}: commit {v['machine']['commit']}{' (dirty tree)' if v['machine'].get('dirty') else ''}, "
             f"{v['machine']['date']}"
+            + (f" on {v['machine']['cpu']}" if v["machine"]["cpu"] != first["machine"]["cpu"] else "")
             for k, v in res.items()
         )
         + f". Per-section stamps are also in the plots, the CSV files and `{img('results.json')}`.",

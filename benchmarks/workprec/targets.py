@@ -25,7 +25,7 @@ def world_scene(work: Path, seed: int, sz: TargetSizes) -> Path:
 
 
 def section(sz: TargetSizes, work: Path) -> dict:
-    from benchmarks.clip_targets import REGIONS_DINO, rates, target_candidates
+    from benchmarks.clip_targets import REGIONS_DINO, SEGMENTED, rates, target_candidates
     from fmgs.features.pyramid import PyramidConfig
     from fmgs.features.sizes import SCALE_BLEND, SCALE_BLENDS
 
@@ -38,16 +38,18 @@ def section(sz: TargetSizes, work: Path) -> dict:
     points = []
     kinds = [(b, "blend", b) for b in SCALE_BLENDS] + [(f"{b} + pooled", "blend + DINO pooling", b) for b in
              SCALE_BLENDS] + [(LERF, "LERF scale selection", "lerf"),
-                              (REGIONS_DINO, "region crops (DINO regions)", "regions")]  # fmt: skip
+                              (REGIONS_DINO, "region crops (DINO regions)", "regions"),
+                              (SEGMENTED, "segments (segmenter stand-in)", "segments")]  # fmt: skip
     for key, curve, label in kinds:
-        dino = key != LERF and (key != "mean")  # the equal mean and LERF use no DINO
+        dino = key not in (LERF, "mean", SEGMENTED)  # the equal mean, LERF and segments use no DINO
         own = ms.get(key, 0.0)
         v = r[key]
+        pyramid = 0.0 if key == SEGMENTED else ms["pyramid"]  # segments time their own finest scale
         points.append(
             Point(
                 curve,
                 label,
-                ms["pyramid"] + (ms["dino"] if dino else 0.0) + own,
+                pyramid + (ms["dino"] if dino else 0.0) + own,
                 {
                     "object": 1 - v["object_pixels"],
                     "novel": 1 - v["novel_object_pixels"],
@@ -93,7 +95,9 @@ def markdown(sec: dict, img: str) -> list[str]:
         "every blend writes one embedding per pixel, so the field has one output per Gaussian; LERF's "
         f"max over scales needs one per scale ({sec['scales']}), hence {sec['scales']}x the language bytes "
         "per Gaussian and one scan per scale per text query (not built here: the field has no scale "
-        "input).",
+        "input). Segments (the build's `--segmenter`, fmgs.features.segment_pool): the finest scale's crops "
+        "alone, the segmenter stand-in's segments (`benchmarks/standin_seg`) and the pooling, all in its "
+        "own time, since it needs no other scale and no DINO map; one embedding per Gaussian.",
         "",
         f"![CLIP target blends work-precision]({img})",
         "",
@@ -138,8 +142,8 @@ def reading(sec: dict) -> list[str]:
     if top is not d:
         text += (
             f"Here {top['info']['candidate']} names more ({top['info']['object_pixels']:.3f} in "
-            f"{top['time_ms']:.0f} ms): a lead to try on the distilled field (CLIP_PATH.md), which is where "
-            "the default is judged. "
+            f"{top['time_ms']:.0f} ms); the default is judged on the distilled field, where the candidates "
+            "are built (CLIP_PATH.md). "
         )
     text += (
         "Bytes per Gaussian and query time are the same for every blend (one embedding per Gaussian); "

@@ -20,7 +20,7 @@ import torch
 
 from fmgs.errors import ValidationError
 from fmgs.features.models import DEFAULT_REVISION, ModelFiles, fetch_model, load_guard, require_transformers
-from fmgs.features.standin_seg import MIN_PIXELS, relabel
+from fmgs.features.segment_pool import MIN_PIXELS, relabel
 
 SAM_TYPES = ("sam",)
 

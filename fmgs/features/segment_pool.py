@@ -12,10 +12,14 @@ Pure torch; works on any device.
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 
 from fmgs.errors import ValidationError
 from fmgs.vecmath import safe_normalize
+
+MIN_PIXELS = 4
+"""Segmenters return smaller segments as 0 (in no segment): too small to crop or pool."""
 
 
 def pool_segments(target: torch.Tensor, segments: torch.Tensor) -> torch.Tensor:
@@ -55,3 +59,16 @@ def resize_segments(segments: torch.Tensor, hw: tuple[int, int]) -> torch.Tensor
         return segments
     x = segments[None, None].float()
     return torch.nn.functional.interpolate(x, size=tuple(hw), mode="nearest")[0, 0].long()
+
+
+def relabel(comp: np.ndarray, min_pixels: int, none: int | None = None) -> np.ndarray:
+    """Component ids [H,W] -> ids 1..n in order of first pixel, components under min_pixels (and the id
+    ``none``, when given: pixels in no component) as 0."""
+    values, first, inverse, counts = np.unique(comp.ravel(), return_index=True, return_inverse=True,
+                                               return_counts=True)  # fmt: skip
+    keep = (counts >= min_pixels) & (values != none if none is not None else True)
+    order = np.argsort(first, kind="stable")  # components in order of their first pixel
+    new = np.zeros(len(first), np.int64)
+    kept = order[keep[order]]
+    new[kept] = np.arange(1, len(kept) + 1)
+    return new[inverse].reshape(comp.shape)

@@ -28,6 +28,7 @@ from torch import nn
 from fmgs.errors import ValidationError
 from fmgs.features.models import ModelFiles
 from fmgs.features.net_folder import read_net_folder, save_net_folder
+from fmgs.features.segment_pool import MIN_PIXELS, relabel
 
 CONFIG = "standin_seg.json"
 WEIGHTS = "standin_seg.safetensors"
@@ -37,8 +38,6 @@ JOIN = 0.8
 mask generator keeps only stable masks: one leaked boundary pair merges an object with the floor and
 costs it its name, while a split object's parts still pool their own pixels (chosen on the dev scenes
 301 and 302 among 0.3, 0.5 and 0.8 by the mIoU of the pooled target maps)."""
-MIN_PIXELS = 4
-"""Smaller segments are returned as 0 (in no segment): too small to crop or pool."""
 
 
 class SegStandinNet(nn.Module):
@@ -97,19 +96,6 @@ def affinity_segments(affinity: np.ndarray, join: float = JOIN, min_pixels: int 
     graph = coo_matrix((np.ones(len(a), np.int8), (a, b)), shape=(H * W, H * W))
     _, comp = connected_components(graph, directed=False)
     return relabel(comp.reshape(H, W), min_pixels)
-
-
-def relabel(comp: np.ndarray, min_pixels: int, none: int | None = None) -> np.ndarray:
-    """Component ids [H,W] -> ids 1..n in order of first pixel, components under min_pixels (and the id
-    ``none``, when given: pixels in no component) as 0."""
-    values, first, inverse, counts = np.unique(comp.ravel(), return_index=True, return_inverse=True,
-                                               return_counts=True)  # fmt: skip
-    keep = (counts >= min_pixels) & (values != none if none is not None else True)
-    order = np.argsort(first, kind="stable")  # components in order of their first pixel
-    new = np.zeros(len(first), np.int64)
-    kept = order[keep[order]]
-    new[kept] = np.arange(1, len(kept) + 1)
-    return new[inverse].reshape(comp.shape)
 
 
 def affinity_segments_reference(affinity: np.ndarray, join: float = JOIN,

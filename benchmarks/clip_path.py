@@ -443,6 +443,13 @@ def addition_words(a: dict) -> str:
     return out
 
 
+def segmenter_config(variants: list[str]) -> dict:
+    """{"standin_seg": the segmenter stand-in's config} when a variant uses it, else {}."""
+    if not any(VARIANTS[v].get("segments") for v in variants):
+        return {}
+    return {"standin_seg": json.loads((STANDIN_SEG / "standin_seg.json").read_text())}
+
+
 def segmenter_words(cfg: dict | None) -> str:
     """The report's sentence on the segmenter stand-in (none without a segments variant)."""
     if not cfg:
@@ -678,8 +685,7 @@ def main() -> int:
         addition = {"command": cmd, "variants": variants, "machine": info}
         d = add_to(json.loads(Path(a.add_to).read_text()), rows, variants, addition)
         d["notes"] = [*d.get("notes", []), *a.note]
-        if any(VARIANTS[v].get("segments") for v in variants):
-            d["standin_seg"] = json.loads((STANDIN_SEG / "standin_seg.json").read_text())
+        d.update(segmenter_config(variants))
         from benchmarks.clip_targets import has_oracle_rows, rates
 
         # The table again (its candidates may have grown), with the oracle's rows if it had them or an
@@ -701,11 +707,7 @@ def main() -> int:
         "command": cmd,
         "standin": json.loads((standin / "standin.json").read_text()),
         "standin_dino": json.loads((dino / "standin_dino.json").read_text()),
-        **(
-            {"standin_seg": json.loads((STANDIN_SEG / "standin_seg.json").read_text())}
-            if any(VARIANTS[v].get("segments") for v in variants)
-            else {}
-        ),
+        **segmenter_config(variants),
         "notes": a.note,
     }
     return write(d, out, a.report)

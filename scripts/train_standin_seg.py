@@ -52,23 +52,14 @@ def load(folders: list[Path]) -> tuple[torch.Tensor, torch.Tensor, list[int]]:
 
 def measure(encoder, folders: list[Path]) -> dict[str, float]:
     """Segment quality on scenes' views against their object masks (see the module docstring)."""
+    from fmgs.features.standin_seg import object_segment_scores
+
     ims, labs, walls = load(folders)
     ious, own, total = [], 0, 0
     for img, lab, wall in zip(ims, labs, walls, strict=True):
-        seg = encoder.segments(img.permute(1, 2, 0))
         lab = lab.numpy()
-        for c in np.unique(lab[(lab >= 2) & (lab < wall)]):
-            m = lab == c
-            ids, counts = np.unique(seg[m], return_counts=True)
-            best = 0.0
-            for i, k in zip(ids, counts, strict=True):
-                if i:
-                    best = max(best, k / float((m | (seg == i)).sum()))
-            ious.append(best)
-            for i, k in zip(ids, counts, strict=True):  # pixels whose segment is mostly their own object
-                if i and k * 2 > (seg == i).sum():
-                    own += int(k)
-            total += int(m.sum())
+        i, o, t = object_segment_scores(encoder.segments(img.permute(1, 2, 0)), lab, range(2, wall))
+        ious, own, total = ious + i, own + o, total + t
     ious_a = np.array(ious)
     return {
         "object_best_iou": float(ious_a.mean()),

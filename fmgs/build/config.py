@@ -71,7 +71,7 @@ class TargetSpec:
             raise ValueError(f"crop_stride must lie in (0, 1] or be none, got {self.crop_stride}")
         if self.segment_map not in SEGMENT_MAPS:
             raise ValueError(f"segment_map must be one of {SEGMENT_MAPS}, got {self.segment_map!r}")
-        finest = self.segmenter is not None and self.segment_map == "finest"
+        finest = self.pools_finest
         if finest and self.single_scale:
             raise ValueError(
                 "single_scale (the one-scale ablation) and segment_map finest exclude each other"
@@ -91,6 +91,11 @@ class TargetSpec:
                 f"scale_blend {self.scale_blend!r} weighs the scales by DINO coherence and needs a "
                 "dino_model; give one, or choose --scale-blend mean"
             )
+
+    @property
+    def pools_finest(self) -> bool:
+        """A segmenter pools the finest scale alone: the pyramid cuts that scale only."""
+        return self.segmenter is not None and self.segment_map == "finest"
 
 
 @dataclass(frozen=True)

@@ -245,8 +245,7 @@ def extract_features(
     seg = None
     if spec.segmenter:
         seg = load_segmenter(spec.segmenter, device, revision=rev.get(spec.segmenter, DEFAULT_REVISION))
-    finest = seg is not None and spec.segment_map == "finest"
-    pyr = pyramid_for(clip, spec.single_scale, spec.crop_stride, spec.scale_blend, finest_only=finest)
+    pyr = pyramid_for(clip, spec.single_scale, spec.crop_stride, spec.scale_blend, spec.pools_finest)
     return extract_targets(ds, cache_dir, clip, dino, pyr, ecfg, segmenter=seg)
 
 

@@ -126,6 +126,24 @@ def affinity_segments_reference(affinity: np.ndarray, join: float = JOIN,
     return relabel(comp, min_pixels)
 
 
+def object_segment_scores(seg: np.ndarray, labels: np.ndarray, objects) -> tuple[list[float], int, int]:
+    """How a segmentation ``seg`` [H,W] (0: no segment) serves the objects ``objects`` (label ids) of
+    ``labels`` [H,W]: (each present object's best IoU with one segment, object pixels whose segment is
+    mostly their own object, object pixels)."""
+    ious, own, total = [], 0, 0
+    for c in objects:
+        m = labels == c
+        if not m.any():
+            continue
+        ids, counts = np.unique(seg[m], return_counts=True)
+        sizes = {int(i): int((seg == i).sum()) for i in ids if i}
+        ious.append(max((k / float((m | (seg == i)).sum()) for i, k in zip(ids, counts, strict=True) if i),
+                        default=0.0))  # fmt: skip
+        own += sum(int(k) for i, k in zip(ids, counts, strict=True) if i and 2 * k > sizes[int(i)])
+        total += int(m.sum())
+    return ious, own, total
+
+
 class SegStandinEncoder:
     """``SegStandinNet`` behind a segmenter's interface: ``segments(image [H,W,3]) -> [H,W] int64``. The
     image is resized so its short side is the training renders' and padded to even sides, the

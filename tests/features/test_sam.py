@@ -11,7 +11,10 @@ import torch
 from fmgs.errors import ValidationError
 from fmgs.features.sam import SamMaskConfig, paint_masks, paint_masks_reference, stability_score
 
-transformers = pytest.importorskip("transformers")
+
+def _transformers():
+    """transformers, which SAM needs (the mask painting does not)."""
+    return pytest.importorskip("transformers", reason="in requirements/cpu.txt (CI)")
 
 
 @pytest.mark.parametrize("seed", range(5))
@@ -48,6 +51,7 @@ def test_stability_score():
 
 @pytest.fixture(scope="module")
 def tiny_sam(tmp_path_factory):
+    transformers = _transformers()
     from transformers.models.sam.configuration_sam import (
         SamMaskDecoderConfig,
         SamPromptEncoderConfig,
@@ -74,6 +78,7 @@ def tiny_sam(tmp_path_factory):
 def test_sam_by_folder_keeps_each_points_best_mask_as_the_model_gives_it(tiny_sam):
     from fmgs.features.standin_seg import load_segmenter
 
+    transformers = _transformers()
     keep_all = SamMaskConfig(points_per_side=3, points_per_batch=4, pred_iou=-1e9, stability=-1.0)
     seg = load_segmenter(str(tiny_sam))
     seg.cfg = keep_all
@@ -108,6 +113,7 @@ def test_sam_by_folder_keeps_each_points_best_mask_as_the_model_gives_it(tiny_sa
 def test_a_model_of_another_kind_is_refused_as_the_segmenter(tmp_path):
     from fmgs.features.standin_seg import load_segmenter
 
+    transformers = _transformers()
     cfg = transformers.ViTConfig(hidden_size=16, num_hidden_layers=1, num_attention_heads=2,
                                  intermediate_size=16, image_size=32, patch_size=8)  # fmt: skip
     transformers.ViTModel(cfg).save_pretrained(tmp_path)
@@ -119,7 +125,7 @@ def test_sam_is_fetched_from_the_hub_on_first_use_then_loads_offline(tiny_sam, t
     """The way a user's build meets it: ``--segmenter ORG/NAME`` downloads SAM (weights, config and the
     image processor's settings) through the product's fetch, against a local hub; later runs load it
     from the cache with downloads off."""
-    pytest.importorskip("huggingface_hub")
+    pytest.importorskip("huggingface_hub", reason="in requirements/cpu.txt (CI)")
     from fmgs.features.standin_seg import load_segmenter
     from tests.helpers.hub_server import HubRepo, HubServer
 

@@ -132,6 +132,9 @@ class GSTrainConfig:
         return cls(steps=steps, sh_every=max(1, round(1_000 * f)), densify=DensifyConfig().scaled(f), **kw)
 
 
+BALANCES = ("paper", "scale")
+
+
 @dataclass(frozen=True)
 class FieldTrainConfig:
     """Distillation settings (defaults: the FMGS paper)."""
@@ -142,6 +145,11 @@ class FieldTrainConfig:
     """Weight of the language (Huber) loss; the DINO (MSE) loss gets 1 - lam."""
     huber_delta: float = 1.25
     """Huber threshold of the language loss."""
+    balance: str = "paper"
+    """How the two target terms are scaled before ``lam`` weighs them. "paper": as they come (the DINO
+    term then outweighs the language term by the ratio of the targets' squared magnitudes, which depends
+    on the encoders); "scale": each divided by its targets' mean square per element over the training
+    views, so ``lam`` weighs relative errors whatever the encoders' feature scales."""
     dotsim_weight: float = 0.01
     """gamma: weight of the dot-product-similarity loss (0 switches it off)."""
     dotsim_start: int = 2500
@@ -179,6 +187,8 @@ class FieldTrainConfig:
     def __post_init__(self) -> None:
         if self.steps < 1 or not 0 <= self.lam <= 1 or self.dotsim_kernel < 3 or self.dotsim_kernel % 2 == 0:
             raise ValueError("need steps >= 1, 0 <= lam <= 1 and an odd dotsim_kernel >= 3")
+        if self.balance not in BALANCES:
+            raise ValueError(f"balance must be one of {BALANCES}, not {self.balance!r}")
 
     def reduced(self, steps: int, **kw) -> FieldTrainConfig:
         """The same schedule compressed to ``steps`` (dotsim starts at the same fraction; unchanged at

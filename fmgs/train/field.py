@@ -111,21 +111,47 @@ def _decode(
     return model.heads(model.grid.encode_matrix(interp)[idx], dino)
 
 
+def target_scales(views: list[ViewTarget], balance: str) -> tuple[float, float]:
+    """(language, DINO) divisors of the two target terms: 1 under "paper"; under "scale" each target's
+    mean square per element over the views' (masked) pixels."""
+    if balance == "paper":
+        return 1.0, 1.0
+
+    def mean_square(pick) -> float:
+        total = count = 0.0
+        for v in views:
+            t = pick(v)
+            if t is None:
+                return 1.0
+            t = t[v.mask] if v.mask is not None else t
+            total += float(t.float().square().sum())
+            count += t.numel()
+        return max(total / max(count, 1.0), 1e-12)
+
+    return mean_square(lambda v: v.clip), mean_square(lambda v: v.dino)
+
+
 def view_loss(
-    model: torch.nn.Module, interp: SparseMatrix | None, v: ViewTarget, cfg: FieldTrainConfig, dotsim: bool
+    model: torch.nn.Module,
+    interp: SparseMatrix | None,
+    v: ViewTarget,
+    cfg: FieldTrainConfig,
+    dotsim: bool,
+    scales: tuple[float, float] = (1.0, 1.0),
 ) -> tuple[torch.Tensor, dict[str, float]]:
-    """The loss of one view and its parts."""
+    """The loss of one view and its parts; ``scales`` divide the language and DINO terms
+    (``target_scales``)."""
     use_dino = v.dino is not None
     out = _decode(model, interp, v.weights.gaussians, use_dino)
     clip = v.weights.render(out.clip)  # [h,w,Dc]
     h, w = clip.shape[:2]
     sel = v.mask if v.mask is not None else slice(None)
     pred, tgt = clip.reshape(h * w, -1)[sel], v.clip[sel].float()
-    l_clip = F.huber_loss(pred, tgt, delta=cfg.huber_delta)
+    l_clip = F.huber_loss(pred, tgt, delta=cfg.huber_delta) / scales[0]
     parts = {"clip": float(l_clip.detach())}
     if use_dino:
         dino = v.weights.render(out.dino)
-        l_dino = F.mse_loss(dino.reshape(h * w, -1)[sel], v.dino[sel].float())
+        l_dino = F.mse_loss(dino.reshape(h * w, -1)[sel], v.dino[sel].float()) / scales[1]
         loss = cfg.lam * l_clip + (1 - cfg.lam) * l_dino
         parts["dino"] = float(l_dino.detach())
         if dotsim and cfg.dotsim_weight > 0:
@@ -220,6 +246,7 @@ def _train(
     if start >= cfg.steps:  # a finished run: nothing to prepare or write
         return FieldTrainResult(model.cpu(), selection, 0.0, losses)
     views = prepare_views(g, ds, cache, train, dev)
+    scales = target_scales(views, cfg.balance)
     bar = None
     if progress:
         from tqdm import tqdm
@@ -230,7 +257,7 @@ def _train(
         v = views[int(torch.randint(len(views), (1,), generator=gen))]
         for group in opt.param_groups:
             group["lr"] = cfg.lr * (cfg.lr_final / cfg.lr) ** (step / max(cfg.steps - 1, 1))
-        loss, parts = view_loss(model, interp, v, cfg, dotsim=step >= cfg.dotsim_start)
+        loss, parts = view_loss(model, interp, v, cfg, step >= cfg.dotsim_start, scales)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()

@@ -240,3 +240,41 @@ def test_package_round_trip_and_queries(setup, tmp_path):
     ref = relevancy(out.image @ q, out.image @ canon.T, TEMPERATURE)
     assert_close(fast.relevancy, ref, torch.float32)
     assert torch.isfinite(fast.relevancy).all() and torch.equal(fast.alpha, out.alpha)
+
+
+def test_target_scales_are_the_masked_mean_squares(setup):
+    _, ds, gs, cache = setup
+    views = field_mod.prepare_views(gs, ds, cache, list(range(len(ds.frames))), torch.device("cpu"))
+    assert field_mod.target_scales(views, "paper") == (1.0, 1.0)
+    clip_ms, dino_ms = field_mod.target_scales(views, "scale")
+    # The twin: a loop over every masked pixel of every view.
+    sums, counts = [0.0, 0.0], [0, 0]
+    for v in views:
+        for i in range(v.clip.shape[0]):
+            if v.mask is not None and not bool(v.mask[i]):
+                continue
+            for k, t in enumerate((v.clip[i], v.dino[i])):
+                sums[k] += float((t.double() ** 2).sum())
+                counts[k] += t.numel()
+    assert clip_ms == pytest.approx(sums[0] / counts[0], rel=1e-5)
+    assert dino_ms == pytest.approx(sums[1] / counts[1], rel=1e-5)
+    # The test cache's targets differ in scale: unit-norm language, DINO of a larger magnitude.
+    assert dino_ms > 2 * clip_ms
+
+
+def test_scale_balance_divides_each_term_by_its_targets_scale(setup, tmp_path):
+    _, ds, gs, cache = setup
+    short = train_field(gs, ds, cache, tmp_path / "m", _cfg(steps=5), progress=False)
+    g, model = gs.subset(short.selection.index), short.model
+    views = field_mod.prepare_views(g, ds, cache, [0], torch.device("cpu"))
+    interp = model.grid.interpolation_matrix(model.lookup(g.means))
+    cfg = _cfg(balance="scale")
+    with torch.no_grad():
+        _, raw = field_mod.view_loss(model, interp, views[0], cfg, dotsim=False)
+        _, scaled = field_mod.view_loss(model, interp, views[0], cfg, False, (0.5, 4.0))
+    assert scaled["clip"] == pytest.approx(raw["clip"] / 0.5, rel=1e-6)
+    assert scaled["dino"] == pytest.approx(raw["dino"] / 4.0, rel=1e-6)
+    res = train_field(gs, ds, cache, tmp_path / "s", _cfg(balance="scale"), progress=False)
+    assert all(np.isfinite(res.losses)) and np.mean(res.losses[-10:]) < np.mean(res.losses[:10])
+    with pytest.raises(ValueError, match="balance"):
+        _cfg(balance="equal")

@@ -67,10 +67,9 @@ def mean_squares(cache, frames: list[str]) -> dict[str, float]:
     return {k: sums[k] / max(counts[k], 1) for k in sums}
 
 
-def confusions(
-    engine, ds, emb: torch.Tensor, views: list[int], names: list[str]
-) -> dict[str, dict[str, float]]:
-    """Object name -> {what its held-out pixels are labelled: share} (the top three; "none": unlabelled)."""
+def confusion(engine, ds, emb: torch.Tensor, views: list[int], names: list[str]) -> np.ndarray:
+    """[K, K+1] pixel counts over ``views``: label map class (rows) against the served segmentation's
+    class (columns; the last: unlabelled, where the embedded Gaussians barely cover the pixel)."""
     from PIL import Image
 
     from fmgs.query.segment import segment
@@ -82,6 +81,23 @@ def confusions(
         pred = np.where(lab >= 0, lab + 1, K)
         gt = np.asarray(Image.open(ds.root / "labels" / Path(ds.frames[i].name).name)).astype(np.int64)
         np.add.at(conf, (gt.ravel(), pred.ravel()), 1)
+    return conf
+
+
+def class_ious(conf: np.ndarray, names: list[str]) -> dict[str, float]:
+    """IoU per class present in a ``confusion`` matrix, scored as fmgs.train.evaluate_field scores it:
+    labelled pixels only (row 0, no geometry, left out), an unlabelled pixel a miss."""
+    out = {}
+    for c in range(1, len(names)):
+        union = conf[c].sum() + conf[1:, c].sum() - conf[c, c]
+        if union > 0:
+            out[names[c]] = float(conf[c, c] / union)
+    return out
+
+
+def confusions(conf: np.ndarray, names: list[str]) -> dict[str, dict[str, float]]:
+    """Object name -> {what its pixels are labelled: share} (the top three; "none": unlabelled)."""
+    K = len(names)
     out = {}
     for c in range(1, K):
         row = conf[c] / max(conf[c].sum(), 1)
@@ -110,8 +126,8 @@ def measure(data: Path, builds: dict[str, tuple[Path, Path, Path]]) -> dict:
         engine = SceneEngine.open(package)
         field_json = field / "field_train.json"
         cfg = json.loads(field_json.read_text())["config"] if field_json.is_file() else {}
-        tr = evaluate_field(engine, ds, enc, train, data / "scene.json")
-        te = evaluate_field(engine, ds, enc, test, data / "scene.json")
+        te = evaluate_field(engine, ds, enc, test, data / "scene.json")  # localisation; IoU as below
+        held = confusion(engine, ds, emb, test, names)
         ious = target_ious(data, cache, names, emb[1:], frames)
         out["builds"][label] = {
             "package": str(package),
@@ -120,11 +136,11 @@ def measure(data: Path, builds: dict[str, tuple[Path, Path, Path]]) -> dict:
             "balance": cfg.get("balance", "paper"),
             "mean_squares": mean_squares(cache, frames),
             "targets": {names[c]: float(ious[c]) for c in range(1, len(names))},
-            "train": tr.per_class_iou,
-            "heldout": te.per_class_iou,
+            "train": class_ious(confusion(engine, ds, emb, train, names), names),
+            "heldout": class_ious(held, names),
             "localisation_2d": te.localisation_2d,
             "localisation_3d": te.localisation_3d,
-            "confusions": confusions(engine, ds, emb, test, names),
+            "confusions": confusions(held, names),
         }
     return out
 

@@ -7,7 +7,7 @@ import pytest
 import torch
 from PIL import Image
 
-from benchmarks.distill_gap import dino_weight, mean_squares, report, target_ious
+from benchmarks.distill_gap import class_ious, confusions, dino_weight, mean_squares, report, target_ious
 from fmgs.features.cache import FeatureCache, FeatureCacheWriter, TargetInfo
 
 
@@ -60,3 +60,15 @@ def test_dino_weight_and_the_report():
     assert "| mean | 0.70 / 0.70 / 0.50 |" in text and "| mug | 0.50 / 0.50 / 0.20 |" in text
     assert "| x | 0.700 | 0.700 | 0.500 | 0.900 | 1.000 |" in text
     assert "mug: floor 0.70, mug 0.30" in text and f"{dino_weight(b):.0f}" in text
+
+
+def test_class_ious_and_confusions_come_from_one_confusion_matrix():
+    names = ["background", "floor", "mug"]
+    # rows: label 0..2; columns: served 0..2 and unlabelled (3); row 0 (no geometry) is not scored
+    conf = np.array([[5, 1, 1, 0], [0, 8, 2, 0], [0, 1, 3, 2]])
+    ious = class_ious(conf, names)
+    assert ious["floor"] == pytest.approx(8 / (10 + 9 - 8))  # label row + served column (labelled) - both
+    assert ious["mug"] == pytest.approx(3 / (6 + 5 - 3))
+    conf_ = confusions(conf, names)
+    assert conf_["mug"] == {"mug": 0.5, "none": pytest.approx(0.333), "floor": pytest.approx(0.167)}
+    assert "background" not in ious and class_ious(np.zeros((3, 4), np.int64), names) == {}

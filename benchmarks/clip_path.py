@@ -35,6 +35,7 @@ from benchmarks.common import machine, machine_words, save_report
 from benchmarks.unseen import PRESENT_KINDS, build_scene, presence_rates, scene_quality, score_presence
 from fmgs.query.instances import InstanceConfig
 from fmgs.query.presence import PresenceConfig
+from fmgs.train.config import FieldTrainConfig
 
 ROOT = Path(__file__).resolve().parents[1]
 STANDIN = ROOT / "benchmarks" / "standin"
@@ -55,11 +56,23 @@ VARIANTS: dict[str, dict] = {
     "region crops": {"blend": "dominant", "dino": True, "dotsim": True, "regions": True},
     "segments": {"blend": "dominant", "dino": True, "dotsim": True, "segments": "blend"},
     "segments finest": {"blend": "mean", "dino": True, "dotsim": True, "segments": "finest"},
+    "dominant 4200 steps": {
+        "blend": "dominant",
+        "dino": True,
+        "dotsim": True,
+        "features_of": "dominant",
+        "field_steps": FieldTrainConfig.steps,
+    },
+    "lifted": {"blend": "dominant", "dino": True, "dotsim": False, "features_of": "dominant", "lift": True},
 }
 """The CLIP builds: scale blend (fmgs.features.scale_blend), DINO targets and the dotsim loss. "dominant"
 with DINO and dotsim is the build's default. "oracle" variants name every crop without error
 (benchmarks.clip_oracle) and distil with ``fmgs train-field``: the method apart from the stand-in; "region
-crops" distils benchmarks.region_crops' targets the same way (not a build option)."""
+crops" distils benchmarks.region_crops' targets the same way (not a build option). A variant with
+"features_of" distils that variant's feature cache (the same targets) with ``fmgs train-field``, at its own
+"field_steps" when it sets them (the product's default steps beside the report's shorter schedule); with
+"lift", no field at all: benchmarks.lift's training-free lifting of those targets onto that variant's
+Gaussians."""
 DESCRIBE = {
     "paper": "the paper's equal mean of the 7 scales, DINO head and dotsim (the FMGS recipe)",
     "dominant": "the default: the scales whose crop is at least half the pixel's DINO region, equally",
@@ -69,6 +82,10 @@ DESCRIBE = {
     "segments": "the default blend pooled within the segmenter stand-in's segments (`--segmenter`, SAM's "
     "role: mask pooling), DINO head and dotsim",
     "segments finest": "the finest scale alone pooled within the same segments (`--segment-map finest`)",
+    "lifted": "the default's targets lifted onto its Gaussians without training (benchmarks.lift: each "
+    "Gaussian the blending-weighted mean of the pixels it reaches; no field, no DINO head)",
+    "dominant 4200 steps": "the default's targets distilled at the product's default field steps (4,200), "
+    "not the report's shorter schedule",
     "region crops": "one tight crop per DINO-grown region averaged with the finest scale "
     "(benchmarks.region_crops: the mask-based methods' way, DINO regions for masks), DINO head and dotsim",
 }
@@ -112,7 +129,28 @@ def clip_build(
     name = variant_name(seed, variant)
     ply = out / "models" / ".work" / f"s{seed}" / "gs" / "point_cloud.ply"
     prepare = None  # what the command needs first
-    if v.get("oracle") or v.get("regions"):  # a feature cache made here, then train-field
+    field_steps = v.get("field_steps", field_steps)
+    if v.get("lift"):  # another variant's targets lifted onto its package's Gaussians: nothing trained
+        from benchmarks.lift import lift_package
+
+        src = variant_name(seed, v["features_of"])
+        source, features = out / "models" / src, out / "models" / ".work" / src / "features"
+        if not (source / "manifest.json").is_file() or not features.is_dir():
+            raise FileNotFoundError(
+                f"{name} lifts {features} onto {source}: build {v['features_of']!r} first"
+            )
+        cmd = ["python", "-m", "benchmarks.lift", str(data), "--source", str(source), "--features",
+               str(features), "--out", str(out / "models" / name)]  # fmt: skip
+        return _recorded(out, name, cmd, partial(lift_package, data, source, features, out / "models" / name))
+    if v.get("features_of"):  # another variant's targets, distilled again
+        work = out / "models" / ".work" / name
+        source = out / "models" / ".work" / variant_name(seed, v["features_of"]) / "features"
+        if not source.is_dir():
+            raise FileNotFoundError(f"{name} distils {source}: build {v['features_of']!r} first")
+        cmd = ["train-field", str(data), "--gaussians", str(ply), "--features", str(source),
+               "--out", str(work / "field"), "--package", str(out / "models" / name)]  # fmt: skip
+        threads_flag = "--threads"
+    elif v.get("oracle") or v.get("regions"):  # a feature cache made here, then train-field
         from benchmarks.clip_oracle import oracle_cache
         from benchmarks.region_crops import region_cache
 
@@ -141,13 +179,23 @@ def clip_build(
         cmd += ["--field-steps", str(field_steps)]
     if threads:
         cmd += [threads_flag, str(threads)]
+
+    def run() -> None:
+        if prepare is not None:
+            prepare()
+        assert fmgs(cmd) == 0
+
+    return _recorded(out, name, cmd, run)
+
+
+def _recorded(out: Path, name: str, cmd: list[str], run) -> Path:
+    """Package OUT/models/NAME, made by ``run()`` unless OUT/build-NAME.json records ``cmd`` made it; the
+    record keeps the seconds it took."""
     record = out / f"build-{name}.json"
     if record.is_file() and json.loads(record.read_text())["command"] == cmd:
         return out / "models" / name
     t0 = time.perf_counter()
-    if prepare is not None:
-        prepare()
-    assert fmgs(cmd) == 0
+    run()
     record.write_text(json.dumps({"seconds": time.perf_counter() - t0, "command": cmd}))
     return out / "models" / name
 

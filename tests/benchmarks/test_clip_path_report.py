@@ -127,3 +127,30 @@ def test_presence_docs_quote_the_rules_on_the_kept_builds():
     assert f"({dm['presence']:.3f} against {lm['presence']:.3f}, from {db['presence']:.3f} against " in docs
     assert f"{lb['presence']:.3f})" in docs and lm["presence"] - dm["presence"] > 0.05  # docs: "wider than 5"
     assert dm["presence"] > db["presence"] and dm["absent_rejected"] > db["absent_rejected"]
+
+
+def test_a_variant_of_another_variants_targets_distils_its_cache_at_its_own_steps(tmp_path, monkeypatch):
+    """A "features_of" variant runs ``fmgs train-field`` on that variant's feature cache (the same targets,
+    no extraction) at its own field steps, whatever the run's; without the cache it says which to build."""
+    import fmgs.cli
+    from benchmarks.clip_path import STANDIN, STANDIN_DINO, VARIANTS, clip_build
+    from fmgs.train.config import FieldTrainConfig
+
+    calls: list[list[str]] = []
+    monkeypatch.setattr(fmgs.cli, "main", lambda cmd: calls.append(cmd) or 0)
+    v = next(k for k, x in VARIANTS.items() if x.get("features_of") == "dominant")
+    data = tmp_path / "scene-7"
+    with pytest.raises(FileNotFoundError, match="build 'dominant' first"):
+        clip_build(tmp_path, 7, data, v, 1500, STANDIN, STANDIN_DINO, 1)
+    assert calls == []
+    cache = tmp_path / "models" / ".work" / "s7-dominant" / "features"
+    cache.mkdir(parents=True)
+    pkg = clip_build(tmp_path, 7, data, v, 1500, STANDIN, STANDIN_DINO, 1)
+    (cmd,) = calls
+    assert cmd[:2] == ["train-field", str(data)]
+    assert cmd[cmd.index("--features") + 1] == str(cache)
+    assert cmd[cmd.index("--package") + 1] == str(pkg)
+    assert cmd[cmd.index("--field-steps") + 1] == str(FieldTrainConfig.steps) != "1500"
+    assert cmd[cmd.index("--threads") + 1] == "1"
+    clip_build(tmp_path, 7, data, v, 1500, STANDIN, STANDIN_DINO, 1)  # recorded: not run again
+    assert len(calls) == 1

@@ -26,7 +26,15 @@ def test_committed_report_is_written_from_the_committed_figures():
 def test_docs_quote_the_reports_figures():
     d = _figures()
     docs = (ROOT / "docs" / "field.md").read_text() + (ROOT / "docs" / "limits.md").read_text()
-    for kind in ("labels", "paper", "dominant", "paper no-DINO", "region crops"):
+    for kind in (
+        "labels",
+        "paper",
+        "dominant",
+        "paper no-DINO",
+        "region crops",
+        "dominant 4200 steps",
+        "lifted",
+    ):
         s = summary(d["rows"], kind)
         for key in ("miou", "localisation_2d", "localisation_3d"):
             assert f"{s[key]:.3f}" in docs, (kind, key, s[key])

@@ -130,25 +130,22 @@ def clip_build(
     ply = out / "models" / ".work" / f"s{seed}" / "gs" / "point_cloud.ply"
     prepare = None  # what the command needs first
     field_steps = v.get("field_steps", field_steps)
-    if v.get("lift"):  # another variant's targets lifted onto its package's Gaussians: nothing trained
-        from benchmarks.lift import lift_package
-
+    if v.get("features_of"):  # another variant's targets: distilled again, or lifted onto its Gaussians
         src = variant_name(seed, v["features_of"])
         source, features = out / "models" / src, out / "models" / ".work" / src / "features"
-        if not (source / "manifest.json").is_file() or not features.is_dir():
-            raise FileNotFoundError(
-                f"{name} lifts {features} onto {source}: build {v['features_of']!r} first"
+        if not features.is_dir() or (v.get("lift") and not (source / "manifest.json").is_file()):
+            raise FileNotFoundError(f"{name} needs {source} and {features}: build {v['features_of']!r} first")
+        if v.get("lift"):  # nothing trained
+            from benchmarks.lift import lift_package
+
+            cmd = ["python", "-m", "benchmarks.lift", str(data), "--source", str(source), "--features",
+                   str(features), "--out", str(out / "models" / name)]  # fmt: skip
+            return _recorded(
+                out, name, cmd, partial(lift_package, data, source, features, out / "models" / name)
             )
-        cmd = ["python", "-m", "benchmarks.lift", str(data), "--source", str(source), "--features",
-               str(features), "--out", str(out / "models" / name)]  # fmt: skip
-        return _recorded(out, name, cmd, partial(lift_package, data, source, features, out / "models" / name))
-    if v.get("features_of"):  # another variant's targets, distilled again
-        work = out / "models" / ".work" / name
-        source = out / "models" / ".work" / variant_name(seed, v["features_of"]) / "features"
-        if not source.is_dir():
-            raise FileNotFoundError(f"{name} distils {source}: build {v['features_of']!r} first")
-        cmd = ["train-field", str(data), "--gaussians", str(ply), "--features", str(source),
-               "--out", str(work / "field"), "--package", str(out / "models" / name)]  # fmt: skip
+        field = out / "models" / ".work" / name / "field"
+        cmd = ["train-field", str(data), "--gaussians", str(ply), "--features", str(features),
+               "--out", str(field), "--package", str(out / "models" / name)]  # fmt: skip
         threads_flag = "--threads"
     elif v.get("oracle") or v.get("regions"):  # a feature cache made here, then train-field
         from benchmarks.clip_oracle import oracle_cache

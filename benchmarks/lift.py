@@ -34,17 +34,13 @@ class Lifted(NamedTuple):
 
 def _view_terms(g: GaussianSet, ds, cache, i: int):
     """(columns [m], weights [h*w,m] as a SparseMatrix, targets [h*w,D] float64, mask [h*w,1] float64) of
-    training frame i at the cache's map size."""
-    from fmgs.render.weights import view_weights, weights_config
+    frame i at the cache's map size, as field training sees it (fmgs.train.field.prepare_views)."""
+    from fmgs.train.field import prepare_views
 
-    maps = cache.load(ds.frames[i].name)
-    h, w = maps.clip.shape[:2]
-    cam = ds.frames[i].camera.resized(w, h)
-    vw = view_weights(g.means, g.quats, g.scales, g.opacities, cam, weights_config("cpu"))
-    mask = torch.ones(h * w, 1, dtype=torch.float64)
-    if maps.mask is not None:
-        mask = maps.mask.reshape(-1, 1).double()
-    return vw.gaussians, vw.matrix, maps.clip.reshape(h * w, -1).double(), mask
+    (v,) = prepare_views(g, ds, cache, [i], torch.device("cpu"))
+    n = v.clip.shape[0]
+    mask = torch.ones(n, 1, dtype=torch.float64) if v.mask is None else v.mask.reshape(n, 1).double()
+    return v.weights.gaussians, v.weights.matrix, v.clip.double(), mask
 
 
 def lift(g: GaussianSet, ds, cache, frames: list[int]) -> Lifted:
@@ -60,8 +56,8 @@ def lift(g: GaussianSet, ds, cache, frames: list[int]) -> Lifted:
         weight.index_add_(0, cols, (wt @ mask)[:, 0])
     if acc is None:
         raise ValueError("no frames to lift from")
-    emb = torch.nn.functional.normalize((acc / weight.clamp_min(1e-300)[:, None]).float(), dim=1)
-    return Lifted(torch.where(weight[:, None] > 0, emb, torch.zeros_like(emb)), weight)
+    # The mean's direction is the sum's; an unreached Gaussian's zero sum stays zero.
+    return Lifted(torch.nn.functional.normalize(acc, dim=1).float(), weight)
 
 
 def lift_reference(g: GaussianSet, ds, cache, frames: list[int]) -> Lifted:
@@ -91,7 +87,7 @@ def lift_package(data: Path, source: Path, features: Path, out: Path) -> Path:
     from fmgs.data import HOLDOUT_EVERY
     from fmgs.data.dataset import load_dataset
     from fmgs.features.cache import FeatureCache
-    from fmgs.features.text import MiniLMTextEncoder
+    from fmgs.features.text import load_text_encoder
     from fmgs.field.neighbours import neighbour_mean, reach_of, stored_neighbours
     from fmgs.scene.manifest import CANONICAL_PHRASES
     from fmgs.scene.package import export_scene, load_scene
@@ -109,7 +105,7 @@ def lift_package(data: Path, source: Path, features: Path, out: Path) -> Path:
     emb = torch.where(got.weight[:, None] > 0, got.embeddings, sc.embeddings.float())
     k = stored_neighbours(sc.manifest.extra)
     emb = neighbour_mean(g.means, reach_of(g.scales), emb, k, workers=torch.get_num_threads())
-    canon = MiniLMTextEncoder().encode_text(list(CANONICAL_PHRASES)).float()
+    canon = load_text_encoder(sc.manifest.encoder_id).encode_text(list(CANONICAL_PHRASES)).float()
     extra = {**sc.manifest.extra, "lifted": {"seconds": time.perf_counter() - t0, "features": str(features),
                                              "unseen": int((got.weight <= 0).sum())}}  # fmt: skip
     return export_scene(out, sc.gaussians, sc.selected, emb, sc.manifest.encoder_id, canon, extra=extra)

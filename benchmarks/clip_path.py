@@ -56,6 +56,25 @@ VARIANTS: dict[str, dict] = {
     "region crops": {"blend": "dominant", "dino": True, "dotsim": True, "regions": True},
     "segments": {"blend": "dominant", "dino": True, "dotsim": True, "segments": "blend"},
     "segments finest": {"blend": "mean", "dino": True, "dotsim": True, "segments": "finest"},
+    "segments finest label masks": {
+        "blend": "mean",
+        "dino": True,
+        "dotsim": True,
+        "label_segments": "finest",
+    },
+    "segments finest label masks balanced": {
+        "blend": "mean",
+        "dino": True,
+        "dotsim": True,
+        "features_of": "segments finest label masks",
+        "balance": "scale",
+    },
+    "segments finest label masks no-DINO": {
+        "blend": "mean",
+        "dino": False,
+        "dotsim": False,
+        "features_of": "segments finest label masks",
+    },
     "dominant 4200 steps": {
         "blend": "dominant",
         "dino": True,
@@ -68,7 +87,8 @@ VARIANTS: dict[str, dict] = {
 """The CLIP builds: scale blend (fmgs.features.scale_blend), DINO targets and the dotsim loss. "dominant"
 with DINO and dotsim is the build's default. "oracle" variants name every crop without error
 (benchmarks.clip_oracle) and distil with ``fmgs train-field``: the method apart from the stand-in; "region
-crops" distils benchmarks.region_crops' targets the same way (not a build option). A variant with
+crops" distils benchmarks.region_crops' targets the same way (not a build option), and "label_segments"
+benchmarks.label_segments' (the segments variants with the label masks as segments). A variant with
 "features_of" distils that variant's feature cache (the same targets) with ``fmgs train-field``, at its own
 "field_steps" when it sets them (the product's default steps beside the report's shorter schedule); with
 "lift", no field at all: benchmarks.lift's training-free lifting of those targets onto that variant's
@@ -82,6 +102,12 @@ DESCRIBE = {
     "segments": "the default blend pooled within the segmenter stand-in's segments (`--segmenter`, SAM's "
     "role: mask pooling), DINO head and dotsim",
     "segments finest": "the finest scale alone pooled within the same segments (`--segment-map finest`)",
+    "segments finest label masks": "the finest scale alone pooled within the label masks, each connected "
+    "component a segment (benchmarks.label_segments: the bound a perfect segmenter reaches)",
+    "segments finest label masks balanced": "the same targets distilled with `--balance scale` (each term "
+    "divided by its targets' mean square per element, so the language term has a voice on the grid)",
+    "segments finest label masks no-DINO": "the same targets distilled with the language loss alone "
+    "(`--lam 1`, no dotsim), as the label path is",
     "lifted": "the default's targets lifted onto its Gaussians without training (benchmarks.lift: each "
     "Gaussian the blending-weighted mean of the pixels it reaches; no field, no DINO head)",
     "dominant 4200 steps": "the default's targets distilled at the product's default field steps (4,200), "
@@ -146,9 +172,14 @@ def clip_build(
         field = out / "models" / ".work" / name / "field"
         cmd = ["train-field", str(data), "--gaussians", str(ply), "--features", str(features),
                "--out", str(field), "--package", str(out / "models" / name)]  # fmt: skip
+        if not v["dino"]:  # the language loss alone (the cache's DINO targets weigh nothing)
+            cmd += ["--lam", "1"]
+        if v.get("balance"):
+            cmd += ["--balance", v["balance"]]
         threads_flag = "--threads"
-    elif v.get("oracle") or v.get("regions"):  # a feature cache made here, then train-field
+    elif v.get("oracle") or v.get("regions") or v.get("label_segments"):  # a cache made here, train-field
         from benchmarks.clip_oracle import oracle_cache
+        from benchmarks.label_segments import label_segments_cache
         from benchmarks.region_crops import region_cache
 
         work = out / "models" / ".work" / name
@@ -157,6 +188,9 @@ def clip_build(
         threads_flag = "--threads"
         if v.get("regions"):
             prepare = partial(region_cache, data, work / "features", standin, dino, v["blend"])
+        elif v.get("label_segments"):
+            seg_map = v["label_segments"]
+            prepare = partial(label_segments_cache, data, work / "features", standin, dino, seg_map)
         else:
             prepare = partial(
                 oracle_cache, data, work / "features", standin, dino if v["dino"] else None, v["blend"]

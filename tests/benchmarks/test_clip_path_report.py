@@ -34,6 +34,7 @@ def test_docs_quote_the_reports_figures():
         "region crops",
         "dominant 4200 steps",
         "lifted",
+        "segments finest label masks",
     ):
         s = summary(d["rows"], kind)
         for key in ("miou", "localisation_2d", "localisation_3d"):
@@ -162,3 +163,38 @@ def test_a_variant_of_another_variants_targets_distils_its_cache_at_its_own_step
     assert cmd[cmd.index("--threads") + 1] == "1"
     clip_build(tmp_path, 7, data, v, 1500, STANDIN, STANDIN_DINO, 1)  # recorded: not run again
     assert len(calls) == 1
+
+
+def test_label_mask_variants_make_their_cache_then_distil_it_with_their_loss(tmp_path, monkeypatch):
+    """ "segments finest label masks" writes benchmarks.label_segments' cache, then ``fmgs train-field``
+    distils it; the variants on its cache keep the targets and change only the loss: ``--balance scale``,
+    or the language loss alone (``--lam 1``, no dotsim)."""
+    import benchmarks.label_segments
+    import fmgs.cli
+    from benchmarks.clip_path import STANDIN, STANDIN_DINO, clip_build
+
+    calls: list[list[str]] = []
+    monkeypatch.setattr(fmgs.cli, "main", lambda cmd: calls.append(cmd) or 0)
+    made: list[tuple] = []
+
+    def cache(data, cache_dir, standin, dino, segment_map):
+        cache_dir.mkdir(parents=True)
+        made.append((cache_dir, segment_map))
+
+    monkeypatch.setattr(benchmarks.label_segments, "label_segments_cache", cache)
+    data = tmp_path / "scene-7"
+    clip_build(tmp_path, 7, data, "segments finest label masks", 1500, STANDIN, STANDIN_DINO, 1)
+    features = tmp_path / "models" / ".work" / "s7-segments-finest-label-masks" / "features"
+    assert made == [(features, "finest")]
+    for variant, flags, absent in (
+        ("segments finest label masks", [], ["--balance", "--lam", "--no-dotsim"]),
+        ("segments finest label masks balanced", ["--balance", "scale"], ["--lam", "--no-dotsim"]),
+        ("segments finest label masks no-DINO", ["--lam", "1", "--no-dotsim"], ["--balance"]),
+    ):
+        if variant != "segments finest label masks":
+            clip_build(tmp_path, 7, data, variant, 1500, STANDIN, STANDIN_DINO, 1)
+        cmd = calls[-1]
+        assert cmd[0] == "train-field" and cmd[cmd.index("--features") + 1] == str(features), variant
+        text = " ".join(cmd)
+        assert " ".join(flags) in text and not any(f in cmd for f in absent), variant
+    assert len(calls) == 3 and len(made) == 1

@@ -1,8 +1,8 @@
 """Segment pooling with the label masks as segments: the bound a perfect segmenter reaches, distilled.
 
 ``--segmenter`` pools each image's target map within class-agnostic segments (fmgs.features.segment_pool;
-SAM's masks, or the segmenter stand-in's). On the unseen scenes the stand-in segmenter finds 71% of the
-objects, so what the pooled targets lose after distillation mixes the segmenter's misses with the method.
+SAM's masks, or the segmenter stand-in's). The stand-in segmenter misses objects and splits others
+(CLIP_PATH.md), so what the pooled targets lose after distillation mixes its misses with the method.
 Here the segments are the scene's own label masks, each connected component of one label a segment (as
 SAM gives an occluded object's two visible parts two masks), so only the method and the crop namer (the
 CLIP stand-in) are left: what a segmenter as good as the masks themselves would let the product reach.

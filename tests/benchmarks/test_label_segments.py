@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -49,7 +50,7 @@ def test_the_cache_is_the_build_pooling_within_the_label_masks(tmp_path, segment
     pyramid = pyramid_for(clip, blend="mean" if finest else SCALE_BLEND, finest_only=finest)
     assert len(pyramid.scales) == (1 if finest else 7)
     for i, fr in enumerate(ds.frames):
-        seg = label_segments(data, fr.name.rsplit(".", 1)[0].split("/")[-1], names)
+        seg = label_segments(data, Path(fr.name).stem, names)
         with torch.inference_mode():
             want = image_targets(ds, i, clip, dino, pyramid, ExtractConfig(), _Masks(seg))
         got = cache.load(fr.name)

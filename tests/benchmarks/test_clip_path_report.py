@@ -142,7 +142,7 @@ def test_a_variant_of_another_variants_targets_distils_its_cache_at_its_own_step
     """A "features_of" variant runs ``fmgs train-field`` on that variant's feature cache (the same targets,
     no extraction) at its own field steps, whatever the run's; without the cache it says which to build."""
     import fmgs.cli
-    from benchmarks.clip_path import STANDIN, STANDIN_DINO, VARIANTS, clip_build
+    from benchmarks.clip_variants import STANDIN, STANDIN_DINO, VARIANTS, clip_build
     from fmgs.train.config import FieldTrainConfig
 
     calls: list[list[str]] = []
@@ -171,7 +171,7 @@ def test_label_mask_variants_make_their_cache_then_distil_it_with_their_loss(tmp
     or the language loss alone (``--lam 1``, no dotsim)."""
     import benchmarks.label_segments
     import fmgs.cli
-    from benchmarks.clip_path import STANDIN, STANDIN_DINO, clip_build
+    from benchmarks.clip_variants import STANDIN, STANDIN_DINO, clip_build
 
     calls: list[list[str]] = []
     monkeypatch.setattr(fmgs.cli, "main", lambda cmd: calls.append(cmd) or 0)

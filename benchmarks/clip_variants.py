@@ -1,0 +1,189 @@
+"""The CLIP_PATH variants and how each is built: ``VARIANTS`` (what each sets), ``DESCRIBE`` (the report's
+words for them) and ``clip_build`` (the command that makes one variant's package for one scene, run once and
+recorded). The report, the scores and the command line are benchmarks.clip_path's.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from functools import partial
+from pathlib import Path
+
+from fmgs.train.config import FieldTrainConfig
+
+ROOT = Path(__file__).resolve().parents[1]
+STANDIN = ROOT / "benchmarks" / "standin"
+STANDIN_DINO = ROOT / "benchmarks" / "standin_dino"
+STANDIN_SEG = ROOT / "benchmarks" / "standin_seg"
+
+VARIANTS: dict[str, dict] = {
+    "paper": {"blend": "mean", "dino": True, "dotsim": True},
+    "dominant": {"blend": "dominant", "dino": True, "dotsim": True},
+    "dominant no-dotsim": {"blend": "dominant", "dino": True, "dotsim": False},
+    "coherence": {"blend": "coherence", "dino": True, "dotsim": True},
+    "paper no-dotsim": {"blend": "mean", "dino": True, "dotsim": False},
+    "paper no-DINO": {"blend": "mean", "dino": False, "dotsim": False},
+    "oracle": {"blend": "dominant", "dino": True, "dotsim": True, "oracle": True},
+    "oracle paper": {"blend": "mean", "dino": True, "dotsim": True, "oracle": True},
+    "region crops": {"blend": "dominant", "dino": True, "dotsim": True, "regions": True},
+    "segments": {"blend": "dominant", "dino": True, "dotsim": True, "segments": "blend"},
+    "segments finest": {"blend": "mean", "dino": True, "dotsim": True, "segments": "finest"},
+    "segments finest label masks": {
+        "blend": "mean",
+        "dino": True,
+        "dotsim": True,
+        "label_segments": "finest",
+    },
+    "segments finest label masks balanced": {
+        "blend": "mean",
+        "dino": True,
+        "dotsim": True,
+        "features_of": "segments finest label masks",
+        "balance": "scale",
+    },
+    "segments finest label masks no-DINO": {
+        "blend": "mean",
+        "dino": False,
+        "dotsim": False,
+        "features_of": "segments finest label masks",
+    },
+    "dominant 4200 steps": {
+        "blend": "dominant",
+        "dino": True,
+        "dotsim": True,
+        "features_of": "dominant",
+        "field_steps": FieldTrainConfig.steps,
+    },
+    "lifted": {"blend": "dominant", "dino": True, "dotsim": False, "features_of": "dominant", "lift": True},
+}
+"""The CLIP builds: scale blend (fmgs.features.scale_blend), DINO targets and the dotsim loss. "dominant"
+with DINO and dotsim is the build's default. "oracle" variants name every crop without error
+(benchmarks.clip_oracle) and distil with ``fmgs train-field``: the method apart from the stand-in; "region
+crops" distils benchmarks.region_crops' targets the same way (not a build option), and "label_segments"
+benchmarks.label_segments' (the segments variants with the label masks as segments). A variant with
+"features_of" distils that variant's feature cache (the same targets) with ``fmgs train-field``, at its own
+"field_steps" when it sets them (the product's default steps beside the report's shorter schedule); with
+"lift", no field at all: benchmarks.lift's training-free lifting of those targets onto that variant's
+Gaussians."""
+DESCRIBE = {
+    "paper": "the paper's equal mean of the 7 scales, DINO head and dotsim (the FMGS recipe)",
+    "dominant": "the default: the scales whose crop is at least half the pixel's DINO region, equally",
+    "coherence": "each scale weighed by its crop's DINO coherence with the pixel",
+    "oracle": "the default with every crop named without error (benchmarks.clip_oracle), not the stand-in",
+    "oracle paper": "the paper's equal mean with every crop named without error",
+    "segments": "the default blend pooled within the segmenter stand-in's segments (`--segmenter`, SAM's "
+    "role: mask pooling), DINO head and dotsim",
+    "segments finest": "the finest scale alone pooled within the same segments (`--segment-map finest`)",
+    "segments finest label masks": "the finest scale alone pooled within the label masks, each connected "
+    "component a segment (benchmarks.label_segments: the bound a perfect segmenter reaches)",
+    "segments finest label masks balanced": "the same targets distilled with `--balance scale` (each term "
+    "divided by its targets' mean square per element, so the language term has a voice on the grid)",
+    "segments finest label masks no-DINO": "the same targets distilled with the language loss alone "
+    "(`--lam 1`, no dotsim), as the label path is",
+    "lifted": "the default's targets lifted onto its Gaussians without training (benchmarks.lift: each "
+    "Gaussian the blending-weighted mean of the pixels it reaches; no field, no DINO head)",
+    "dominant 4200 steps": "the default's targets distilled at the product's default field steps (4,200), "
+    "not the report's shorter schedule",
+    "region crops": "one tight crop per DINO-grown region averaged with the finest scale "
+    "(benchmarks.region_crops: the mask-based methods' way, DINO regions for masks), DINO head and dotsim",
+}
+
+
+def variant_name(seed: int, variant: str) -> str:
+    return f"s{seed}-" + variant.replace(" ", "-")
+
+
+def clip_build(
+    out: Path,
+    seed: int,
+    data: Path,
+    variant: str,
+    field_steps: int | None,
+    standin: Path,
+    dino: Path,
+    threads: int = 0,
+) -> Path:
+    """``fmgs build --targets clip`` of ``variant`` on the label build's 3DGS (an oracle variant: its feature
+    cache, then ``fmgs train-field`` on that 3DGS); returns the package. ``threads``: the field's CPU
+    threads (0: the build's own choice)."""
+    from fmgs.cli import main as fmgs
+
+    v = VARIANTS[variant]
+    name = variant_name(seed, variant)
+    ply = out / "models" / ".work" / f"s{seed}" / "gs" / "point_cloud.ply"
+    prepare = None  # what the command needs first
+    field_steps = v.get("field_steps", field_steps)
+    if v.get("features_of"):  # another variant's targets: distilled again, or lifted onto its Gaussians
+        src = variant_name(seed, v["features_of"])
+        source, features = out / "models" / src, out / "models" / ".work" / src / "features"
+        if not features.is_dir() or (v.get("lift") and not (source / "manifest.json").is_file()):
+            raise FileNotFoundError(f"{name} needs {source} and {features}: build {v['features_of']!r} first")
+        if v.get("lift"):  # nothing trained
+            from benchmarks.lift import lift_package
+
+            cmd = ["python", "-m", "benchmarks.lift", str(data), "--source", str(source), "--features",
+                   str(features), "--out", str(out / "models" / name)]  # fmt: skip
+            return _recorded(
+                out, name, cmd, partial(lift_package, data, source, features, out / "models" / name)
+            )
+        field = out / "models" / ".work" / name / "field"
+        cmd = ["train-field", str(data), "--gaussians", str(ply), "--features", str(features),
+               "--out", str(field), "--package", str(out / "models" / name)]  # fmt: skip
+        if not v["dino"]:  # the language loss alone (the cache's DINO targets weigh nothing)
+            cmd += ["--lam", "1"]
+        if v.get("balance"):
+            cmd += ["--balance", v["balance"]]
+        threads_flag = "--threads"
+    elif v.get("oracle") or v.get("regions") or v.get("label_segments"):  # a cache made here, train-field
+        from benchmarks.clip_oracle import oracle_cache
+        from benchmarks.label_segments import label_segments_cache
+        from benchmarks.region_crops import region_cache
+
+        work = out / "models" / ".work" / name
+        cmd = ["train-field", str(data), "--gaussians", str(ply), "--features", str(work / "features"),
+               "--out", str(work / "field"), "--package", str(out / "models" / name)]  # fmt: skip
+        threads_flag = "--threads"
+        if v.get("regions"):
+            prepare = partial(region_cache, data, work / "features", standin, dino, v["blend"])
+        elif v.get("label_segments"):
+            seg_map = v["label_segments"]
+            prepare = partial(label_segments_cache, data, work / "features", standin, dino, seg_map)
+        else:
+            prepare = partial(
+                oracle_cache, data, work / "features", standin, dino if v["dino"] else None, v["blend"]
+            )
+    else:
+        cmd = ["build", str(data), "--name", name, "--models", str(out / "models"), "--targets", "clip",
+               "--clip-model", f"standin:{standin}", "--ply", str(ply), "--scale-blend", v["blend"],
+               "--dino-model", f"standin-dino:{dino}" if v["dino"] else "none"]  # fmt: skip
+        if v.get("segments"):
+            cmd += ["--segmenter", f"standin-seg:{STANDIN_SEG}"]
+            if v["segments"] == "finest":
+                cmd += ["--segment-map", "finest"]
+        threads_flag = "--field-threads"
+    if not v["dotsim"]:
+        cmd.append("--no-dotsim")
+    if field_steps is not None:
+        cmd += ["--field-steps", str(field_steps)]
+    if threads:
+        cmd += [threads_flag, str(threads)]
+
+    def run() -> None:
+        if prepare is not None:
+            prepare()
+        assert fmgs(cmd) == 0
+
+    return _recorded(out, name, cmd, run)
+
+
+def _recorded(out: Path, name: str, cmd: list[str], run) -> Path:
+    """Package OUT/models/NAME, made by ``run()`` unless OUT/build-NAME.json records ``cmd`` made it; the
+    record keeps the seconds it took."""
+    record = out / f"build-{name}.json"
+    if record.is_file() and json.loads(record.read_text())["command"] == cmd:
+        return out / "models" / name
+    t0 = time.perf_counter()
+    run()
+    record.write_text(json.dumps({"seconds": time.perf_counter() - t0, "command": cmd}))
+    return out / "models" / name

@@ -56,6 +56,14 @@ VARIANTS: dict[str, dict] = {
         "field_steps": FieldTrainConfig.steps,
     },
     "lifted": {"blend": "dominant", "dino": True, "dotsim": False, "features_of": "dominant", "lift": True},
+    "dominant photos x2": {"blend": "dominant", "dino": True, "dotsim": True, "photos": 2},
+    "labels 4200 steps": {
+        "blend": "mean",
+        "dino": False,
+        "dotsim": False,
+        "features_of": "labels",
+        "field_steps": FieldTrainConfig.steps,
+    },
 }
 """The CLIP builds: scale blend (fmgs.features.scale_blend), DINO targets and the dotsim loss. "dominant"
 with DINO and dotsim is the build's default. "oracle" variants name every crop without error
@@ -63,9 +71,12 @@ with DINO and dotsim is the build's default. "oracle" variants name every crop w
 crops" distils benchmarks.region_crops' targets the same way (not a build option), and "label_segments"
 benchmarks.label_segments' (the segments variants with the label masks as segments). A variant with
 "features_of" distils that variant's feature cache (the same targets) with ``fmgs train-field``, at its own
-"field_steps" when it sets them (the product's default steps beside the report's shorter schedule); with
+"field_steps" when it sets them (the product's default steps beside the report's shorter schedule;
+"labels": the label build's cache, language loss alone as that build distils it); with
 "lift", no field at all: benchmarks.lift's training-free lifting of those targets onto that variant's
-Gaussians."""
+Gaussians. A variant with "photos" F cuts its crops from the same views rendered at F times the width and
+height (``photos_scene``), its maps stored at the scene's own size: what a user whose photos are larger than
+the feature maps gets."""
 DESCRIBE = {
     "paper": "the paper's equal mean of the 7 scales, DINO head and dotsim (the FMGS recipe)",
     "dominant": "the default: the scales whose crop is at least half the pixel's DINO region, equally",
@@ -85,6 +96,11 @@ DESCRIBE = {
     "Gaussian the blending-weighted mean of the pixels it reaches; no field, no DINO head)",
     "dominant 4200 steps": "the default's targets distilled at the product's default field steps (4,200), "
     "not the report's shorter schedule",
+    "labels 4200 steps": "the label path's targets (its feature cache) distilled at the product's 4,200 "
+    "field steps, language loss alone as the label build distils them",
+    "dominant photos x2": "the default with its crops cut from the same views rendered at twice the width "
+    "and height (benchmarks.clip_variants.photos_scene), the maps stored at the scene's size "
+    "(`--feature-side 128`): real photos are larger than the maps, these scenes' 128x96 are smaller",
     "region crops": "one tight crop per DINO-grown region averaged with the finest scale "
     "(benchmarks.region_crops: the mask-based methods' way, DINO regions for masks), DINO head and dotsim",
 }
@@ -115,7 +131,7 @@ def clip_build(
     prepare = None  # what the command needs first
     field_steps = v.get("field_steps", field_steps)
     if v.get("features_of"):  # another variant's targets: distilled again, or lifted onto its Gaussians
-        src = variant_name(seed, v["features_of"])
+        src = f"s{seed}" if v["features_of"] == "labels" else variant_name(seed, v["features_of"])
         source, features = out / "models" / src, out / "models" / ".work" / src / "features"
         if not features.is_dir() or (v.get("lift") and not (source / "manifest.json").is_file()):
             raise FileNotFoundError(f"{name} needs {source} and {features}: build {v['features_of']!r} first")
@@ -154,9 +170,15 @@ def clip_build(
                 oracle_cache, data, work / "features", standin, dino if v["dino"] else None, v["blend"]
             )
     else:
-        cmd = ["build", str(data), "--name", name, "--models", str(out / "models"), "--targets", "clip",
+        src = data
+        if v.get("photos"):
+            src = photos_scene(data, out / f"{data.name}-x{v['photos']}", v["photos"])
+        cmd = ["build", str(src), "--name", name, "--models", str(out / "models"), "--targets", "clip",
                "--clip-model", f"standin:{standin}", "--ply", str(ply), "--scale-blend", v["blend"],
                "--dino-model", f"standin-dino:{dino}" if v["dino"] else "none"]  # fmt: skip
+        if v.get("photos"):  # the maps at the scene's own size, as the other variants store them
+            cfg = json.loads((data / "scene.json").read_text())["config"]
+            cmd += ["--feature-side", str(max(cfg["width"], cfg["height"]))]
         if v.get("segments"):
             cmd += ["--segmenter", f"standin-seg:{STANDIN_SEG}"]
             if v["segments"] == "finest":
@@ -175,6 +197,32 @@ def clip_build(
         assert fmgs(cmd) == 0
 
     return _recorded(out, name, cmd, run)
+
+
+def photos_scene(data: Path, photos: Path, factor: int) -> Path:
+    """``photos``: the synthetic scene ``data`` generated again from its recorded config with width and height
+    times ``factor`` (the same objects, poses and points: checked); returns ``photos``."""
+    import numpy as np
+
+    from fmgs.cli import main as fmgs
+
+    c = json.loads((data / "scene.json").read_text())["config"]
+    if not (photos / "scene.json").is_file():
+        cmd = ["synth", "--out", str(photos), "--preset", c["preset"], "--objects", str(c["objects"]),
+               "--seed", str(c["seed"]), "--views", str(c["views"]), "--novel", str(c["novel"]),
+               "--backdrop", c["backdrop"], "--rig", c["rig"], "--points", str(c["points"]),
+               "--size", f"{c['width'] * factor}x{c['height'] * factor}"]  # fmt: skip
+        if any(c["distortion"]):
+            cmd += ["--distortion", ",".join(str(k) for k in c["distortion"])]
+        assert fmgs(cmd) == 0
+    frames = [json.loads((d / "transforms.json").read_text())["frames"] for d in (data, photos)]
+    pairs = zip(*frames, strict=True)
+    same = [np.array_equal(a["transform_matrix"], b["transform_matrix"]) for a, b in pairs]
+    objects = [json.loads((d / "scene.json").read_text())["objects"] for d in (data, photos)]
+    same.append(objects[0] == objects[1])
+    if not all(same):
+        raise ValueError(f"{photos} does not show {data}'s scene at {factor}x: generate it again")
+    return photos
 
 
 def _recorded(out: Path, name: str, cmd: list[str], run) -> Path:

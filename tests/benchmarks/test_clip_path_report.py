@@ -198,3 +198,66 @@ def test_label_mask_variants_make_their_cache_then_distil_it_with_their_loss(tmp
         text = " ".join(cmd)
         assert " ".join(flags) in text and not any(f in cmd for f in absent), variant
     assert len(calls) == 3 and len(made) == 1
+
+
+def test_photos_variant_cuts_its_crops_from_the_scene_generated_again_larger(tmp_path, monkeypatch):
+    """ "dominant photos x2" builds from the scene generated again at twice the width and height (the same
+    poses and objects), its maps stored at the scene's own size; a folder that shows another scene is
+    refused, not used."""
+    import fmgs.cli
+    from benchmarks.clip_variants import STANDIN, STANDIN_DINO, clip_build, photos_scene
+
+    real = fmgs.cli.main
+    data = tmp_path / "scene-7"
+    synth = [
+        "synth",
+        "--preset",
+        "world",
+        "--objects",
+        "3",
+        "--views",
+        "4",
+        "--size",
+        "32x24",
+        "--novel",
+        "1",
+    ]
+    assert real([*synth, "--out", str(data), "--seed", "7"]) == 0
+    calls: list[list[str]] = []
+    monkeypatch.setattr(
+        fmgs.cli, "main", lambda cmd: calls.append(cmd) or (real(cmd) if cmd[0] == "synth" else 0)
+    )
+    clip_build(tmp_path, 7, data, "dominant photos x2", 1500, STANDIN, STANDIN_DINO, 1)
+    photos = tmp_path / "scene-7-x2"
+    assert [c[0] for c in calls] == ["synth", "build"]
+    build = calls[-1]
+    assert build[1] == str(photos) and build[build.index("--feature-side") + 1] == "32"
+    assert build[build.index("--scale-blend") + 1] == "dominant"
+    t0, t1 = (json.loads((d / "transforms.json").read_text()) for d in (data, photos))
+    assert (t1["w"], t1["h"]) == (64, 48) and t1["fl_x"] == 2 * t0["fl_x"]
+    assert [f["transform_matrix"] for f in t1["frames"]] == [f["transform_matrix"] for f in t0["frames"]]
+    other = tmp_path / "other"
+    assert real([*synth, "--out", str(other), "--seed", "8", "--size", "64x48"]) == 0
+    with pytest.raises(ValueError, match="does not show"):
+        photos_scene(data, other, 2)
+
+
+def test_the_label_paths_targets_distil_again_from_the_label_builds_cache(tmp_path, monkeypatch):
+    """ "labels 4200 steps" runs ``fmgs train-field`` on the label build's own cache (OUT/models/.work/sSEED),
+    language loss alone, at the product's field steps."""
+    import fmgs.cli
+    from benchmarks.clip_variants import STANDIN, STANDIN_DINO, clip_build
+    from fmgs.train.config import FieldTrainConfig
+
+    calls: list[list[str]] = []
+    monkeypatch.setattr(fmgs.cli, "main", lambda cmd: calls.append(cmd) or 0)
+    cache = tmp_path / "models" / ".work" / "s7" / "features"
+    cache.mkdir(parents=True)
+    clip_build(tmp_path, 7, tmp_path / "scene-7", "labels 4200 steps", 1500, STANDIN, STANDIN_DINO, 1)
+    (cmd,) = calls
+    assert cmd[0] == "train-field" and cmd[cmd.index("--features") + 1] == str(cache)
+    assert cmd[cmd.index("--gaussians") + 1] == str(
+        tmp_path / "models" / ".work" / "s7" / "gs" / "point_cloud.ply"
+    )
+    assert cmd[cmd.index("--field-steps") + 1] == str(FieldTrainConfig.steps)
+    assert cmd[cmd.index("--lam") + 1] == "1" and "--no-dotsim" in cmd

@@ -170,15 +170,15 @@ def clip_build(
                 oracle_cache, data, work / "features", standin, dino if v["dino"] else None, v["blend"]
             )
     else:
-        src = data
-        if v.get("photos"):
-            src = photos_scene(data, out / f"{data.name}-x{v['photos']}", v["photos"])
+        src, sized = data, []
+        if v.get("photos"):  # a larger scene, made before the build; the maps at the scene's own size
+            src = out / f"{data.name}-x{v['photos']}"
+            prepare = partial(photos_scene, data, src, v["photos"])
+            c = json.loads((data / "scene.json").read_text())["config"]
+            sized = ["--feature-side", str(max(c["width"], c["height"]))]
         cmd = ["build", str(src), "--name", name, "--models", str(out / "models"), "--targets", "clip",
                "--clip-model", f"standin:{standin}", "--ply", str(ply), "--scale-blend", v["blend"],
-               "--dino-model", f"standin-dino:{dino}" if v["dino"] else "none"]  # fmt: skip
-        if v.get("photos"):  # the maps at the scene's own size, as the other variants store them
-            cfg = json.loads((data / "scene.json").read_text())["config"]
-            cmd += ["--feature-side", str(max(cfg["width"], cfg["height"]))]
+               "--dino-model", f"standin-dino:{dino}" if v["dino"] else "none", *sized]  # fmt: skip
         if v.get("segments"):
             cmd += ["--segmenter", f"standin-seg:{STANDIN_SEG}"]
             if v["segments"] == "finest":
@@ -206,7 +206,8 @@ def photos_scene(data: Path, photos: Path, factor: int) -> Path:
 
     from fmgs.cli import main as fmgs
 
-    c = json.loads((data / "scene.json").read_text())["config"]
+    scene = json.loads((data / "scene.json").read_text())
+    c = scene["config"]
     if not (photos / "scene.json").is_file():
         cmd = ["synth", "--out", str(photos), "--preset", c["preset"], "--objects", str(c["objects"]),
                "--seed", str(c["seed"]), "--views", str(c["views"]), "--novel", str(c["novel"]),
@@ -218,8 +219,7 @@ def photos_scene(data: Path, photos: Path, factor: int) -> Path:
     frames = [json.loads((d / "transforms.json").read_text())["frames"] for d in (data, photos)]
     pairs = zip(*frames, strict=True)
     same = [np.array_equal(a["transform_matrix"], b["transform_matrix"]) for a, b in pairs]
-    objects = [json.loads((d / "scene.json").read_text())["objects"] for d in (data, photos)]
-    same.append(objects[0] == objects[1])
+    same.append(scene["objects"] == json.loads((photos / "scene.json").read_text())["objects"])
     if not all(same):
         raise ValueError(f"{photos} does not show {data}'s scene at {factor}x: generate it again")
     return photos

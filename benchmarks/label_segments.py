@@ -38,14 +38,15 @@ def label_segments_cache(data: Path, cache_dir: Path, standin: Path, dino: Path,
     scale alone; "blend": the default blend) pooled within them, and the DINO stand-in's map, for every
     frame at the build's sizes (benchmarks.clip_oracle.write_cache)."""
     from benchmarks.clip_oracle import write_cache
+    from fmgs.build.config import SEGMENT_MAPS
     from fmgs.features.dino import load_dense_encoder
     from fmgs.features.pyramid import hybrid_map, pyramid_for
     from fmgs.features.segment_pool import pool_segments, resize_segments
     from fmgs.features.sizes import SCALE_BLEND
     from fmgs.features.standin import load_standin
 
-    if segment_map not in ("finest", "blend"):
-        raise ValueError(f"segment_map must be 'finest' or 'blend', got {segment_map!r}")
+    if segment_map not in SEGMENT_MAPS:
+        raise ValueError(f"segment_map must be one of {SEGMENT_MAPS}, got {segment_map!r}")
     clip = load_standin(f"standin:{standin}")
     finest = segment_map == "finest"
     cfg = pyramid_for(clip, blend="mean" if finest else SCALE_BLEND, finest_only=finest)

@@ -42,7 +42,27 @@ def segment(
     if per_gaussian:
         gi, gl = engine.selected.clone(), dots.argmax(1).to(torch.int32).cpu()
     if camera is not None:
-        out = rasterize(*engine.geometry, dots.to(engine.geometry[0]), camera, backend=engine.cfg.backend)
-        pix = out.image.float().argmax(-1).to(torch.int32).cpu()
-        pix[out.alpha.cpu() < min_alpha] = -1
+        image, alpha = _render_dots(engine, dots, camera)
+        pix = pixel_labels(image, alpha, min_alpha)
     return Segmentation(gi, gl, pix)
+
+
+def _render_dots(engine, dots: torch.Tensor, camera: Camera) -> tuple[torch.Tensor, torch.Tensor]:
+    out = rasterize(*engine.geometry, dots.to(engine.geometry[0]), camera, backend=engine.cfg.backend)
+    return out.image.float().cpu(), out.alpha.float().cpu()
+
+
+def pixel_labels(dots: torch.Tensor, alpha: torch.Tensor, min_alpha: float = 0.1) -> torch.Tensor:
+    """[H,W] int32 argmax of rendered class dots [H,W,n], -1 where alpha [H,W] < min_alpha."""
+    pix = dots.argmax(-1).to(torch.int32)
+    pix[alpha < min_alpha] = -1
+    return pix
+
+
+@torch.no_grad()
+def class_dots(engine, classes: torch.Tensor, camera: Camera) -> tuple[torch.Tensor, torch.Tensor]:
+    """The rendered dots of unit class embeddings [n,D] for ``camera`` ([H,W,n] float32, the embedded
+    Gaussians' dots blended as ``segment`` blends them) and the embedded Gaussians' alpha [H,W]."""
+    v = engine.unit(classes, "class embeddings")
+    rows = None if engine.index.exact else visible(*engine.geometry, camera, backend=engine.cfg.backend)
+    return _render_dots(engine, engine.channels(v, rows), camera)

@@ -57,6 +57,22 @@ class FieldQuality:
         return asdict(self)
 
 
+def add_overlaps(lab: np.ndarray, gt: np.ndarray, inter: np.ndarray, union: np.ndarray) -> None:
+    """Add one view's per-label intersections and unions (in place, [K] each, label 0 the background) of
+    the served labels lab [H,W] (class i is label i + 1; -1: no geometry) against the label map gt [H,W]."""
+    pred = np.where(lab >= 0, lab + 1, -1)  # label ids; -1 (no geometry) matches no class
+    valid = gt > 0
+    for c in range(1, len(inter)):
+        p, t = (pred == c) & valid, (gt == c) & valid
+        inter[c] += np.sum(p & t)
+        union[c] += np.sum(p | t)
+
+
+def class_ious(inter: np.ndarray, union: np.ndarray, names: list[str]) -> dict[str, float]:
+    """{name: IoU} of every label present in the label maps or the predictions (union > 0)."""
+    return {names[c]: float(inter[c] / union[c]) for c in range(len(names)) if union[c] > 0}
+
+
 @torch.no_grad()
 def evaluate_field(
     engine: SceneEngine, ds: PosedDataset, encoder, views: list[int], scene_json: str | Path
@@ -98,12 +114,7 @@ def evaluate_field(
         label_path = ds.root / "labels" / Path(fr.name).name
         gt = np.asarray(Image.open(label_path)).astype(np.int64)
         lab = segment(engine, emb[classes], cam, per_gaussian=False).pixel_labels.numpy()  # [H,W]
-        pred = np.where(lab >= 0, lab + 1, -1)  # label ids; -1 (no geometry) matches no class
-        valid = gt > 0
-        for c in classes:
-            p, t = (pred == c) & valid, (gt == c) & valid
-            inter[c] += np.sum(p & t)
-            union[c] += np.sum(p | t)
+        add_overlaps(lab, gt, inter, union)
 
     hit3d = near3d = 0
     for name, o in objects.items():
@@ -122,8 +133,7 @@ def evaluate_field(
                 f"3d {name!r}: top Gaussian's mean {dist:.3f} outside its box (its largest scale {reach:.3f})"
             )
     n3d = sum(1 for o in objects.values() if o["label"] >= 2)
-    present = [c for c in classes if union[c] > 0]
-    ious = {names[c]: float(inter[c] / union[c]) for c in present}
+    ious = class_ious(inter, union, names)
     return FieldQuality(
         localisation_2d=hit2d / max(n2d, 1),
         localisation_3d=hit3d / max(n3d, 1),

@@ -2,6 +2,7 @@
 name scored by its best scale, side by side with the default blend lifted onto the same Gaussians.
 
     python -m benchmarks.lerf_lift --out OUT [--seeds 201,202,203] [--report]
+    python -m benchmarks.lerf_lift --out OUT --from-json OUT/lerf_lift.json [--note ...] [--report]
 
 OUT holds benchmarks.clip_path's builds of the seeds (the default's package and feature cache). Per seed:
 ``scale_caches`` cuts and embeds the CLIP stand-in's crop pyramid once per view and writes one feature cache
@@ -170,7 +171,8 @@ def run_seed(out: Path, seed: int, standin: Path, source_variant: str = "dominan
     work = out / "lerf" / f"s{seed}"
     t0 = time.process_time()
     caches, scales = scale_caches(data, work / "caches", standin)
-    seconds = {"scale maps": time.process_time() - t0}
+    took = time.process_time() - t0
+    seconds = {"scale maps": took} if took > 1.0 else {}  # under a second: the caches were there
 
     def lifted(cache: Path, dest: Path) -> Path:
         if not (dest / "manifest.json").is_file():
@@ -209,6 +211,11 @@ def _source_words(rows: list[dict]) -> str:
     return "default build" if not any(labels) else "default or label build"
 
 
+def _seconds(took: dict[str, float]) -> str:
+    done = [f"{k} {v:.0f}" for k, v in took.items() if v > 1.0]  # under a second: made by an earlier run
+    return ", ".join(done) or "all made by an earlier run"
+
+
 def report(d: dict) -> str:
     from benchmarks.common import machine_words
 
@@ -228,7 +235,8 @@ def report(d: dict) -> str:
         "the scales whose crop is at least half the pixel's DINO region). The CLIP stand-in's crop pyramid "
         f"({len(rows[0]['scales'])} scales, crop edges {', '.join(f'{s:g}' for s in rows[0]['scales'])} of "
         "the image) is cut and embedded once per view and each scale's map written as a feature cache of "
-        "its own; each cache is lifted onto the default package's Gaussians without training "
+        "its own; each cache is lifted without training onto the embedded Gaussians of one package of the "
+        "scene (below) "
         "(benchmarks.lift: each Gaussian the blending-weighted mean of the targets of the pixels it "
         "reaches), and so is the default's blended cache. **max over scales** is LERF's query-time scale "
         "selection on those Gaussians: per pixel each name scores its best rendered dot over the scales "
@@ -264,11 +272,8 @@ def report(d: dict) -> str:
         lines += [f"| {r['seed']} | {k} | {cells(q[k])}{q[k]['miou']:.3f} |" for k in KINDS_SHOWN]
     lines += [
         "",
-        "CPU seconds of this process per scene (a shared 2-core machine; not comparable with build seconds): "
-        + "; ".join(
-            f"seed {r['seed']}: " + ", ".join(f"{k} {v:.0f}" for k, v in r["cpu_seconds"].items())
-            for r in rows
-        )
+        "CPU seconds of this run per scene (a shared 2-core machine; not comparable with build seconds): "
+        + "; ".join(f"seed {r['seed']}: {_seconds(r['cpu_seconds'])}" for r in rows)
         + ".",
         "",
         *[f"- {n}" for n in d.get("notes", [])],
@@ -277,7 +282,7 @@ def report(d: dict) -> str:
 
 
 def main() -> int:
-    from benchmarks.common import machine, save_report
+    from benchmarks.common import machine
 
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--out", required=True, help="benchmarks.clip_path's output folder (the builds)")
@@ -291,20 +296,34 @@ def main() -> int:
     )
     ap.add_argument("--note", action="append", default=[], help="a line for the report's notes")
     ap.add_argument("--report", action="store_true", help="also write benchmarks/results/LERF_LIFT.md")
+    ap.add_argument(
+        "--from-json",
+        metavar="JSON",
+        help="only write the report again from a lerf_lift.json (with --note: appended to its notes)",
+    )
     a = ap.parse_args()
     out = Path(a.out)
+    if a.from_json:
+        d = json.loads(Path(a.from_json).read_text())
+        d["notes"] = [*d.get("notes", []), *a.note]
+        return _write(d, out, a.report)
     rows = [run_seed(out, int(s), Path(a.standin).resolve(), a.source) for s in a.seeds.split(",")]
     argv = sys.argv[1:]
     argv = [x for i, x in enumerate(argv) if x != "--note" and (i == 0 or argv[i - 1] != "--note")]
     d = {"rows": rows, "machine": {**machine(), "date": time.strftime("%Y-%m-%d")}, "notes": a.note,
          "command": "python -m benchmarks.lerf_lift " + shlex.join(argv)}  # fmt: skip
-    (out / "lerf_lift.json").write_text(json.dumps(d, indent=1, default=float))
-    if a.report:
-        from benchmarks.common import RESULTS
+    return _write(d, out, a.report)
 
+
+def _write(d: dict, out: Path, publish: bool) -> int:
+    from benchmarks.common import RESULTS, save_report
+
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "lerf_lift.json").write_text(json.dumps(d, indent=1, default=float))
+    if publish:
         (RESULTS / "LERF_LIFT.json").write_text(json.dumps(d, indent=1, default=float))
     text = report(d)
-    save_report(text, out, "LERF_LIFT.md", a.report)
+    save_report(text, out, "LERF_LIFT.md", publish)
     print(text)
     return 0
 

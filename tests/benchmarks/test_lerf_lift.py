@@ -165,9 +165,8 @@ def test_report_gives_the_means_and_each_scene():
                    "0.05 alone": q(0.55, 0.85, 0.6), "0.5 alone": q(0.2, 0.4, 0.3)}}
         for k, s in ((0.0, 1), (0.1, 2))
     ]  # fmt: skip
-    text = report(
-        {"rows": rows, "machine": {**machine(), "date": "2026-11-30"}, "command": "c", "notes": ["n1"]}
-    )
+    info = {**machine(), "date": "2026-11-30"}
+    text = report({"rows": rows, "machine": info, "command": "c", "notes": ["n1"]})
     assert "| blend | 2 | 0.900 | 0.800 | **0.650** | 900 |" in text
     assert "| max over scales | 2 | 0.800 | 0.700 | **0.550** | 1800 |" in text
     assert (
@@ -175,3 +174,7 @@ def test_report_gives_the_means_and_each_scene():
     )
     assert "| 2 | max over scales | 0.800 | 0.700 | 0.600 |" in text
     assert "crop edges 0.05, 0.5 of the image" in text and "- n1" in text
+    assert "seed 1: scale maps 10, lift 5; seed 2: scale maps 10, lift 5." in text
+    rows[1]["cpu_seconds"] = {"scale maps": 0.2}
+    text = report({"rows": rows, "machine": info, "command": "c"})
+    assert "seed 2: all made by an earlier run." in text

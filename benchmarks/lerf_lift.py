@@ -187,8 +187,11 @@ def run_seed(out: Path, seed: int, standin: Path, source_variant: str = "dominan
     _, test = ds.split(HOLDOUT_EVERY)
     enc = MiniLMTextEncoder()
     row: dict = {"seed": seed, "scales": scales, "cpu_seconds": seconds, "source": str(source), "kinds": {}}
-    # A selected Gaussian no training pixel reaches keeps the source's embedding: none may.
+    # A selected Gaussian no training pixel reaches keeps the source's embedding: the report counts them,
+    # and from the label build they would carry the names themselves.
     row["unseen"] = max(Manifest.read(p).extra["lifted"]["unseen"] for p in [blend, *per_scale])
+    if row["unseen"] and source_variant == "labels":
+        raise ValueError(f"seed {seed}: {row['unseen']} Gaussians would keep the label build's embeddings")
     for kind, pkgs in {"blend": [blend], "max over scales": per_scale}.items():
         engines = [SceneEngine.open(p) for p in pkgs]
         q = lerf_quality(engines, ds, enc, test, data / "scene.json")

@@ -43,13 +43,14 @@ def segment(
         gi, gl = engine.selected.clone(), dots.argmax(1).to(torch.int32).cpu()
     if camera is not None:
         image, alpha = _render_dots(engine, dots, camera)
-        pix = pixel_labels(image, alpha, min_alpha)
+        pix = pixel_labels(image, alpha, min_alpha).cpu()  # labelled where rendered: only [H,W] crosses
     return Segmentation(gi, gl, pix)
 
 
 def _render_dots(engine, dots: torch.Tensor, camera: Camera) -> tuple[torch.Tensor, torch.Tensor]:
+    """([H,W,n], [H,W]) float32 on the engine's device."""
     out = rasterize(*engine.geometry, dots.to(engine.geometry[0]), camera, backend=engine.cfg.backend)
-    return out.image.float().cpu(), out.alpha.float().cpu()
+    return out.image.float(), out.alpha.float()
 
 
 def pixel_labels(dots: torch.Tensor, alpha: torch.Tensor, min_alpha: float = 0.1) -> torch.Tensor:
@@ -62,7 +63,9 @@ def pixel_labels(dots: torch.Tensor, alpha: torch.Tensor, min_alpha: float = 0.1
 @torch.no_grad()
 def class_dots(engine, classes: torch.Tensor, camera: Camera) -> tuple[torch.Tensor, torch.Tensor]:
     """The rendered dots of unit class embeddings [n,D] for ``camera`` ([H,W,n] float32, the embedded
-    Gaussians' dots blended as ``segment`` blends them) and the embedded Gaussians' alpha [H,W]."""
+    Gaussians' dots blended as ``segment`` blends them) and the embedded Gaussians' alpha [H,W], on the
+    host."""
     v = engine.unit(classes, "class embeddings")
     rows = None if engine.index.exact else visible(*engine.geometry, camera, backend=engine.cfg.backend)
-    return _render_dots(engine, engine.channels(v, rows), camera)
+    image, alpha = _render_dots(engine, engine.channels(v, rows), camera)
+    return image.cpu(), alpha.cpu()

@@ -548,6 +548,12 @@ def main() -> int:
     ap.add_argument("--quick", action="store_true", help="smoke run: one 64x48 scene, short stages")
     ap.add_argument("--from-json", metavar="JSON", help="only write the report again from a clip_path.json")
     ap.add_argument("--report", action="store_true", help="also write benchmarks/results/CLIP_PATH.md")
+    ap.add_argument(
+        "--report-name",
+        default="CLIP_PATH",
+        help="the report's name: NAME.md and NAME.json (default CLIP_PATH; another name for a comparison "
+        "made on other label builds than the stored report's)",
+    )
     ap.add_argument("--note", action="append", default=[], help="a line for the report's notes (repeatable)")
     ap.add_argument(
         "--add-to",
@@ -561,10 +567,13 @@ def main() -> int:
         help="build nothing: score the builds already in OUT (a variant "
         "missing for a seed is left out of that seed's rows; the tables say over how many scenes)",
     )
+    ap.add_argument(
+        "--build-only", action="store_true", help="build the label path and the variants, score nothing"
+    )
     a = ap.parse_args()
     if a.from_json:
         text = report(json.loads(Path(a.from_json).read_text()))
-        save_report(text, Path(a.out), "CLIP_PATH.md", a.report)
+        save_report(text, Path(a.out), f"{a.report_name}.md", a.report)
         print(text)
         return 0
     variants = [v for v in a.variants.split(",") if v]
@@ -586,9 +595,13 @@ def main() -> int:
                         synth_flags(seed), preset="world")  # fmt: skip
         for v in variants if not a.no_build else ():
             clip_build(out, seed, data, v, a.field_steps, standin, dino, a.field_threads)
+        if a.build_only:
+            continue
         rows.append(score(out, seed, data, variants))
         datas.append(data)
         (out / "clip_path.json").write_text(json.dumps({"rows": rows}, indent=1, default=float))
+    if a.build_only:
+        return 0
     info = {**machine(), "date": time.strftime("%Y-%m-%d")}
     argv = sys.argv[1:]
     argv = [x for i, x in enumerate(argv) if x != "--note" and (i == 0 or argv[i - 1] != "--note")]
@@ -606,7 +619,7 @@ def main() -> int:
         d["target_maps"] = rates(
             [scene_targets(out, x, standin, dino, d["target_views"], oracle) for x in datas]
         )
-        return write(d, out, a.report)
+        return write(d, out, a.report, a.report_name)
     from benchmarks.clip_targets import rates
 
     maps = rates([scene_targets(out, x, standin, dino, a.target_views) for x in datas])
@@ -622,19 +635,19 @@ def main() -> int:
         **segmenter_config(variants),
         "notes": a.note,
     }
-    return write(d, out, a.report)
+    return write(d, out, a.report, a.report_name)
 
 
-def write(d: dict, out: Path, committed: bool) -> int:
-    """Store the figures ``d`` in OUT/clip_path.json and the report written from them in OUT/CLIP_PATH.md;
-    ``committed``: both into benchmarks/results/ too (CLIP_PATH.json beside CLIP_PATH.md,
+def write(d: dict, out: Path, committed: bool, name: str = "CLIP_PATH") -> int:
+    """Store the figures ``d`` in OUT/clip_path.json and the report written from them in OUT/NAME.md;
+    ``committed``: both into benchmarks/results/ too (NAME.json beside NAME.md,
     tests/benchmarks/test_clip_path_report.py)."""
     figures = json.dumps(d, indent=1, default=float)
     (out / "clip_path.json").write_text(figures)
     if committed:
-        (ROOT / "benchmarks" / "results" / "CLIP_PATH.json").write_text(figures)
+        (ROOT / "benchmarks" / "results" / f"{name}.json").write_text(figures)
     text = report(json.loads(figures))  # the report is written from what is stored
-    save_report(text, out, "CLIP_PATH.md", committed)
+    save_report(text, out, f"{name}.md", committed)
     print(text)
     return 0
 

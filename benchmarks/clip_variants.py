@@ -27,6 +27,7 @@ VARIANTS: dict[str, dict] = {
     "oracle": {"blend": "dominant", "dino": True, "dotsim": True, "oracle": True},
     "oracle paper": {"blend": "mean", "dino": True, "dotsim": True, "oracle": True},
     "region crops": {"blend": "dominant", "dino": True, "dotsim": True, "regions": True},
+    "dominant pooled": {"blend": "dominant", "dino": True, "dotsim": True, "pooled": True},
     "segments": {"blend": "dominant", "dino": True, "dotsim": True, "segments": "blend"},
     "segments finest": {"blend": "mean", "dino": True, "dotsim": True, "segments": "finest"},
     "segments finest label masks": {
@@ -69,7 +70,8 @@ VARIANTS: dict[str, dict] = {
 with DINO and dotsim is the build's default. "oracle" variants name every crop without error
 (benchmarks.clip_oracle) and distil with ``fmgs train-field``: the method apart from the stand-in; "region
 crops" distils benchmarks.region_crops' targets the same way (not a build option), and "label_segments"
-benchmarks.label_segments' (the segments variants with the label masks as segments). A variant with
+benchmarks.label_segments' (the segments variants with the label masks as segments), and "pooled"
+``pooled_cache``'s. A variant with
 "features_of" distils that variant's feature cache (the same targets) with ``fmgs train-field``, at its own
 "field_steps" when it sets them (the product's default steps beside the report's shorter schedule;
 "labels": the label build's cache, language loss alone as that build distils it); with
@@ -103,6 +105,10 @@ DESCRIBE = {
     "(`--feature-side 128`): real photos are larger than the maps, these scenes' 128x96 are smaller",
     "region crops": "one tight crop per DINO-grown region averaged with the finest scale "
     "(benchmarks.region_crops: the mask-based methods' way, DINO regions for masks), DINO head and dotsim",
+    "dominant pooled": "the default blend pooled within DINO-coherent neighbourhoods "
+    "(fmgs.features.scale_blend.pool_regions, a square of a tenth of the shorter side, each neighbour "
+    "weighed by its squared DINO cosine with the pixel; benchmarks.clip_variants.pooled_cache), DINO head "
+    "and dotsim",
 }
 
 
@@ -151,7 +157,7 @@ def clip_build(
         if v.get("balance"):
             cmd += ["--balance", v["balance"]]
         threads_flag = "--threads"
-    elif v.get("oracle") or v.get("regions") or v.get("label_segments"):  # a cache made here, train-field
+    elif v.get("oracle") or v.get("regions") or v.get("label_segments") or v.get("pooled"):  # cache here
         from benchmarks.clip_oracle import oracle_cache
         from benchmarks.label_segments import label_segments_cache
         from benchmarks.region_crops import region_cache
@@ -162,6 +168,8 @@ def clip_build(
         threads_flag = "--threads"
         if v.get("regions"):
             prepare = partial(region_cache, data, work / "features", standin, dino, v["blend"])
+        elif v.get("pooled"):
+            prepare = partial(pooled_cache, data, work / "features", standin, dino, v["blend"])
         elif v.get("label_segments"):
             seg_map = v["label_segments"]
             prepare = partial(label_segments_cache, data, work / "features", standin, dino, seg_map)
@@ -197,6 +205,28 @@ def clip_build(
         assert fmgs(cmd) == 0
 
     return _recorded(out, name, cmd, run)
+
+
+def pooled_cache(data: Path, cache_dir: Path, standin: Path, dino: Path, blend: str) -> Path:
+    """A feature cache of ``data`` as ``fmgs build --scale-blend blend`` writes it, each CLIP target then
+    pooled within DINO-coherent neighbourhoods (``pool_regions`` over a square of POOL_RADIUS of the map's
+    shorter side, the target maps' "+ pooled" candidates in benchmarks.clip_targets), and the DINO
+    stand-in's map (benchmarks.clip_oracle.write_cache)."""
+    from benchmarks.clip_oracle import write_cache
+    from benchmarks.clip_targets import POOL_RADIUS
+    from fmgs.features.dino import load_dense_encoder
+    from fmgs.features.pyramid import hybrid_map, pyramid_for
+    from fmgs.features.scale_blend import pool_regions
+    from fmgs.features.standin import load_standin
+
+    clip = load_standin(f"standin:{standin}")
+    cfg = pyramid_for(clip, blend=blend)
+
+    def target(fr, image, hw, dense):
+        radius = max(1, round(POOL_RADIUS * min(hw)))
+        return pool_regions(hybrid_map(clip, image, cfg, hw, dense=dense), dense, radius)
+
+    return write_cache(data, cache_dir, clip, load_dense_encoder(f"standin-dino:{dino}"), target)
 
 
 def photos_scene(data: Path, photos: Path, factor: int) -> Path:

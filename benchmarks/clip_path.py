@@ -547,7 +547,7 @@ def main() -> int:
     ap.add_argument("--standin-dino", default=str(STANDIN_DINO), help="the DINO stand-in's folder")
     ap.add_argument("--quick", action="store_true", help="smoke run: one 64x48 scene, short stages")
     ap.add_argument("--from-json", metavar="JSON", help="only write the report again from a clip_path.json")
-    ap.add_argument("--report", action="store_true", help="also write benchmarks/results/CLIP_PATH.md")
+    ap.add_argument("--report", action="store_true", help="also write the report into benchmarks/results/")
     ap.add_argument(
         "--report-name",
         default="CLIP_PATH",

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import datetime as dt
 import hashlib
+import json
 import os
 import platform
 import statistics
@@ -75,6 +76,16 @@ def save_report(text: str, out: Path | str, name: str, publish: bool) -> None:
     (Path(out) / name).write_text(text)
     if publish:
         (RESULTS / name).write_text(text)
+
+
+def save_result(d: dict, out: Path | str, name: str, text: str, publish: bool) -> None:
+    """Writes a report's data ``d`` to OUT/name.json (lower case), its ``text`` to OUT/NAME.md and, when
+    ``publish``, both to RESULTS (NAME.json, NAME.md)."""
+    Path(out).mkdir(parents=True, exist_ok=True)
+    (Path(out) / f"{name.lower()}.json").write_text(json.dumps(d, indent=1, default=float))
+    if publish:
+        (RESULTS / f"{name}.json").write_text(json.dumps(d, indent=1, default=float))
+    save_report(text, out, f"{name}.md", publish)
 
 
 def rss_gb() -> float:

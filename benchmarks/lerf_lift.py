@@ -316,14 +316,10 @@ def main() -> int:
 
 
 def _write(d: dict, out: Path, publish: bool) -> int:
-    from benchmarks.common import RESULTS, save_report
+    from benchmarks.common import save_result
 
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "lerf_lift.json").write_text(json.dumps(d, indent=1, default=float))
-    if publish:
-        (RESULTS / "LERF_LIFT.json").write_text(json.dumps(d, indent=1, default=float))
     text = report(d)
-    save_report(text, out, "LERF_LIFT.md", publish)
+    save_result(d, out, "LERF_LIFT", text, publish)
     print(text)
     return 0
 

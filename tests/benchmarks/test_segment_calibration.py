@@ -3,12 +3,17 @@ best Gaussian, and a stretched absent name takes pixels."""
 
 from __future__ import annotations
 
+import json
+from pathlib import Path
+
 import numpy as np
 import pytest
 import torch
 
 from benchmarks.segment_calibration import RULES, calibrated_labels, divisors, report
 from tests.benchmarks.test_lerf_lift import NameEncoder, scene  # noqa: F401 (the fixture)
+
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def _labels(engine, ds, classes: torch.Tensor, divisor: torch.Tensor) -> list[np.ndarray]:
@@ -103,3 +108,14 @@ def test_report_renders_every_rule():
     text = report(d)
     assert "| dominant | with absent names | 0.700 | 0.720 | 0.710 |" in text
     assert "| 201 | labels | scene names | 0.700 | 0.720 | 0.710 | 3/4 |" in text and "- a note" in text
+
+
+def test_docs_quote_the_calibration():
+    """docs/field.md's figures for per-class calibration are SEGMENT_CALIBRATION's means."""
+    d = json.loads((ROOT / "benchmarks" / "results" / "SEGMENT_CALIBRATION.json").read_text())
+    docs = (ROOT / "docs" / "field.md").read_text()
+    for kind in ("labels", "dominant"):
+        for which in ("scene names", "with absent names"):
+            for rule in RULES:
+                m = float(np.mean([r["kinds"][kind][which]["miou"][rule] for r in d["rows"]]))
+                assert f"{m:.3f}" in docs, (kind, which, rule, m)

@@ -23,8 +23,6 @@ from __future__ import annotations
 import argparse
 import hashlib
 import json
-import shlex
-import sys
 import time
 from pathlib import Path
 
@@ -40,7 +38,7 @@ from benchmarks.clip_variants import (
     clip_build,
     variant_name,
 )
-from benchmarks.common import machine, machine_words, save_report
+from benchmarks.common import command_line, machine, machine_words, save_report
 from benchmarks.unseen import PRESENT_KINDS, build_scene, presence_rates, scene_quality, score_presence
 from fmgs.query.instances import InstanceConfig
 from fmgs.query.presence import PresenceConfig
@@ -603,9 +601,7 @@ def main() -> int:
     if a.build_only:
         return 0
     info = {**machine(), "date": time.strftime("%Y-%m-%d")}
-    argv = sys.argv[1:]
-    argv = [x for i, x in enumerate(argv) if x != "--note" and (i == 0 or argv[i - 1] != "--note")]
-    cmd = "python -m benchmarks.clip_path " + shlex.join(argv)
+    cmd = command_line("benchmarks.clip_path")
     if a.add_to:
         addition = {"command": cmd, "variants": variants, "machine": info}
         d = add_to(json.loads(Path(a.add_to).read_text()), rows, variants, addition)

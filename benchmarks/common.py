@@ -78,6 +78,17 @@ def save_report(text: str, out: Path | str, name: str, publish: bool) -> None:
         (RESULTS / name).write_text(text)
 
 
+def command_line(module: str) -> str:
+    """The command this process runs, as a report quotes it: ``python -m MODULE`` and its arguments
+    without the ``--note`` options (the notes are printed in the report themselves)."""
+    import shlex
+    import sys
+
+    argv = sys.argv[1:]
+    argv = [x for i, x in enumerate(argv) if x != "--note" and (i == 0 or argv[i - 1] != "--note")]
+    return f"python -m {module} " + shlex.join(argv)
+
+
 def save_result(d: dict, out: Path | str, name: str, text: str, publish: bool) -> None:
     """Writes a report's data ``d`` to OUT/name.json (lower case), its ``text`` to OUT/NAME.md and, when
     ``publish``, both to RESULTS (NAME.json, NAME.md)."""

@@ -23,8 +23,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import shlex
-import sys
 import time
 from pathlib import Path
 
@@ -282,7 +280,7 @@ def report(d: dict) -> str:
 
 
 def main() -> int:
-    from benchmarks.common import machine
+    from benchmarks.common import command_line, machine
 
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--out", required=True, help="benchmarks.clip_path's output folder (the builds)")
@@ -308,10 +306,8 @@ def main() -> int:
         d["notes"] = [*d.get("notes", []), *a.note]
         return _write(d, out, a.report)
     rows = [run_seed(out, int(s), Path(a.standin).resolve(), a.source) for s in a.seeds.split(",")]
-    argv = sys.argv[1:]
-    argv = [x for i, x in enumerate(argv) if x != "--note" and (i == 0 or argv[i - 1] != "--note")]
     d = {"rows": rows, "machine": {**machine(), "date": time.strftime("%Y-%m-%d")}, "notes": a.note,
-         "command": "python -m benchmarks.lerf_lift " + shlex.join(argv)}  # fmt: skip
+         "command": command_line("benchmarks.lerf_lift")}  # fmt: skip
     return _write(d, out, a.report)
 
 

@@ -81,7 +81,9 @@ class StandinImageEncoder:
         self, net: StandinNet, config: dict, model_id: str, device: str | torch.device = "cpu"
     ) -> None:
         self.device = torch.device(device)
-        self.net = net.to(self.device).eval()
+        # Channels-last: the CPU's convolution kernels run this net about 1.7x faster in NHWC (the same
+        # arithmetic, summed in another order).
+        self.net = net.to(self.device, memory_format=torch.channels_last).eval()
         self.config = config
         self.id = model_id
         self.text_encoder_id = str(config.get("text_encoder", MINILM_ID))
@@ -105,7 +107,8 @@ class StandinImageEncoder:
     @torch.inference_mode()
     def encode_images(self, images: torch.Tensor) -> torch.Tensor:
         """[B,3,h,w] float RGB in [0,1] -> [B,D] float32 unit-norm rows on the encoder's device."""
-        return safe_normalize(self.net(self.preprocess(images)).float())
+        x = self.preprocess(images).contiguous(memory_format=torch.channels_last)
+        return safe_normalize(self.net(x).float())
 
     __call__ = encode_images
 

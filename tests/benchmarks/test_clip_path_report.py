@@ -19,33 +19,33 @@ def _figures() -> dict:
     return json.loads((RESULTS / "CLIP_PATH.json").read_text())
 
 
-@pytest.mark.parametrize("name", ["CLIP_PATH", "CLIP_PATH_POOLED", "CLIP_PATH_ORACLE_PAPER"])
+@pytest.mark.parametrize(
+    "name", ["CLIP_PATH", "CLIP_PATH_POOLED", "CLIP_PATH_ORACLE_PAPER", "CLIP_PATH_NEIGHBOURS"]
+)
 def test_committed_report_is_written_from_the_committed_figures(name):
     d = json.loads((RESULTS / f"{name}.json").read_text())
     assert report(d) == (RESULTS / f"{name}.md").read_text()
 
 
-def test_docs_quote_the_pooled_comparison():
-    """docs/field.md's figures for DINO-coherent pooling distilled are CLIP_PATH_POOLED's, on the label
-    builds it was made on, beside the default built on the same ones."""
-    d = json.loads((RESULTS / "CLIP_PATH_POOLED.json").read_text())
+@pytest.mark.parametrize(
+    "name,kinds",
+    [
+        ("CLIP_PATH_POOLED", ("labels", "dominant", "dominant pooled")),
+        ("CLIP_PATH_ORACLE_PAPER", ("labels", "dominant", "oracle paper")),
+        ("CLIP_PATH_NEIGHBOURS", ("labels", "dominant", "dominant neighbours 1", "labels neighbours 1")),
+    ],
+)
+def test_docs_quote_the_comparisons_on_the_pooled_label_builds(name, kinds):
+    """docs/field.md's figures for each comparison made on CLIP_PATH_POOLED's label builds (DINO-coherent
+    pooling, the paper's mean named without error, one embedding per Gaussian) are its report's, beside
+    the default built on the same ones."""
+    d = json.loads((RESULTS / f"{name}.json").read_text())
     docs = (ROOT / "docs" / "field.md").read_text()
-    for kind in ("labels", "dominant", "dominant pooled"):
+    for kind in kinds:
         s = summary(d["rows"], kind)
         assert s["scenes"] == 3, kind  # the docs quote the three seeds' means
-        for key in ("miou", "localisation_2d", "localisation_3d"):
-            assert f"{s[key]:.3f}" in docs, (kind, key, s[key])
-
-
-def test_docs_quote_the_oracle_paper_comparison():
-    """docs/field.md's figures for the paper's mean named without error are CLIP_PATH_ORACLE_PAPER's, beside
-    the default built on the same label builds."""
-    d = json.loads((RESULTS / "CLIP_PATH_ORACLE_PAPER.json").read_text())
-    docs = (ROOT / "docs" / "field.md").read_text()
-    for kind in ("labels", "dominant", "oracle paper"):
-        s = summary(d["rows"], kind)
-        assert s["scenes"] == 3, kind
-        for key in ("miou", "localisation_2d", "localisation_3d"):
+        keys = ["miou", "localisation_2d", "localisation_3d"] + (["novel_3d"] if "neighbours" in name else [])
+        for key in keys:
             assert f"{s[key]:.3f}" in docs, (kind, key, s[key])
 
 
@@ -287,3 +287,34 @@ def test_the_label_paths_targets_distil_again_from_the_label_builds_cache(tmp_pa
     )
     assert cmd[cmd.index("--field-steps") + 1] == str(FieldTrainConfig.steps)
     assert cmd[cmd.index("--lam") + 1] == "1" and "--no-dotsim" in cmd
+
+
+@pytest.mark.parametrize(
+    "variant,source", [("dominant neighbours 1", "s7-dominant"), ("labels neighbours 1", "s7")]
+)
+def test_a_neighbours_variant_packages_its_sources_field_again(tmp_path, monkeypatch, variant, source):
+    """A "neighbours" variant trains nothing: its source's package is packaged again with that many
+    embedding neighbours and the source's text encoder, and its build time is the source's and the
+    packaging's; without the source it says which to build."""
+    import benchmarks.unseen
+    from benchmarks.clip_variants import STANDIN, STANDIN_DINO, clip_build
+    from fmgs.features.models import MINILM_ID
+
+    calls: list[tuple] = []
+    monkeypatch.setattr(
+        benchmarks.unseen, "repackage", lambda src, dst, k, enc: calls.append((src, dst, k, enc.id)) or dst
+    )
+    data, models = tmp_path / "scene-7", tmp_path / "models"
+    (models / ".work" / source / "features").mkdir(parents=True)  # a features_of variant's check
+    with pytest.raises(FileNotFoundError, match=f"needs {models / source}"):
+        clip_build(tmp_path, 7, data, variant, 1500, STANDIN, STANDIN_DINO, 1)
+    (models / source).mkdir()
+    (models / source / "manifest.json").write_text(json.dumps({"encoder": {"id": MINILM_ID, "dim": 384}}))
+    record = tmp_path / ("build-7.json" if source == "s7" else f"build-{source}.json")
+    record.write_text(json.dumps({"seconds": 1000.0, "command": []}))
+    pkg = clip_build(tmp_path, 7, data, variant, 1500, STANDIN, STANDIN_DINO, 1)
+    assert calls == [(models / source, pkg, 1, MINILM_ID)]
+    took = json.loads((tmp_path / f"build-{pkg.name}.json").read_text())["seconds"]
+    assert 1000.0 < took < 1000.0 + 60
+    clip_build(tmp_path, 7, data, variant, 1500, STANDIN, STANDIN_DINO, 1)  # recorded: not run again
+    assert len(calls) == 1

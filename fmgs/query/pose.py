@@ -14,6 +14,10 @@ from fmgs.render import rasterize, visible
 from fmgs.render.rgb import render_rgb
 
 OUTPUTS = ("relevancy", "rgb", "depth", "alpha")
+SCORE_BAND_PIXELS = 1 << 20
+"""With a ``between`` hook, an image is scored in bands of rows of about this many pixels, the hook called
+after each: scoring a 4096x2160 image at once took 150-166 ms on a 2-core EPYC, the longest stretch of a
+render without a deadline check."""
 
 
 class PoseRender(NamedTuple):
@@ -46,10 +50,23 @@ def relevancy_layer(engine, camera: Camera, query: torch.Tensor | None, canonica
     )  # fmt: skip
 
 
-def score_image(img: torch.Tensor) -> tuple[torch.Tensor, tuple[int, int, float]]:
+def score_image(
+    img: torch.Tensor, between: Callable[[], None] | None = None
+) -> tuple[torch.Tensor, tuple[int, int, float]]:
     """Relevancy [H,W] of rendered channels [H,W,1+C] and its argmax (x, y, value), first in row-major
-    order on ties."""
-    rel = relevancy(img[..., 0], img[..., 1:], TEMPERATURE)
+        order on ties. With ``between``, scored in bands of SCORE_BAND_PIXELS, ``between()`` after each (it
+        may raise); every pixel is scored alone, so the image is the same up to one float32 step of the
+    vectorised sigmoid's rounding (tests/query/test_score_bands.py)."""
+    rows = max(1, SCORE_BAND_PIXELS // max(img.shape[1], 1))
+    if between is None or rows >= img.shape[0]:
+        rel = relevancy(img[..., 0], img[..., 1:], TEMPERATURE)
+    else:
+        bands = []
+        for y in range(0, img.shape[0], rows):
+            band = img[y : y + rows]
+            bands.append(relevancy(band[..., 0], band[..., 1:], TEMPERATURE))
+            between()
+        rel = torch.cat(bands)
     flat = int(torch.argmax(rel))
     y, x = divmod(flat, rel.shape[1])
     return rel, (x, y, float(rel[y, x]))
@@ -82,12 +99,12 @@ def render_pose(
         out = relevancy_layer(engine, camera, q, canonical, between_tiles)
         alpha = out.alpha.float().cpu()
         if "relevancy" in outputs:  # scored where it was rendered: only [H,W] crosses to the host
-            rel, arg = score_image(out.image.float())
+            rel, arg = score_image(out.image.float(), between_tiles)
             rel = rel.cpu()
-        if between_tiles is not None:  # scoring a large image takes as long as a batch of tiles
-            between_tiles()
     if "rgb" in outputs or "depth" in outputs:
         out = render_rgb(engine.gaussians, camera, backend=engine.cfg.backend, between_tiles=between_tiles)
+        if between_tiles is not None:  # the render's per-Gaussian sums and casts after its last batch
+            between_tiles()
         rgb = out.image.float().clamp(0, 1).cpu()
         depth = out.depth.float().cpu()
     want = set(outputs)

@@ -16,8 +16,8 @@ from fmgs.render.rgb import render_rgb
 OUTPUTS = ("relevancy", "rgb", "depth", "alpha")
 SCORE_BAND_PIXELS = 1 << 20
 """With a ``between`` hook, an image is scored in bands of rows of about this many pixels, the hook called
-after each: scoring a 4096x2160 image at once took 150-166 ms on a 2-core EPYC, the longest stretch of a
-render without a deadline check."""
+after each: scored at once, a 4096x2160 image was the longest stretch of a render without a deadline check
+(docs/serving.md has the figures)."""
 
 
 class PoseRender(NamedTuple):
@@ -54,8 +54,8 @@ def score_image(
     img: torch.Tensor, between: Callable[[], None] | None = None
 ) -> tuple[torch.Tensor, tuple[int, int, float]]:
     """Relevancy [H,W] of rendered channels [H,W,1+C] and its argmax (x, y, value), first in row-major
-        order on ties. With ``between``, scored in bands of SCORE_BAND_PIXELS, ``between()`` after each (it
-        may raise); every pixel is scored alone, so the image is the same up to one float32 step of the
+    order on ties. With ``between``, scored in bands of SCORE_BAND_PIXELS, ``between()`` after each (it
+    may raise); every pixel is scored alone, so the image is the same up to one float32 step of the
     vectorised sigmoid's rounding (tests/query/test_score_bands.py)."""
     rows = max(1, SCORE_BAND_PIXELS // max(img.shape[1], 1))
     if between is None or rows >= img.shape[0]:

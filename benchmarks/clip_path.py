@@ -35,6 +35,7 @@ from benchmarks.clip_variants import (
     STANDIN_DINO,
     STANDIN_SEG,
     VARIANTS,
+    build_record,
     clip_build,
     variant_name,
 )
@@ -122,7 +123,7 @@ def score(out: Path, seed: int, data: Path, variants: list[str]) -> dict:
     names = json.loads((data / "scene.json").read_text())["label_names"]
     row: dict = {"seed": seed, "views_test": len(test), "objects": names[2:], "kinds": {}}
     for kind in ["labels", *variants]:
-        name = f"s{seed}" if kind == "labels" else variant_name(seed, kind)
+        name = variant_name(seed, kind)
         pkg = out / "models" / name
         if not (pkg / "manifest.json").is_file():  # --no-build: a variant not built for this seed
             continue
@@ -144,8 +145,7 @@ def score(out: Path, seed: int, data: Path, variants: list[str]) -> dict:
                 engine = engine or SceneEngine.open(pkg)
                 q[rule] = score_presence(engine, enc, names, cfg)
                 kept.write_text(json.dumps({"manifest_sha256": key, "quality": q}, default=float))
-        rec = out / f"build-{seed if kind == 'labels' else name}.json"  # build_scene names the label one
-        q["build_seconds"] = json.loads(rec.read_text())["seconds"]
+        q["build_seconds"] = json.loads(build_record(out, seed, kind).read_text())["seconds"]
         row["kinds"][kind] = q
     return row
 

@@ -132,7 +132,14 @@ DESCRIBE = {
 
 
 def variant_name(seed: int, variant: str) -> str:
-    return f"s{seed}-" + variant.replace(" ", "-")
+    """The package name of ``variant`` on scene ``seed``; "labels": the label build's (``s{seed}``)."""
+    return f"s{seed}" if variant == "labels" else f"s{seed}-" + variant.replace(" ", "-")
+
+
+def build_record(out: Path, seed: int, variant: str) -> Path:
+    """OUT's record of how ``variant``'s package for scene ``seed`` was made (its command and seconds);
+    benchmarks.unseen.build_scene names the label build's by the seed alone."""
+    return out / f"build-{seed if variant == 'labels' else variant_name(seed, variant)}.json"
 
 
 def clip_build(
@@ -156,12 +163,12 @@ def clip_build(
     prepare = None  # what the command needs first
     field_steps = v.get("field_steps", field_steps)
     if v.get("features_of"):  # another variant's targets: distilled again, or lifted onto its Gaussians
-        src = f"s{seed}" if v["features_of"] == "labels" else variant_name(seed, v["features_of"])
+        src = variant_name(seed, v["features_of"])
         source, features = out / "models" / src, out / "models" / ".work" / src / "features"
         if not features.is_dir() or (v.get("lift") and not (source / "manifest.json").is_file()):
             raise FileNotFoundError(f"{name} needs {source} and {features}: build {v['features_of']!r} first")
         if v.get("neighbours"):  # the same field, packaged again
-            return _repackaged(out, name, src, v["neighbours"])
+            return _repackaged(out, seed, variant, v["features_of"], v["neighbours"])
         if v.get("lift"):  # nothing trained
             from benchmarks.lift import lift_package
 
@@ -276,19 +283,18 @@ def photos_scene(data: Path, photos: Path, factor: int) -> Path:
     return photos
 
 
-def _repackaged(out: Path, name: str, source: str, neighbours: int) -> Path:
-    """OUT/models/NAME: OUT/models/SOURCE's trained field packaged with ``neighbours`` (recorded; the
-    seconds are SOURCE's build and this packaging)."""
+def _repackaged(out: Path, seed: int, variant: str, source: str, neighbours: int) -> Path:
+    """``variant``'s package: variant ``source``'s trained field packaged again with ``neighbours``
+    (recorded; the seconds are the source's build and this packaging)."""
     from benchmarks.unseen import repackage
     from fmgs.features.text import load_text_encoder
 
-    src = out / "models" / source
+    name, src = variant_name(seed, variant), out / "models" / variant_name(seed, source)
     if not (src / "manifest.json").is_file():
         raise FileNotFoundError(f"{name} needs {src}: build it first")
     enc = load_text_encoder(json.loads((src / "manifest.json").read_text())["encoder"]["id"])
     cmd = ["benchmarks.unseen.repackage", str(src), str(out / "models" / name), str(neighbours)]  # a call
-    label_seed = source[1:] if "-" not in source else None  # build_scene names the label build's record
-    took = json.loads((out / f"build-{label_seed or source}.json").read_text())["seconds"]
+    took = json.loads(build_record(out, seed, source).read_text())["seconds"]
     run = partial(repackage, src, out / "models" / name, neighbours, enc)
     return _recorded(out, name, cmd, run, took)
 

@@ -160,7 +160,7 @@ def run_seed(out: Path, seed: int, standin: Path, source_variant: str = "dominan
 
     data = out / f"scene-{seed}"
     name = variant_name(seed, "dominant")
-    src = f"s{seed}" if source_variant == "labels" else variant_name(seed, source_variant)
+    src = variant_name(seed, source_variant)
     source = out / "models" / src
     features = out / "models" / ".work" / name / "features"
     if not (source / "manifest.json").is_file() or not features.is_dir():

@@ -57,6 +57,24 @@ def novel_labels(data: Path) -> set[int]:
     return {o["label"] for o in meta["objects"] if o.get("novel")}
 
 
+def standin_scene(data: Path, standin: Path = STANDIN, standin_dino: Path = STANDIN_DINO):
+    """(names, CLIP stand-in, DINO stand-in, [C-1,D] text table of the floor and objects (segmentation's
+    classes), [C+1,D] caption points of the names and the stand-in's WALL) for scene ``data``: what the
+    oracle and stand-in target studies share."""
+    from fmgs.features.crop_content import caption_points
+    from fmgs.features.dino import load_dense_encoder
+    from fmgs.features.standin import WALL, load_standin
+    from fmgs.features.text import MiniLMTextEncoder
+
+    names = json.loads((data / "scene.json").read_text())["label_names"]
+    text = MiniLMTextEncoder()
+    with torch.inference_mode():
+        table = text.encode_text(names[1:])
+        points = caption_points([*names, WALL], text)
+    enc = load_standin(f"standin:{standin}")
+    return names, enc, load_dense_encoder(f"standin-dino:{standin_dino}"), table, points
+
+
 def candidate_scores(maps: dict[str, torch.Tensor | list[torch.Tensor]], table: torch.Tensor) -> dict:
     """{candidate: [h,w,C] scores of each name} from unit target maps, or from a list of per-scale maps
     (LERF: the best score over the scales)."""

@@ -117,21 +117,12 @@ def scene_counts(data: Path, views: int, standin: Path = STANDIN, standin_dino: 
     from PIL import Image
 
     from benchmarks.clip_oracle import oracle_grid_embeddings
-    from benchmarks.clip_targets import novel_labels, tally
-    from fmgs.features.crop_content import caption_points
-    from fmgs.features.dino import load_dense_encoder
+    from benchmarks.clip_targets import novel_labels, standin_scene, tally
     from fmgs.features.pyramid import PyramidConfig, crop_grid, scale_grid_embeddings
     from fmgs.features.scale_blend import blend_scales, scale_weights
-    from fmgs.features.standin import WALL, extended_labels, load_standin
-    from fmgs.features.text import MiniLMTextEncoder
+    from fmgs.features.standin import WALL, extended_labels
 
-    names = json.loads((data / "scene.json").read_text())["label_names"]
-    enc = load_standin(f"standin:{standin}")
-    dino = load_dense_encoder(f"standin-dino:{standin_dino}")
-    text = MiniLMTextEncoder()
-    with torch.inference_mode():
-        table = text.encode_text(names[1:])  # floor and objects: segmentation's classes
-        points = caption_points([*names, WALL], text)
+    names, enc, dino, table, points = standin_scene(data, standin, standin_dino)
     cfg = PyramidConfig(crop_px=enc.image_size)
     acc: dict[str, np.ndarray] = {}
     for p in sorted((data / "images").iterdir())[:views]:

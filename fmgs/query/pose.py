@@ -15,8 +15,8 @@ from fmgs.render.rgb import render_rgb
 
 OUTPUTS = ("relevancy", "rgb", "depth", "alpha")
 SCORE_BAND_PIXELS = 1 << 20
-"""With a ``between`` hook, an image is scored in bands of rows of about this many pixels, the hook called
-after each: scored at once, a 4096x2160 image was the longest stretch of a render without a deadline check
+"""An image is scored in bands of rows of about this many pixels, a ``between`` hook called after each:
+scored at once, a 4096x2160 image was the longest stretch of a render without a deadline check
 (docs/serving.md has the figures)."""
 
 
@@ -54,18 +54,20 @@ def score_image(
     img: torch.Tensor, between: Callable[[], None] | None = None
 ) -> tuple[torch.Tensor, tuple[int, int, float]]:
     """Relevancy [H,W] of rendered channels [H,W,1+C] and its argmax (x, y, value), first in row-major
-    order on ties. With ``between``, scored in bands of SCORE_BAND_PIXELS, ``between()`` after each (it
-    may raise); every pixel is scored alone, so the image is the same up to one float32 step of the
-    vectorised sigmoid's rounding (tests/query/test_score_bands.py)."""
+    order on ties. Scored in bands of whole rows of about SCORE_BAND_PIXELS, with ``between()`` after
+    each (it may raise) when the image has more than one; the bands do not depend on ``between``, so the
+    image is the same whether or not a caller checks a deadline (float32 sigmoids may round a band's
+    last elements apart from the image scored at once)."""
     rows = max(1, SCORE_BAND_PIXELS // max(img.shape[1], 1))
-    if between is None or rows >= img.shape[0]:
+    if rows >= img.shape[0]:
         rel = relevancy(img[..., 0], img[..., 1:], TEMPERATURE)
     else:
         bands = []
         for y in range(0, img.shape[0], rows):
             band = img[y : y + rows]
             bands.append(relevancy(band[..., 0], band[..., 1:], TEMPERATURE))
-            between()
+            if between is not None:
+                between()
         rel = torch.cat(bands)
     flat = int(torch.argmax(rel))
     y, x = divmod(flat, rel.shape[1])

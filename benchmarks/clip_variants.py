@@ -10,6 +10,7 @@ import time
 from functools import partial
 from pathlib import Path
 
+from fmgs.features.sizes import CROP_SCALES
 from fmgs.train.config import FieldTrainConfig
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -58,6 +59,13 @@ VARIANTS: dict[str, dict] = {
     },
     "lifted": {"blend": "dominant", "dino": True, "dotsim": False, "features_of": "dominant", "lift": True},
     "dominant photos x2": {"blend": "dominant", "dino": True, "dotsim": True, "photos": 2},
+    "dominant finer photos x2": {
+        "blend": "dominant",
+        "dino": True,
+        "dotsim": True,
+        "photos": 2,
+        "scales": (min(CROP_SCALES) / 2, *CROP_SCALES),
+    },
     "labels 4200 steps": {
         "blend": "mean",
         "dino": False,
@@ -94,7 +102,7 @@ Gaussians; with "neighbours" K, that variant's trained field packaged again with
 K`` (benchmarks.unseen.repackage; its build time is the source's plus the packaging). A variant with
 "photos" F cuts its crops from the same views rendered at F times the width and height
 (``photos_scene``), its maps stored at the scene's own size: what a user whose photos are larger than the
-feature maps gets."""
+feature maps gets; with "scales", the pyramid's scales (``--crop-scales``)."""
 DESCRIBE = {
     "paper": "the paper's equal mean of the 7 scales, DINO head and dotsim (the FMGS recipe)",
     "dominant": "the default: the scales whose crop is at least half the pixel's DINO region, equally",
@@ -122,6 +130,9 @@ DESCRIBE = {
     "dominant photos x2": "the default with its crops cut from the same views rendered at twice the width "
     "and height (benchmarks.clip_variants.photos_scene), the maps stored at the scene's size "
     "(`--feature-side 128`): real photos are larger than the maps, these scenes' 128x96 are smaller",
+    "dominant finer photos x2": "dominant photos x2 with one finer scale first (`--crop-scales`, half the "
+    "finest crop's edge: 0.025 of the shorter side, 4.8 pixels of the 256x192 views, 25 of a 1000-pixel "
+    "photo)",
     "region crops": "one tight crop per DINO-grown region averaged with the finest scale "
     "(benchmarks.region_crops: the mask-based methods' way, DINO regions for masks), DINO head and dotsim",
     "dominant pooled": "the default blend pooled within DINO-coherent neighbourhoods "
@@ -215,6 +226,8 @@ def clip_build(
         cmd = ["build", str(src), "--name", name, "--models", str(out / "models"), "--targets", "clip",
                "--clip-model", f"standin:{standin}", "--ply", str(ply), "--scale-blend", v["blend"],
                "--dino-model", f"standin-dino:{dino}" if v["dino"] else "none", *sized]  # fmt: skip
+        if v.get("scales"):
+            cmd += ["--crop-scales", ",".join(str(c) for c in v["scales"])]
         if v.get("segments"):
             cmd += ["--segmenter", f"standin-seg:{STANDIN_SEG}"]
             if v["segments"] == "finest":

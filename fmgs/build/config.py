@@ -8,7 +8,14 @@ from dataclasses import dataclass
 
 from fmgs.data.rosbag_config import RecordingConfig
 from fmgs.features.models import DEFAULT_CLIP_ID, DEFAULT_DINO_ID, MINILM_ID
-from fmgs.features.sizes import CROP_STRIDE, FEATURE_SIDE, SCALE_BLEND, SCALE_BLENDS, check_feature_scale
+from fmgs.features.sizes import (
+    CROP_SCALES,
+    CROP_STRIDE,
+    FEATURE_SIDE,
+    SCALE_BLEND,
+    SCALE_BLENDS,
+    check_feature_scale,
+)
 from fmgs.scene.manifest import FIELD_DTYPES, MODELS
 from fmgs.sfm.config import SfMConfig
 from fmgs.train.config import FieldTrainConfig, GSTrainConfig
@@ -35,6 +42,10 @@ class TargetSpec:
     """DINO model id or local folder; None for no DINO target."""
     single_scale: bool = False
     """Ablation: one crop scale instead of the 7-scale pyramid."""
+    crop_scales: tuple[float, ...] = CROP_SCALES
+    """The crop pyramid's scales (kind "clip"): each crop edge as a fraction of the image's shorter side.
+    The default is the paper's 7; a finer first scale suits photos much larger than the feature maps,
+    where it still spans enough pixels for the model to name (docs/field.md)."""
     crop_stride: float | None = CROP_STRIDE
     """Cap on the crop pyramid's stride, a fraction of the image's shorter side (kind "clip"): every
     scale's crops start at most this far apart; none: half the crop edge (the paper's, sparse at the
@@ -67,6 +78,15 @@ class TargetSpec:
         if self.kind not in TARGET_KINDS:
             raise ValueError(f"targets kind must be one of {TARGET_KINDS}, got {self.kind!r}")
         check_feature_scale(self.feature_scale, self.feature_side)
+        if not self.crop_scales or not all(0.0 < c <= 1.0 for c in self.crop_scales):
+            raise ValueError(f"crop_scales must be one or more fractions in (0, 1], got {self.crop_scales}")
+        if len(set(self.crop_scales)) != len(self.crop_scales):
+            raise ValueError(f"crop_scales must not repeat a scale, got {self.crop_scales}")
+        if self.single_scale and tuple(self.crop_scales) != CROP_SCALES:
+            raise ValueError(
+                "single_scale (the one-scale ablation, 0.25) replaces the pyramid: leave crop_scales at "
+                "its default"
+            )
         if self.crop_stride is not None and not 0.0 < self.crop_stride <= 1.0:
             raise ValueError(f"crop_stride must lie in (0, 1] or be none, got {self.crop_stride}")
         if self.segment_map not in SEGMENT_MAPS:

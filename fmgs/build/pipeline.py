@@ -125,12 +125,17 @@ def restart_on_new_targets(work: Path, spec: TargetSpec) -> bool:
     """Remove WORK/features and WORK/field when WORK/targets.json records other target settings than
     ``spec`` (the cache resumes by file, so a changed blend or segmenter would otherwise be distilled from
     the old maps); then record ``spec``. Returns whether anything was removed. A work folder without a
-    record (made before it existed) is trusted as it is."""
+    record (made before it existed) is trusted as it is, and a setting its record lacks (added to
+    TargetSpec since) is taken at its default, which is what that record's build ran."""
     import shutil
 
     path = work / TARGETS_RECORD
     now = json.loads(json.dumps(dataclasses.asdict(spec)))
     before = json.loads(path.read_text()) if path.is_file() else None
+    if before is not None:
+        fields = dataclasses.fields(TargetSpec)
+        defaults = {f.name: f.default for f in fields if f.default is not dataclasses.MISSING}
+        before = {**json.loads(json.dumps(defaults)), **before}
     removed = False
     if before is not None and before != now:
         for d in (work / "features", work / "field"):
@@ -245,7 +250,9 @@ def extract_features(
     seg = None
     if spec.segmenter:
         seg = load_segmenter(spec.segmenter, device, revision=rev.get(spec.segmenter, DEFAULT_REVISION))
-    pyr = pyramid_for(clip, spec.single_scale, spec.crop_stride, spec.scale_blend, spec.pools_finest)
+    pyr = pyramid_for(
+        clip, spec.single_scale, spec.crop_stride, spec.scale_blend, spec.pools_finest, spec.crop_scales
+    )
     return extract_targets(ds, cache_dir, clip, dino, pyr, ecfg, segmenter=seg)
 
 

@@ -23,6 +23,7 @@ BUILD_ALIASES = {
             "clip_model",
             "dino_model",
             "single_scale",
+            "crop_scales",
             "crop_stride",
             "scale_blend",
             "segmenter",

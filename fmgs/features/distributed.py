@@ -84,7 +84,12 @@ class _Worker:
                 seg_rev = rev.get(spec.segmenter, DEFAULT_REVISION)
                 self.seg = load_segmenter(spec.segmenter, device, revision=seg_rev)
             self.pyramid = pyramid_for(
-                self.clip, spec.single_scale, spec.crop_stride, spec.scale_blend, spec.pools_finest
+                self.clip,
+                spec.single_scale,
+                spec.crop_stride,
+                spec.scale_blend,
+                spec.pools_finest,
+                spec.crop_scales,
             )
             self.targets = {"clip": TargetInfo(self.clip.id, self.clip.dim, True)}
             if self.dino is not None:

@@ -37,14 +37,14 @@ import torch.nn.functional as F
 
 from fmgs.errors import ValidationError
 from fmgs.features.scale_blend import BLENDS, blend_scales, scale_weights
-from fmgs.features.sizes import CROP_STRIDE
+from fmgs.features.sizes import CROP_SCALES, CROP_STRIDE
 
 
 @dataclass(frozen=True)
 class PyramidConfig:
     """Crop pyramid of the hybrid CLIP target."""
 
-    scales: tuple[float, ...] = (0.05, 0.125, 0.2, 0.275, 0.35, 0.425, 0.5)
+    scales: tuple[float, ...] = CROP_SCALES
     """Crop edge as a fraction of min(H, W), one entry per scale (each in (0, 1])."""
     overlap: float = 0.5
     """Minimum overlap of neighbouring crops as a fraction of the crop edge (nominal stride c*(1-overlap))."""
@@ -79,17 +79,20 @@ def pyramid_for(
     max_stride: float | None = PyramidConfig.max_stride,
     blend: str = PyramidConfig.blend,
     finest_only: bool = False,
+    scales: tuple[float, ...] = PyramidConfig.scales,
 ) -> PyramidConfig:
     """The build's pyramid for an image encoder: crops resized once, to the encoder's own input size (224
-    for the default ViT-B/16); ``single_scale``: the ablation's one scale (0.25); ``max_stride``: the
-    crop lattice's stride cap (PyramidConfig.max_stride); ``blend``: PyramidConfig.blend;
-    ``finest_only``: the finest scale alone, what segment pooling takes (fmgs.features.segment_pool)."""
+    for the default ViT-B/16); ``single_scale``: the ablation's one scale (0.25) instead of ``scales``;
+    ``max_stride``: the crop lattice's stride cap (PyramidConfig.max_stride); ``blend``:
+    PyramidConfig.blend; ``finest_only``: the finest of ``scales`` alone, what segment pooling takes
+    (fmgs.features.segment_pool)."""
     if single_scale and finest_only:
         raise ValidationError("pyramid", "single_scale (0.25) and finest_only exclude each other")
     size = int(getattr(encoder, "image_size", PyramidConfig.crop_px))
-    scales = (0.25,) if single_scale else PyramidConfig.scales
+    if single_scale:
+        scales = (0.25,)
     if finest_only:
-        scales, blend = (min(PyramidConfig.scales),), "mean"
+        scales, blend = (min(scales),), "mean"
     return PyramidConfig(scales=scales, crop_px=size, max_stride=max_stride, blend=blend)
 
 

@@ -11,6 +11,11 @@ can resolve: a fixed 0.25 made 40x30 maps of 160x120 images (mIoU 0.52 on a user
 0.94 at full size) and 960x540 maps of 4K ones (0.5 GB of 512-D targets per view)."""
 
 
+CROP_SCALES = (0.05, 0.125, 0.2, 0.275, 0.35, 0.425, 0.5)
+"""Default crop pyramid: each scale's crop edge as a fraction of min(H, W), the 7 scales of the paper's
+hybrid target."""
+
+
 CROP_STRIDE = 0.05
 """Default cap on the crop pyramid's stride as a fraction of min(H, W): the finest crop's edge
 (fmgs.features.pyramid explains why)."""

@@ -262,6 +262,15 @@ def test_photos_variant_cuts_its_crops_from_the_scene_generated_again_larger(tmp
     t0, t1 = (json.loads((d / "transforms.json").read_text()) for d in (data, photos))
     assert (t1["w"], t1["h"]) == (64, 48) and t1["fl_x"] == 2 * t0["fl_x"]
     assert [f["transform_matrix"] for f in t1["frames"]] == [f["transform_matrix"] for f in t0["frames"]]
+    assert "--crop-scales" not in build
+    # The finer variant: the same larger scene (not generated again), one finer scale before the pyramid's.
+    clip_build(tmp_path, 7, data, "dominant finer photos x2", 1500, STANDIN, STANDIN_DINO, 1)
+    from fmgs.commands.build import build_config
+    from fmgs.features.sizes import CROP_SCALES
+
+    assert [c[0] for c in calls] == ["synth", "build", "build"] and calls[-1][1] == str(photos)
+    cfg = build_config(fmgs.cli.build_parser().parse_args([*calls[-1], "--device", "cpu"]))
+    assert cfg.targets.crop_scales == (CROP_SCALES[0] / 2, *CROP_SCALES)
     other = tmp_path / "other"
     assert real([*synth, "--out", str(other), "--seed", "8", "--size", "64x48"]) == 0
     with pytest.raises(ValueError, match="does not show"):

@@ -540,7 +540,13 @@ def main() -> int:
         "--grad-threshold", type=float, default=0.001, help="3DGS densification threshold (default 0.001)"
     )
     ap.add_argument("--field-threads", type=int, default=0, help="CLIP builds' field threads (0: auto)")
-    ap.add_argument("--target-views", type=int, default=6, help="views per scene of the target-map table")
+    ap.add_argument(
+        "--target-views",
+        type=int,
+        default=6,
+        help="views per scene of the target-map table (0: no table, e.g. for scenes another report's "
+        "table holds: it depends on the scenes, not the builds)",
+    )
     ap.add_argument("--standin", default=str(STANDIN), help="the CLIP stand-in's folder")
     ap.add_argument("--standin-dino", default=str(STANDIN_DINO), help="the DINO stand-in's folder")
     ap.add_argument("--quick", action="store_true", help="smoke run: one 64x48 scene, short stages")
@@ -618,7 +624,9 @@ def main() -> int:
         return write(d, out, a.report, a.report_name)
     from benchmarks.clip_targets import rates
 
-    maps = rates([scene_targets(out, x, standin, dino, a.target_views) for x in datas])
+    maps = (
+        rates([scene_targets(out, x, standin, dino, a.target_views) for x in datas]) if a.target_views else {}
+    )
     d = {
         "rows": rows,
         "variants": variants,

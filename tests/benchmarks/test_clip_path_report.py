@@ -327,3 +327,14 @@ def test_a_neighbours_variant_packages_its_sources_field_again(tmp_path, monkeyp
     assert 1000.0 < took < 1000.0 + 60
     clip_build(tmp_path, 7, data, variant, 1500, STANDIN, STANDIN_DINO, 1)  # recorded: not run again
     assert len(calls) == 1
+
+
+def test_a_report_on_scenes_another_holds_leaves_the_target_table_out():
+    """``--target-views 0``: the target maps depend on the scenes alone, so a comparison on another report's
+    scenes writes every build table and no target table."""
+    d = _figures()
+    full = report(d)
+    d["target_maps"] = {}
+    text = report(d)
+    assert "## The targets alone, before distillation" in full
+    assert "## The targets alone" not in text and "## Means over the scenes" in text

@@ -78,11 +78,12 @@ class TargetSpec:
         if self.kind not in TARGET_KINDS:
             raise ValueError(f"targets kind must be one of {TARGET_KINDS}, got {self.kind!r}")
         check_feature_scale(self.feature_scale, self.feature_side)
+        object.__setattr__(self, "crop_scales", tuple(float(c) for c in self.crop_scales))  # a TOML list
         if not self.crop_scales or not all(0.0 < c <= 1.0 for c in self.crop_scales):
             raise ValueError(f"crop_scales must be one or more fractions in (0, 1], got {self.crop_scales}")
         if len(set(self.crop_scales)) != len(self.crop_scales):
             raise ValueError(f"crop_scales must not repeat a scale, got {self.crop_scales}")
-        if self.single_scale and tuple(self.crop_scales) != CROP_SCALES:
+        if self.single_scale and self.crop_scales != CROP_SCALES:
             raise ValueError(
                 "single_scale (the one-scale ablation, 0.25) replaces the pyramid: leave crop_scales at "
                 "its default"

@@ -37,7 +37,7 @@ def test_the_default_scales_are_the_pyramids():
     assert pyramid_for(MeanColour()).scales == CROP_SCALES
 
 
-def test_crop_scales_flag_reaches_the_build_and_the_features_command():
+def test_crop_scales_flag_reaches_the_build_and_the_features_command(tmp_path):
     cfg = build_config(
         _args("build", "DATA", "--name", "n", "--crop-scales", "0.025,0.05,0.5", "--device", "cpu")
     )
@@ -46,6 +46,10 @@ def test_crop_scales_flag_reaches_the_build_and_the_features_command():
     assert spec.crop_scales == (0.1,)
     with pytest.raises(SystemExit):
         _args("build", "DATA", "--crop-scales", "0.05,fine")
+    toml = tmp_path / "build.toml"
+    toml.write_text('name = "n"\n[targets]\ncrop_scales = [0.025, 0.05]\n')
+    cfg = build_config(_args("build", "DATA", "--config", str(toml), "--device", "cpu"))
+    assert cfg.targets.crop_scales == (0.025, 0.05)  # a tuple, as the flag gives
 
 
 @pytest.mark.parametrize(

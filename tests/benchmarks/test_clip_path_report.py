@@ -20,7 +20,8 @@ def _figures() -> dict:
 
 
 @pytest.mark.parametrize(
-    "name", ["CLIP_PATH", "CLIP_PATH_POOLED", "CLIP_PATH_ORACLE_PAPER", "CLIP_PATH_NEIGHBOURS"]
+    "name",
+    ["CLIP_PATH", "CLIP_PATH_POOLED", "CLIP_PATH_ORACLE_PAPER", "CLIP_PATH_NEIGHBOURS", "CLIP_PATH_FINER"],
 )
 def test_committed_report_is_written_from_the_committed_figures(name):
     d = json.loads((RESULTS / f"{name}.json").read_text())

@@ -42,7 +42,7 @@ from fmgs.features.dino import load_dense_encoder
 from fmgs.features.distributed import TargetJob, extract_features_ray
 from fmgs.features.extract import ExtractConfig, extract_labels, extract_targets, read_label_names
 from fmgs.features.models import DEFAULT_REVISION, ModelFiles, ModelPin
-from fmgs.features.pyramid import pyramid_for
+from fmgs.features.pyramid import spec_pyramid
 from fmgs.features.registry import query_encoder_id, resolve_encoders
 from fmgs.features.standin_seg import load_segmenter
 from fmgs.features.text import load_text_encoder
@@ -250,10 +250,7 @@ def extract_features(
     seg = None
     if spec.segmenter:
         seg = load_segmenter(spec.segmenter, device, revision=rev.get(spec.segmenter, DEFAULT_REVISION))
-    pyr = pyramid_for(
-        clip, spec.single_scale, spec.crop_stride, spec.scale_blend, spec.pools_finest, spec.crop_scales
-    )
-    return extract_targets(ds, cache_dir, clip, dino, pyr, ecfg, segmenter=seg)
+    return extract_targets(ds, cache_dir, clip, dino, spec_pyramid(clip, spec), ecfg, segmenter=seg)
 
 
 LOW_PSNR_DB = LOW_VIEW_PSNR_DB

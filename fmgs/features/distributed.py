@@ -33,7 +33,7 @@ from fmgs.features.extract import (
     read_label_names,
 )
 from fmgs.features.models import DEFAULT_REVISION
-from fmgs.features.pyramid import pyramid_for
+from fmgs.features.pyramid import spec_pyramid
 from fmgs.features.standin_seg import load_segmenter
 from fmgs.features.text import load_text_encoder
 
@@ -83,14 +83,7 @@ class _Worker:
             if spec.segmenter:
                 seg_rev = rev.get(spec.segmenter, DEFAULT_REVISION)
                 self.seg = load_segmenter(spec.segmenter, device, revision=seg_rev)
-            self.pyramid = pyramid_for(
-                self.clip,
-                spec.single_scale,
-                spec.crop_stride,
-                spec.scale_blend,
-                spec.pools_finest,
-                spec.crop_scales,
-            )
+            self.pyramid = spec_pyramid(self.clip, spec)
             self.targets = {"clip": TargetInfo(self.clip.id, self.clip.dim, True)}
             if self.dino is not None:
                 self.targets["dino"] = TargetInfo(self.dino.id, self.dino.dim, False)

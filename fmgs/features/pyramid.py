@@ -96,6 +96,14 @@ def pyramid_for(
     return PyramidConfig(scales=scales, crop_px=size, max_stride=max_stride, blend=blend)
 
 
+def spec_pyramid(encoder, spec) -> PyramidConfig:
+    """``pyramid_for`` with a build's target settings (a fmgs.build.config.TargetSpec: its scales, stride
+    cap, blend and what a segmenter pools), the one place the build and its Ray workers map them."""
+    return pyramid_for(
+        encoder, spec.single_scale, spec.crop_stride, spec.scale_blend, spec.pools_finest, spec.crop_scales
+    )
+
+
 class CropGrid(NamedTuple):
     """Square crops of one scale laid out as a grid."""
 

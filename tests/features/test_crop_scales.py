@@ -87,7 +87,7 @@ def test_a_finer_scale_adds_its_map_and_leaves_the_others_as_they_were():
     assert one.scales == (0.025,) and one.blend == "mean"  # segment pooling takes the finest given
 
 
-def test_the_build_cuts_its_targets_with_the_given_scales(tmp_path):
+def test_the_build_cuts_its_targets_with_the_given_scales(tmp_path, monkeypatch):
     """extract_features with crop_scales: the cached CLIP map is the hybrid map of exactly those scales."""
     from fmgs.build.pipeline import extract_features
     from fmgs.data.dataset import load_dataset
@@ -105,12 +105,8 @@ def test_the_build_cuts_its_targets_with_the_given_scales(tmp_path):
         loaded.append(model_id)
         return MeanColour()
 
-    mp = pytest.MonkeyPatch()
-    mp.setattr(pipeline, "load_image_encoder", load)
-    try:
-        cache = extract_features(ds, tmp_path / "features", spec, "cpu", progress=False)
-    finally:
-        mp.undo()
+    monkeypatch.setattr(pipeline, "load_image_encoder", load)
+    cache = extract_features(ds, tmp_path / "features", spec, "cpu", progress=False)
     assert loaded == ["x"]
     maps = cache.load(ds.frames[0].name).clip.float()
     image, _ = ds.image(0)

@@ -58,6 +58,10 @@ class ServerConfig:
     """Gaussians a geometry call returns when it leaves max_gaussians 0 (a viewer's points)."""
     max_geometry: int = 2_000_000
     """Most Gaussians one geometry call may ask for (48 bytes each on the wire)."""
+    max_instance_pairs: int = 1 << 22
+    """Most pairs of a text query's answer Gaussians within ``instances.eps`` of each other that instance
+    grouping lists (fmgs.query.instances.MAX_NEIGHBOUR_PAIRS); they are counted first, and more are
+    INVALID_ARGUMENT before any is listed."""
     point_chunk: int = POINT_CHUNK
     """Points through the field at once: a point query's working memory grows with it, not with the
     request's size (the memory per point: benchmarks/results/TUNING.md); the deadline is checked between
@@ -157,7 +161,7 @@ class ServerConfig:
         positive = (
             "max_concurrent_rpcs max_streams max_receive_bytes chunk_bytes max_send_bytes max_image_side "
             "max_image_pixels max_top_k default_top_k max_texts max_text_chars max_points text_cache "
-            "point_chunk default_geometry max_geometry presence_quorum presence_pool"
+            "point_chunk default_geometry max_geometry max_instance_pairs presence_quorum presence_pool"
         ).split()
         for name in positive:
             if getattr(self, name) < 1:

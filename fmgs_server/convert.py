@@ -133,12 +133,15 @@ def tensor(t: pb.Tensor, field: str, shape: tuple[int | None, ...], max_rows: in
     return torch.from_numpy(a.astype(np.float64))
 
 
-def instance_config(o: pb.InstanceOptions) -> InstanceConfig:
+def instance_config(o: pb.InstanceOptions, max_pairs: int) -> InstanceConfig:
+    """The request's grouping; ``max_pairs``: the server's ``max_instance_pairs``."""
     if not math.isfinite(o.eps) or o.eps < 0 or o.eps > 1e12:
         raise InvalidArgument(f"instances.eps: must be finite and >= 0, got {o.eps}")
     if o.max_instances > 1000:
         raise InvalidArgument("instances.max_instances: at most 1000")
-    return InstanceConfig(eps=o.eps, min_points=o.min_points or 10, max_instances=o.max_instances or 10)
+    return InstanceConfig(
+        eps=o.eps, min_points=o.min_points or 10, max_instances=o.max_instances or 10, max_pairs=max_pairs
+    )
 
 
 def box(b) -> pb.Box:

@@ -110,7 +110,11 @@ class FmgsService(pb_grpc.FmgsServicer):
         k = convert.top_k(request.top_k, cfg)
         thr = convert.threshold(request.threshold)
         fields = set(request.fields)
-        inst_cfg = convert.instance_config(request.instances) if request.instances.enabled else None
+        inst_cfg = (
+            convert.instance_config(request.instances, cfg.max_instance_pairs)
+            if request.instances.enabled
+            else None
+        )
         if self.sharded.is_sharded(request.scene):
             yield from self._sharded_text(request, context, k, len(values), len(fields))
             return

@@ -191,7 +191,9 @@ class ShardedSceneService:
         k = convert.top_k(req.top_k, cfg)
         thr = convert.threshold(req.threshold)
         fields = set(req.fields)
-        inst = convert.instance_config(req.instances) if req.instances.enabled else None
+        inst = (
+            convert.instance_config(req.instances, cfg.max_instance_pairs) if req.instances.enabled else None
+        )
         first = Manifest.read(cfg.models / scene / sm.shards[0].folder)
         names = tuple(negative_names(first.label_names))
         model = self.text_model(scene, sm, first)

@@ -15,6 +15,10 @@ import numpy as np
 
 from fmgs.errors import ValidationError
 
+MAX_NEIGHBOUR_PAIRS = 1 << 22
+"""Default of ``InstanceConfig.max_pairs``: the most pairs of points within eps of each other that
+``dbscan`` lists (its memory grows with them)."""
+
 
 @dataclass(frozen=True)
 class InstanceConfig:
@@ -28,12 +32,15 @@ class InstanceConfig:
     """Neighbours (self included) that make a core point; smaller groups are noise."""
     max_instances: int = 10
     """Most instances returned, best score first."""
+    max_pairs: int = MAX_NEIGHBOUR_PAIRS
+    """Most pairs of answer Gaussians within eps of each other that the grouping lists; more are refused
+    (counted first, before any is listed), since its memory grows with them."""
 
     def __post_init__(self) -> None:
         if not (np.isfinite(self.eps) and self.eps >= 0) or not 0 < self.eps_fraction <= 1:
             raise ValidationError("instances.eps", "must be finite and >= 0 (eps_fraction in (0,1])")
-        if self.min_points < 1 or self.max_instances < 1:
-            raise ValidationError("instances", "min_points and max_instances must be >= 1")
+        if self.min_points < 1 or self.max_instances < 1 or self.max_pairs < 1:
+            raise ValidationError("instances", "min_points, max_instances and max_pairs must be >= 1")
 
 
 class Box(NamedTuple):
@@ -59,8 +66,11 @@ class Instance(NamedTuple):
     """[m] positions (into the query's answer) of the members."""
 
 
-def dbscan(points: np.ndarray, eps: float, min_points: int) -> np.ndarray:
-    """[n] int64 cluster labels (-1 noise) for points [n,3]; clusters numbered by their first core point."""
+def dbscan(
+    points: np.ndarray, eps: float, min_points: int, max_pairs: int = MAX_NEIGHBOUR_PAIRS
+) -> np.ndarray:
+    """[n] int64 cluster labels (-1 noise) for points [n,3]; clusters numbered by their first core point.
+    More than ``max_pairs`` pairs within eps raise ValidationError before any pair is listed."""
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
     from scipy.spatial import cKDTree
@@ -70,6 +80,14 @@ def dbscan(points: np.ndarray, eps: float, min_points: int) -> np.ndarray:
     if n == 0:
         return labels
     tree = cKDTree(points)
+    within = (int(tree.count_neighbors(tree, eps)) - n) // 2  # dual-tree count: nothing listed
+    if within > max_pairs:
+        raise ValidationError(
+            "instances",
+            f"{within} pairs of the {n} Gaussians lie within eps {eps:.4g} of each other, more than the "
+            f"{max_pairs} the instance grouping lists (the server's max_instance_pairs); ask for a smaller "
+            "instances.eps or top_k",
+        )
     pairs = tree.query_pairs(eps, output_type="ndarray")  # [p,2] i<j
     deg = np.ones(n, np.int64) + np.bincount(pairs.ravel(), minlength=n)
     core = deg >= min_points
@@ -111,7 +129,7 @@ def group_instances(
 
     Returns (instances, [K] int32 instance id per Gaussian, -1 for none or for dropped instances).
     """
-    labels = dbscan(np.asarray(means, np.float64), eps, cfg.min_points)
+    labels = dbscan(np.asarray(means, np.float64), eps, cfg.min_points, cfg.max_pairs)
     found = []
     for c in range(int(labels.max()) + 1 if len(labels) else 0):
         idx = np.flatnonzero(labels == c)

@@ -131,6 +131,28 @@ def test_dbscan_matches_brute_force(seed):
     assert np.array_equal(dbscan(p, 0.25, 5), _dbscan_brute(p, 0.25, 5))
 
 
+def test_dbscan_refuses_more_neighbour_pairs_than_it_holds_before_listing_them(monkeypatch):
+    """A radius that puts every point near every other (a client's instances.eps, or a dense object in
+    a large top_k) would list all n(n-1)/2 pairs at once: a server's memory ran out instead of an error."""
+    import scipy.spatial
+
+    listed = []
+
+    class Tree(scipy.spatial.cKDTree):
+        def query_pairs(self, *a, **k):
+            listed.append(1)
+            return super().query_pairs(*a, **k)
+
+    monkeypatch.setattr(scipy.spatial, "cKDTree", Tree)
+    p = np.random.default_rng(0).normal(0, 0.1, (100, 3))  # 4950 pairs within eps 1e12
+    with pytest.raises(ValidationError, match=r"instances: 4950 pairs .* instances\.eps or top_k"):
+        dbscan(p, 1e12, 5, max_pairs=1000)
+    assert not listed
+    assert (dbscan(p[:45], 1e12, 5, max_pairs=1000) == 0).all() and listed  # 990 pairs: grouped as before
+    with pytest.raises(ValidationError, match="max_pairs"):
+        InstanceConfig(max_pairs=0)
+
+
 def test_pose_relevancy_equals_full_feature_render(tmp_path):
     p, classes, _ = _scene(tmp_path)
     eng = SceneEngine.open(p)

@@ -110,15 +110,15 @@ def test_tensor():
 
 
 def test_instance_config():
-    cfg = convert.instance_config(pb.InstanceOptions(enabled=True))
-    assert (cfg.eps, cfg.min_points, cfg.max_instances) == (0.0, 10, 10)  # 0 means the defaults
-    cfg = convert.instance_config(pb.InstanceOptions(eps=0.2, min_points=3, max_instances=1000))
+    cfg = convert.instance_config(pb.InstanceOptions(enabled=True), 1000)
+    assert (cfg.eps, cfg.min_points, cfg.max_instances, cfg.max_pairs) == (0.0, 10, 10, 1000)  # 0: defaults
+    cfg = convert.instance_config(pb.InstanceOptions(eps=0.2, min_points=3, max_instances=1000), 1000)
     assert (cfg.eps, cfg.min_points, cfg.max_instances) == (0.2, 3, 1000)
     for eps in (-1.0, math.nan, 1e13):
         with _raises(r"^instances\.eps: must be finite and >= 0"):
-            convert.instance_config(pb.InstanceOptions(eps=eps))
+            convert.instance_config(pb.InstanceOptions(eps=eps), 1000)
     with _raises(r"^instances\.max_instances: at most 1000$"):
-        convert.instance_config(pb.InstanceOptions(max_instances=1001))
+        convert.instance_config(pb.InstanceOptions(max_instances=1001), 1000)
 
 
 def test_instance_to_proto_reads_back_on_the_client():

@@ -235,6 +235,22 @@ def test_error_table(stub, server, case):
     _healthy(stub, server)
 
 
+def test_instances_over_too_many_neighbour_pairs_are_invalid_argument(models):
+    """A huge instances.eps over a large top_k: a clear INVALID_ARGUMENT naming the setting, not a server
+    out of memory; the server's max_instance_pairs sets the limit."""
+    srv = _start(models, max_instance_pairs=1000)
+    inst = pb.InstanceOptions(enabled=True, eps=1e12)
+    try:
+        with grpc.insecure_channel(srv.address) as ch:
+            stub = pb_grpc.FmgsStub(ch)
+            got, details = _code(_tq(texts=["red cube"], top_k=180, instances=inst), stub)
+            assert got == IA and "max_instance_pairs" in details and "instances.eps or top_k" in details
+            answer = list(_tq(texts=["red cube"], top_k=40, instances=inst)(stub))  # 780 pairs: grouped
+            assert len(answer[0].instances) == 1, answer[0].instances
+    finally:
+        srv.stop(0)
+
+
 def test_overload_is_resource_exhausted(models):
     srv = _start(models, max_streams=1)
     try:

@@ -79,11 +79,15 @@ def orbit(
     """
     if info.bounds is None:
         raise ValueError(f"scene {info.name!r} reports no bounds")
+    if not 0 < fov < 180:
+        raise ValueError(f"--fov: the field of view must lie between 0 and 180 degrees, got {fov}")
+    u = np.asarray(up, np.float64)
+    if u.shape != (3,) or not np.all(np.isfinite(u)) or not u.any():
+        raise ValueError(f"--up: must be a finite non-zero vector, got {u.tolist()}")
     lo, hi = info.bounds
     centre = (lo + hi) / 2
     half_diag = max(float(np.linalg.norm(hi - lo)) / 2, 1e-6)
     dist = 1.1 * half_diag / math.sin(math.radians(min(fov, 170.0)) / 2)
-    u = np.asarray(up, np.float64)
     u = u / np.linalg.norm(u)
     # Two axes perpendicular to up span the orbit's plane.
     a = np.cross(u, np.eye(3)[np.argmin(np.abs(u))])

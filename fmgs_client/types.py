@@ -266,6 +266,8 @@ class CameraSpec:
             raise ValueError("look_at: eye and target must be distinct finite points")
         fwd = fwd / n
         up_v = np.asarray(up, np.float64)
+        if up_v.shape != (3,) or not np.all(np.isfinite(up_v)):
+            raise ValueError(f"look_at: up must be 3 finite numbers, got {up_v.tolist()}")
         right = np.cross(fwd, up_v)
         if np.linalg.norm(right) < 1e-9 * max(1.0, np.linalg.norm(up_v)):
             # Looking straight along up: any perpendicular axis will do; pick the least aligned one.

@@ -77,3 +77,24 @@ def test_cli_token_file(fake, tmp_path, capsys):
     assert cli.main(["--address", address, "--token-file", str(tok), "list"]) == 0
     assert svc.auth[-1] == "Bearer abc"
     capsys.readouterr()
+
+
+@pytest.mark.parametrize(
+    "flags, word",
+    [
+        (["--fov", "0"], "--fov"),
+        (["--fov", "nan"], "--fov"),
+        (["--fov", "180"], "--fov"),
+        (["--up", "0", "0", "0"], "--up"),
+        (["--up", "nan", "0", "1"], "--up"),
+    ],
+)
+def test_default_camera_with_a_bad_fov_or_up_is_one_error_line(fake, tmp_path, capsys, flags, word):
+    """The orbit cameras of render, segment and stream: no traceback, an error naming the flag."""
+    _, address = fake
+    base = ["--address", address, "--timeout", "10"]
+    png = str(tmp_path / "r.png")
+    for cmd in (["render", "demo", "cup", "--out", png], ["stream", "demo", "cup", "--frames", "2"]):
+        assert cli.main([*base, *cmd, "--size", "8x6", *flags]) == 1
+        err = capsys.readouterr().err
+        assert err.startswith("error: ") and word in err and err.count("\n") == 1, err

@@ -48,3 +48,9 @@ def test_look_at_degenerate():
         CameraSpec.look_at((1, 1, 1), (1, 1, 1))
     with pytest.raises(ValueError, match="viewmat"):
         CameraSpec(np.eye(3), 1, 1, 1, 1, 2, 2)
+
+
+@pytest.mark.parametrize("up", [(float("nan"), 0, 1), (0, float("inf"), 1)])
+def test_look_at_names_a_non_finite_up(up):
+    with pytest.raises(ValueError, match="up"):
+        CameraSpec.look_at((0, -3, 1), (0, 0, 0), up)

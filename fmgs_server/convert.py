@@ -31,6 +31,15 @@ def outputs(values) -> tuple[str, ...]:
     return names
 
 
+def fields(values) -> set[int]:
+    """The per-Gaussian fields a text answer carries (GaussianField values)."""
+    known = set(pb.GaussianField.values()) - {pb.GAUSSIAN_FIELD_UNSPECIFIED}
+    asked = set(values)
+    if not asked <= known:
+        raise InvalidArgument(f"fields: unknown value in {list(values)}")
+    return asked
+
+
 def encoding(value: int) -> int:
     """The image encoding (float32 when left unset)."""
     value = value or pb.IMAGE_ENCODING_FLOAT32

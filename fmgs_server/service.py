@@ -109,7 +109,7 @@ class FmgsService(pb_grpc.FmgsServicer):
         values = convert.texts(request.texts, cfg)
         k = convert.top_k(request.top_k, cfg)
         thr = convert.threshold(request.threshold)
-        fields = set(request.fields)
+        fields = convert.fields(request.fields)
         inst_cfg = (
             convert.instance_config(request.instances, cfg.max_instance_pairs)
             if request.instances.enabled

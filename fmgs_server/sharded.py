@@ -190,7 +190,7 @@ class ShardedSceneService:
         values = convert.texts(req.texts, cfg)
         k = convert.top_k(req.top_k, cfg)
         thr = convert.threshold(req.threshold)
-        fields = set(req.fields)
+        fields = convert.fields(req.fields)
         inst = (
             convert.instance_config(req.instances, cfg.max_instance_pairs) if req.instances.enabled else None
         )

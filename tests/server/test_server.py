@@ -211,6 +211,8 @@ BAD = [
         IA,
         "outputs",
     ),
+    ("bad field", _tq(texts=["a"], fields=[99]), IA, "fields"),
+    ("unspecified field", _tq(texts=["a"], fields=[0]), IA, "fields"),
     ("encoder", _emb("other/enc", to_tensor(np.ones((1, 16), F32))), FP, "encoder"),
     ("emb shape", _emb(ENCODER_ID, to_tensor(np.ones((1, 5), F32))), IA, "embeddings"),
     ("emb bytes", _emb(ENCODER_ID, pb.Tensor(dtype=1, shape=[1, 16], data=b"x")), IA, "embeddings"),

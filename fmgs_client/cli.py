@@ -36,6 +36,16 @@ def _size(s: str) -> tuple[int, int]:
     return w, h
 
 
+def _count(s: str) -> int:
+    try:
+        n = int(s)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be a whole number, got {s!r}") from None
+    if n < 0:
+        raise argparse.ArgumentTypeError(f"must be >= 0, got {n}")
+    return n
+
+
 def _table(rows: Sequence[Sequence[object]], header: Sequence[str]) -> str:
     """Plain-text table: columns padded to their widest cell, numbers right-aligned."""
     cells = [[str(h) for h in header]] + [[_fmt(v) for v in r] for r in rows]
@@ -449,7 +459,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--instances", action="store_true", help="group the Gaussians into object instances (default: off)"
     )
-    p.add_argument("--rows", type=int, default=10, help="table rows to print per text (default 10)")
+    p.add_argument("--rows", type=_count, default=10, help="table rows to print per text (default 10)")
     p.add_argument(
         "--ply",
         type=Path,

@@ -98,3 +98,13 @@ def test_default_camera_with_a_bad_fov_or_up_is_one_error_line(fake, tmp_path, c
         assert cli.main([*base, *cmd, "--size", "8x6", *flags]) == 1
         err = capsys.readouterr().err
         assert err.startswith("error: ") and word in err and err.count("\n") == 1, err
+
+
+@pytest.mark.parametrize("rows", ["-1", "x"])
+def test_a_negative_or_non_numeric_rows_is_a_usage_error(fake, capsys, rows):
+    """--rows -1 printed a wrong "... N more" line; now argparse refuses it, naming the flag."""
+    _, address = fake
+    with pytest.raises(SystemExit) as e:
+        cli.main(["--address", address, "query", "demo", "red cup", "--rows", rows])
+    assert e.value.code == 2
+    assert "--rows" in capsys.readouterr().err

@@ -606,7 +606,8 @@ def fetch_model(
             got = ModelFiles(model_id, d, "local", files=_check_local(model_id, d))
             _check_expect(got, expect)
             return got
-        raise ModelNotFoundError(model_id, [f"model directory {d} (no config.json)"])
+        kind = "a file, not a folder" if d.is_file() else "no config.json"
+        raise ModelNotFoundError(model_id, [f"model directory {d} ({kind})"])
     as_dir = Path(model_id).expanduser()
     if as_dir.is_dir():
         if (as_dir / "config.json").is_file():
@@ -614,6 +615,8 @@ def fetch_model(
             _check_expect(got, expect)
             return got
         raise ModelNotFoundError(model_id, [f"local directory {as_dir} (no config.json)"])
+    if as_dir.is_file():  # a path, not a hub id: give its folder (config.json and the weights)
+        raise ModelNotFoundError(model_id, [f"{as_dir} (a file, not a model folder with config.json)"])
     cache = Path(cache_dir) if cache_dir is not None else hub_cache_dir()
     endpoint = os.environ.get("HF_ENDPOINT") or None
     where = hub_endpoint()

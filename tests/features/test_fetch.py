@@ -412,3 +412,17 @@ def test_files_a_load_does_not_read_are_neither_checked_nor_recorded(hub):
     assert (got.path / "open_clip_model.safetensors").is_file()
     again = fetch_model(REPO, offline=True)
     assert again.files == got.files and "open_clip_model.safetensors" not in again.files
+
+
+@pytest.mark.parametrize("offline", [True, False])
+def test_a_weights_file_given_as_the_model_is_named_a_file_not_sought_on_the_hub(hub, tmp_path, offline):
+    """A path to a file (not the model's folder) is no hub id: the error says it is a file, not that the
+    hub failed or that the path is absent; nothing is asked of the hub."""
+    server, _ = hub
+    f = tmp_path / WEIGHTS
+    f.write_bytes(b"\0" * 64)
+    for kw in ({"model_id": str(f)}, {"model_id": REPO, "model_dir": f}):
+        with pytest.raises(ModelNotFoundError, match=r"a file, not a") as e:
+            fetch_model(**kw, offline=offline)
+        assert str(f) in str(e.value) and "absent" not in str(e.value) and "hf download" not in str(e.value)
+    assert server.requests == [] and not (tmp_path / "hub-cache").exists()

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import os
 import time
 from pathlib import Path
 
@@ -24,7 +25,8 @@ def run(args: argparse.Namespace) -> int:
     from fmgs.scene.shards import ShardManifest, write_shards
 
     src = Path(args.package)
-    out = Path(args.out) if args.out else src.parent / f"{src.name}-{args.shards}shards"
+    here = Path(os.path.abspath(src))  # "." or "models/x/.." name a folder by its own name
+    out = Path(args.out) if args.out else here.parent / f"{here.name}-{args.shards}shards"
     t0 = time.perf_counter()
     write_shards(src, out, args.shards)
     sm = ShardManifest.read(out)

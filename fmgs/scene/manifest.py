@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -26,6 +27,8 @@ from fmgs.errors import ValidationError
 FORMAT = "fmgs.scene"
 VERSION = 1
 FILENAME = "manifest.json"
+SHARDS_FILE = "shards.json"
+"""A sharded scene's manifest (fmgs.scene.shards), in place of FILENAME."""
 MODELS = "models"
 """The default scene repository: one folder per package (fmgs build writes there, fmgs-server serves it)."""
 CANONICAL_PHRASES = ("object", "stuff", "things", "texture")
@@ -149,8 +152,8 @@ class Manifest:
         if not isinstance(canon, list) or not all(isinstance(c, str) for c in canon):
             raise ValidationError(where, "canonical must be a list of strings")
         bounds = m.get("bounds", [0.0] * 6)
-        if not (isinstance(bounds, list) and len(bounds) == 6 and all(_is_num(b) for b in bounds)):
-            raise ValidationError(where, "bounds must be 6 numbers (min xyz, max xyz)")
+        if not (isinstance(bounds, list) and len(bounds) == 6 and all(_is_finite(b) for b in bounds)):
+            raise ValidationError(where, "bounds must be 6 finite numbers (min xyz, max xyz)")
         sh = m.get("sh_degree", 0)
         if not _is_int(sh) or not 0 <= sh <= 3:
             raise ValidationError(where, f"sh_degree must be an integer in [0, 3], got {sh!r}")
@@ -193,5 +196,10 @@ def _is_int(v: Any) -> bool:
     return isinstance(v, int) and not isinstance(v, bool)
 
 
-def _is_num(v: Any) -> bool:
-    return isinstance(v, int | float) and not isinstance(v, bool)
+def _is_finite(v: Any) -> bool:
+    if not isinstance(v, int | float) or isinstance(v, bool):
+        return False
+    try:
+        return math.isfinite(v)
+    except OverflowError:  # an integer beyond float's range
+        return False

@@ -19,14 +19,16 @@ No optimiser state, no training images, no targets.
 
 from __future__ import annotations
 
+import contextlib
 import re
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
 import torch
 
 from fmgs.checks import check_finite, first_bad_row
-from fmgs.errors import ValidationError
+from fmgs.errors import FmgsError, ValidationError
 from fmgs.field.bounds import SceneBounds
 from fmgs.field.hashgrid import HashGrid
 from fmgs.field.model import FeatureField, FieldConfig
@@ -36,10 +38,13 @@ from fmgs.io.mmap_tensors import mmap_torch
 from fmgs.io.tensor_stream import save_blocks
 from fmgs.io.tensors import load_gaussians, save_gaussians
 from fmgs.query.state import STATE_FILE, QueryState, build_state, fingerprint, load_state, save_state
-from fmgs.scene.manifest import CANONICAL_PHRASES, FieldInfo, Manifest
+from fmgs.scene.manifest import CANONICAL_PHRASES, FILENAME, SHARDS_FILE, FieldInfo, Manifest
 
 FIELD_DTYPES = {"float32": torch.float32, "float16": torch.float16}
 """Storage dtypes of the field's floating-point tensors (a manifest without field.dtype means float32)."""
+_SCENE_FILES = (FILENAME, SHARDS_FILE, "gaussians.safetensors", "embeddings.safetensors")
+"""A folder holding any of these is a scene (a package or a sharded scene) that a write may replace."""
+_INDEX_DTYPES = (torch.int64, torch.int32, torch.int16, torch.int8, torch.uint8)
 _NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,127}")
 
 
@@ -92,6 +97,47 @@ def shown_name(name, limit: int = 64) -> str:
     return text if len(text) <= limit else text[: limit - 4] + "...'"
 
 
+def check_replaceable(out: str | Path) -> Path:
+    """``out`` as a Path, when a scene may be written there: nothing there yet, an empty folder, or a
+    scene to replace (a folder holding a package's or a sharded scene's files, damaged or not);
+    ValidationError otherwise, so a mistyped path never deletes a file or a folder of other things (a
+    dataset, the whole scene repository)."""
+    out = Path(out)
+    if not out.exists():
+        return out
+    if out.is_dir():
+        if any((out / f).is_file() for f in _SCENE_FILES) or not any(out.iterdir()):
+            return out
+        what = "a folder that holds no scene package"
+    else:
+        what = "a file"
+    raise ValidationError(
+        str(out), f"exists and is {what}: a scene is not written over it (remove it or choose another path)"
+    )
+
+
+class SceneWriteError(FmgsError, OSError):
+    """A scene could not be written (disk full, no permission); the message names its folder, and what
+    was there is left as it was."""
+
+
+@contextlib.contextmanager
+def scene_folder(out: Path, what: str) -> Iterator[Path]:
+    """fmgs.io.atomic.atomic_dir(out) for a scene (``what`` names it in errors): refused where
+    check_replaceable refuses, and a write that fails raises SceneWriteError naming ``out``, with what
+    was there left as it was and nothing half-written."""
+    from safetensors import SafetensorError
+
+    check_replaceable(out)
+    try:
+        with atomic_dir(out) as tmp:
+            yield tmp
+    except (OSError, SafetensorError) as e:
+        raise SceneWriteError(
+            f"{out}: writing the {what} failed ({e}); what was there is left as it was"
+        ) from e
+
+
 @torch.no_grad()
 def export_scene(
     out: str | Path,
@@ -117,13 +163,18 @@ def export_scene(
     query_rank: basis size of the stored compact query state (0: none; servers then build it at load).
     query_rank2: total rank of its two tiers at most (fmgs.query.state; 0: first tier only).
     """
-    out = Path(out)
+    out = check_replaceable(out)
     check_scene_name(out.name)
+    gaussians.validate()  # Gaussians load_scene refuses are never written (nor swapped in for a good package)
     if field_dtype not in FIELD_DTYPES:
         raise ValidationError("field_dtype", f"{field_dtype!r} is not one of {sorted(FIELD_DTYPES)}")
     M, D = embeddings.shape
-    if selected.shape != (M,):
-        raise ValidationError("selected", f"expected [{M}] indices, got {list(selected.shape)}")
+    if selected.shape != (M,) or selected.dtype not in _INDEX_DTYPES:
+        raise ValidationError(
+            "selected", f"expected [{M}] integer indices, got {selected.dtype} {list(selected.shape)}"
+        )
+    if M and (int(selected.min()) < 0 or int(selected.max()) >= gaussians.num):
+        raise ValidationError("selected", f"indices must lie in [0, {gaussians.num}) (the Gaussians)")
     if canonical_embeddings.shape != (len(canonical_phrases), D):
         raise ValidationError("canonical_embeddings", f"expected [{len(canonical_phrases)},{D}]")
     check_finite("embeddings", embeddings)
@@ -131,7 +182,7 @@ def export_scene(
     from safetensors.torch import save_file
 
     field_info = None
-    with atomic_dir(out) as tmp:
+    with scene_folder(out, "scene package") as tmp:
         save_gaussians(gaussians, tmp / "gaussians.safetensors")
         efile = tmp / "embeddings.safetensors"
         # Written and read back in blocks: a large scene's embeddings are never copied whole (a 10M x

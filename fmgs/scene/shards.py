@@ -26,13 +26,11 @@ import numpy as np
 import torch
 
 from fmgs.errors import ValidationError
-from fmgs.io.atomic import atomic_dir
 from fmgs.io.tensors import load_gaussians, save_gaussians
 from fmgs.query.state import STATE_FILE, TIER2_RANK, build_state, fingerprint, load_state, save_state
-from fmgs.scene.manifest import FILENAME, Manifest
-from fmgs.scene.package import read_tensors
+from fmgs.scene.manifest import FILENAME, SHARDS_FILE, Manifest
+from fmgs.scene.package import check_replaceable, read_tensors, scene_folder
 
-SHARDS_FILE = "shards.json"
 IDS_FILE = "shard_ids.safetensors"
 FORMAT = "fmgs.shards"
 VERSION = 1
@@ -227,7 +225,9 @@ def write_shards(
     """
     from safetensors.torch import save_file
 
-    source, out = Path(source), Path(out)
+    source, out = Path(source), check_replaceable(out)
+    if out.resolve() == source.resolve():
+        raise ValidationError(str(out), "is the source package: the shards go to another folder")
     man = Manifest.read(source)
     g = load_gaussians(source / "gaussians.safetensors")
     efile = source / "embeddings.safetensors"
@@ -235,6 +235,16 @@ def write_shards(
     sel, emb, canon = t["selected"], t["embeddings"], t["canonical"]
     if emb.dtype != torch.float16 or sel.dtype != torch.int64:
         raise ValidationError(str(efile), "expected float16 embeddings and int64 selected indices")
+    M = man.num_selected
+    if (
+        sel.shape != (M,)
+        or emb.shape != (M, man.dim)
+        or canon.shape[:1] != (M,)
+        or g.num != man.num_gaussians
+    ):
+        raise ValidationError(str(source), "its tensors do not match its manifest's counts and dimension")
+    if M and (int(sel.min()) < 0 or int(sel.max()) >= g.num):
+        raise ValidationError(str(efile), f"selected indices must lie in [0, {g.num})")
     stored = None
     if (source / STATE_FILE).is_file():
         try:
@@ -252,7 +262,7 @@ def write_shards(
     row_of = np.full(g.num, -1, np.int64)  # source Gaussian -> its embedded row (or -1)
     row_of[sel.numpy()] = np.arange(len(sel))
     infos = []
-    with atomic_dir(out) as tmp:
+    with scene_folder(out, "sharded scene") as tmp:
         for i, (cell, box) in enumerate(zip(cells, boxes, strict=True)):
             folder = f"shard-{i:03d}"
             d = tmp / folder

@@ -8,7 +8,7 @@ import shutil
 import pytest
 import torch
 
-from fmgs.errors import ValidationError
+from fmgs.errors import FmgsError, ValidationError
 from fmgs.gaussians import GaussianSet
 from fmgs.scene.package import check_scene_name, export_scene, load_scene
 from fmgs.vecmath import safe_normalize
@@ -197,3 +197,79 @@ def test_embeddings_beyond_float16_are_rejected_before_anything_is_written(tmp_p
     with pytest.raises(ValidationError, match=r"index 7.*float16 range"):
         _export(tmp_path / "s", emb=emb)
     assert list(tmp_path.iterdir()) == []
+
+
+def test_export_never_writes_over_a_file_or_a_folder_that_holds_no_package(tmp_path):
+    """A mistyped --out is refused before anything is written: a file or a folder of other things (a
+    dataset, the scene repository) is left as it was; an empty folder takes the package."""
+    (tmp_path / "notes").write_text("keep")
+    (tmp_path / "photos").mkdir()
+    (tmp_path / "photos" / "a.jpg").write_bytes(b"jpeg")
+    for name, what in (("notes", "is a file"), ("photos", "holds no scene package")):
+        with pytest.raises(ValidationError, match=what) as e:
+            _export(tmp_path / name)
+        assert str(tmp_path / name) in str(e.value)
+    assert (tmp_path / "notes").read_text() == "keep"
+    assert [p.name for p in (tmp_path / "photos").iterdir()] == ["a.jpg"]
+    (tmp_path / "empty").mkdir()
+    assert load_scene(_export(tmp_path / "empty")[0]).name == "empty"
+    p, *_ = _export(tmp_path / "damaged")  # a package that lost its manifest is still a package
+    (p / "manifest.json").unlink()
+    assert load_scene(_export(p)[0]).name == "damaged"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["damaged", "empty", "notes", "photos"]
+
+
+@pytest.mark.parametrize(
+    "breakage, message",
+    [
+        (lambda g, sel: (g, sel.clone().fill_(50)), r"selected: indices must lie in \[0, 50\)"),
+        (lambda g, sel: (g, -sel - 1), r"selected: indices must lie in \[0, 50\)"),
+        (lambda g, sel: (g, sel.float()), "integer indices"),
+        (lambda g, sel: (_with_nan_mean(g), sel), "means at index 4"),
+    ],
+)
+def test_export_refuses_what_a_load_would_refuse_and_keeps_the_old_package(tmp_path, breakage, message):
+    p, g, sel, emb, canon = _export(tmp_path / "s")
+    before = {f.name: f.read_bytes() for f in p.iterdir()}
+    g2, sel2 = breakage(g, sel)
+    with pytest.raises(ValidationError, match=message):
+        export_scene(p, g2, sel2, emb, "test/enc", canon)
+    assert {f.name: f.read_bytes() for f in p.iterdir()} == before
+    assert sorted(x.name for x in tmp_path.iterdir()) == ["s"]
+
+
+def _with_nan_mean(g: GaussianSet) -> GaussianSet:
+    g = g.subset(torch.arange(g.num))
+    g.means[4, 1] = float("nan")
+    return g
+
+
+@pytest.mark.parametrize("failing", ["gaussians", "field"])
+def test_a_write_that_fails_names_the_package_and_keeps_the_old_one(tmp_path, monkeypatch, failing):
+    """Disk full (or no permission) mid-write: the error names the package folder, the old package is
+    as it was and no temporary folder is left."""
+    import errno
+
+    import safetensors.torch
+    from safetensors import SafetensorError
+
+    import fmgs.scene.package as package
+
+    p, *_ = _field_export(tmp_path / "s")
+    before = {f.name: f.read_bytes() for f in p.iterdir()}
+
+    def full(*a, **k):
+        if failing == "field":  # safetensors reports its own I/O errors, without a path
+            raise SafetensorError("Error while serializing: I/O error: No space left on device (os error 28)")
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    if failing == "field":
+        monkeypatch.setattr(safetensors.torch, "save_file", full)
+    else:
+        monkeypatch.setattr(package, "save_gaussians", full)
+    with pytest.raises(package.SceneWriteError, match="No space left on device") as e:
+        _field_export(tmp_path / "s")
+    assert str(e.value).startswith(f"{p}: writing the scene package failed")
+    assert isinstance(e.value, FmgsError) and isinstance(e.value, OSError)  # `fmgs` prints it, exit 2
+    assert {f.name: f.read_bytes() for f in p.iterdir()} == before
+    assert sorted(x.name for x in tmp_path.iterdir()) == ["s"]

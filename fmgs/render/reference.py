@@ -105,9 +105,16 @@ def rasterize_reference(
 
     # One scatter per output (tiles without Gaussians keep zero sums and T = 1).
     tb_all = torch.cat(done_tiles) if done_tiles else torch.zeros(0, dtype=torch.int64, device=dev)
+    # With no Gaussian in any tile the outputs are constants; tie them to the inputs by an exact zero
+    # so a loss on them still backpropagates (zero gradients, as the cpu backend gives), not raises.
+    tie = None
+    if needs_grad and not parts:
+        tie = sum(t[:0].sum() for t in (proj.means2d, proj.conics, proj.opacities, proj.depths, features))
 
     def assemble(i: int, fill: float, dtype: torch.dtype, *shape: int) -> torch.Tensor:
         base = torch.full((n_tiles, P, *shape), fill, dtype=dtype, device=dev)
+        if tie is not None:
+            base = base + tie.to(dtype)
         return base.index_copy(0, tb_all, torch.cat([p[i] for p in parts])) if parts else base
 
     feat_out = assemble(0, 0.0, fdt, D)

@@ -92,3 +92,22 @@ def test_means2d_gradient_is_view_space_gradient():
     assert g is not None and g.shape == (10, 2)
     assert torch.isfinite(g).all() and g[out.visible].abs().sum() > 0
     assert (g[~out.visible] == 0).all()
+
+
+@pytest.mark.parametrize("backend", ["reference", "cpu"])
+@pytest.mark.parametrize("shift", [-100.0, None])  # every mean behind the camera; no Gaussian at all
+def test_a_view_that_sees_nothing_gives_zero_gradients(backend, shift):
+    """A training step on a view no Gaussian reaches is a zero gradient, not a backward() that raises."""
+    sc = random_scene(seed=2, n=5, d=3, width=8, height=8, focal=10.0)
+    pick = slice(None) if shift is not None else slice(0)
+    move = torch.tensor([0.0, 0.0, shift or 0.0])
+    leaves = [
+        t[pick].clone().requires_grad_(True)
+        for t in (sc.means + move, sc.quats, sc.scales, sc.opacities, sc.features)
+    ]
+    bg = torch.full((3,), 0.25)
+    out = rasterize(*leaves, sc.camera, background=bg, backend=backend)
+    assert torch.equal(out.image, bg.expand(8, 8, 3)) and (out.alpha == 0).all()
+    (out.image.sum() + out.alpha.sum() + out.depth.sum()).backward()
+    for t in leaves:
+        assert t.grad is not None and (t.grad == 0).all()

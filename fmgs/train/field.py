@@ -131,6 +131,12 @@ def target_scales(views: list[ViewTarget], balance: str) -> tuple[float, float]:
     return mean_square(lambda v: v.clip), mean_square(lambda v: v.dino)
 
 
+def _mean_loss(fn, pred: torch.Tensor, tgt: torch.Tensor, **kw) -> torch.Tensor:
+    """``fn(pred, tgt)`` (a mean over elements), or zero, tied to ``pred``, where the mask keeps no pixel
+    (a mean over no element is NaN)."""
+    return fn(pred, tgt, **kw) if pred.numel() else pred.sum()
+
+
 def view_loss(
     model: torch.nn.Module,
     interp: SparseMatrix | None,
@@ -147,11 +153,11 @@ def view_loss(
     h, w = clip.shape[:2]
     sel = v.mask if v.mask is not None else slice(None)
     pred, tgt = clip.reshape(h * w, -1)[sel], v.clip[sel].float()
-    l_clip = F.huber_loss(pred, tgt, delta=cfg.huber_delta) / scales[0]
+    l_clip = _mean_loss(F.huber_loss, pred, tgt, delta=cfg.huber_delta) / scales[0]
     parts = {"clip": float(l_clip.detach())}
     if use_dino:
         dino = v.weights.render(out.dino)
-        l_dino = F.mse_loss(dino.reshape(h * w, -1)[sel], v.dino[sel].float()) / scales[1]
+        l_dino = _mean_loss(F.mse_loss, dino.reshape(h * w, -1)[sel], v.dino[sel].float()) / scales[1]
         loss = cfg.lam * l_clip + (1 - cfg.lam) * l_dino
         parts["dino"] = float(l_dino.detach())
         if dotsim and cfg.dotsim_weight > 0:

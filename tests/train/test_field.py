@@ -278,3 +278,27 @@ def test_scale_balance_divides_each_term_by_its_targets_scale(setup, tmp_path):
     assert all(np.isfinite(res.losses)) and np.mean(res.losses[-10:]) < np.mean(res.losses[:10])
     with pytest.raises(ValueError, match="balance"):
         _cfg(balance="equal")
+
+
+def test_a_view_with_no_supervised_pixel_adds_no_target_loss(setup, tmp_path):
+    """A view whose mask keeps no pixel (label targets of a view that shows only background) adds nothing to
+    the language and DINO terms: zero, not the NaN of a mean over no element."""
+    _, ds, gs, cache = setup
+    short = train_field(gs, ds, cache, tmp_path / "m", _cfg(steps=2), progress=False)
+    g, model = gs.subset(short.selection.index), short.model
+    view = field_mod.prepare_views(g, ds, cache, [0], torch.device("cpu"))[0]
+    empty = view._replace(mask=torch.zeros_like(view.mask))
+    interp = model.grid.interpolation_matrix(model.lookup(g.means))
+    for dotsim in (False, True):
+        model.zero_grad()
+        loss, parts = field_mod.view_loss(model, interp, empty, _cfg(), dotsim)
+        loss.backward()
+        assert parts["clip"] == 0 and parts["dino"] == 0
+        assert float(loss.detach()) == pytest.approx(_dotsim_part(parts, dotsim), rel=1e-6)
+        assert all(torch.isfinite(p.grad).all() for p in model.parameters() if p.grad is not None)
+    assert field_mod.target_scales([empty], "scale") == (1e-12, 1e-12)  # the floor, never 0 / 0
+
+
+def _dotsim_part(parts: dict, dotsim: bool) -> float:
+    """The loss left when the target terms are zero: the weighted dotsim term, if on."""
+    return _cfg().dotsim_weight * parts["dotsim"] if dotsim else 0.0

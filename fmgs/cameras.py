@@ -20,6 +20,9 @@ from fmgs.vecmath import safe_normalize
 
 # Rotation part of a viewmat must be orthonormal to this tolerance (float32 poses from files).
 _ROT_TOL = 1e-4
+# A c2w rotation part whose smallest singular value is below this fraction of its largest has lost a
+# direction (a blank or degenerate pose): no orientation to recover by re-orthonormalising.
+_SINGULAR_TOL = 1e-6
 # OpenGL camera axes (x right, y up, z back) to OpenCV (x right, y down, z forward).
 _GL_TO_CV = torch.diag(torch.tensor([1.0, -1.0, -1.0, 1.0], dtype=torch.float64))
 
@@ -175,7 +178,11 @@ class Camera:
         c2w_cv = M @ _GL_TO_CV
         R = c2w_cv[:3, :3]
         # transforms.json files often carry scaled rotations; re-orthonormalise (SVD) before inverting.
-        U, _, Vh = torch.linalg.svd(R)
+        U, S, Vh = torch.linalg.svd(R)
+        if not S[2] > _SINGULAR_TOL * S[0]:
+            raise ValidationError(
+                "c2w", f"rotation part is singular (singular values {S.tolist()}): no orientation"
+            )
         R = U @ Vh
         if torch.det(R) < 0:
             raise ValidationError("c2w", "rotation part is a reflection")

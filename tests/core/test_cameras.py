@@ -114,3 +114,29 @@ def test_colmap_models():
     with pytest.raises(ValidationError, match="takes 4 parameters"):
         Camera.from_colmap(q, t, "PINHOLE", [1.0, 2.0], 100, 80)
     np.testing.assert_allclose(cam.camtoworld.numpy(), np.eye(4))
+
+
+@pytest.mark.parametrize(
+    "rot",
+    [
+        torch.zeros(3, 3),  # a blank pose: SVD would make it the identity
+        torch.diag(torch.tensor([1.0, 1.0, 0.0])),  # rank 2: the sign of its det is a coin toss
+        torch.diag(torch.tensor([1.0, 1.0, 1e-12])),  # numerically rank 2
+        torch.tensor([[1.0, 0, 0], [1.0, 0, 0], [0, 0, 1.0]]),  # two equal rows
+    ],
+)
+def test_opengl_c2w_with_a_singular_rotation_is_refused(rot):
+    """transforms.json rotations may carry a scale (re-orthonormalised), but one that has lost a direction
+    fixes no camera orientation: an error saying so, not an arbitrary camera or a 'reflection'."""
+    c2w = torch.eye(4, dtype=torch.float64)
+    c2w[:3, :3] = rot
+    c2w[:3, 3] = torch.tensor([1.0, 2.0, 3.0])
+    K = Camera.intrinsics(10, 10, 5, 5)
+    with pytest.raises(ValidationError, match=r"^c2w.*singular"):
+        Camera.from_opengl_c2w(c2w, K, 10, 10)
+    # A uniformly scaled rotation still converts, to the rotation itself.
+    q = quat_wxyz_to_rotmat(torch.tensor([0.9, 0.1, -0.3, 0.2], dtype=torch.float64))
+    c2w[:3, :3] = 3.5 * q
+    cam = Camera.from_opengl_c2w(c2w, K, 10, 10)
+    c2w[:3, :3] = q
+    assert torch.allclose(cam.viewmat, Camera.from_opengl_c2w(c2w, K, 10, 10).viewmat)

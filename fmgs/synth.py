@@ -105,10 +105,13 @@ class SynthConfig:
 
 
 def _look_at(eye: np.ndarray, target: np.ndarray) -> np.ndarray:
-    """[4,4] world-to-camera (OpenCV: x right, y down, z forward), world +z up."""
+    """[4,4] world-to-camera (OpenCV: x right, y down, z forward), world +z up; a camera looking straight
+    up or down (no horizon to level) takes world +y as up instead."""
     z = target - eye
     z = z / np.linalg.norm(z)
     x = np.cross(z, np.array([0.0, 0.0, 1.0]))
+    if np.linalg.norm(x) < 1e-9:
+        x = np.cross(z, np.array([0.0, 1.0, 0.0]))
     x = x / np.linalg.norm(x)
     y = np.cross(z, x)
     R = np.stack([x, y, z])

@@ -207,3 +207,24 @@ def test_world_object_names_round_trip():
     assert world_object("red cube").texture == "plain"
     with pytest.raises(ValueError, match="not a world object name"):
         world_object("yellow pencil case")
+
+
+@pytest.mark.parametrize("down", [True, False])
+def test_a_camera_looking_along_the_up_axis_gets_a_finite_pose(down):
+    """Straight down (a ring of radius 0) or straight up: world +z gives no horizon, so another up is taken
+    instead of writing NaN poses."""
+    from fmgs.cameras import Camera
+    from fmgs.synth import _look_at
+
+    eye, target = np.array([0.0, 0.0, 2.0]), np.array([0.0, 0.0, 0.25])
+    if not down:
+        eye, target = target, eye
+    V = _look_at(eye, target)
+    assert np.isfinite(V).all()
+    cam = Camera(Camera.intrinsics(10, 10, 5, 5), torch.from_numpy(V), 10, 10)  # a proper rotation
+    forward = cam.viewmat[2, :3].numpy()
+    np.testing.assert_allclose(forward, [0.0, 0.0, -1.0 if down else 1.0], atol=1e-15)
+    np.testing.assert_allclose(cam.center.numpy(), eye, atol=1e-15)
+    # An ordinary camera keeps its pose: +z up gives the horizon.
+    V = _look_at(np.array([4.0, 0.0, 1.0]), np.array([0.0, 0.0, 0.25]))
+    assert abs(V[0, 2]) < 1e-15 and V[1, 2] < 0  # image x level, image down is world down

@@ -47,10 +47,25 @@ class TrainResult:
     """Where it came from: "config", "declared" (transforms.json), "learned" or "black"."""
 
 
+DEGENERATE_SPREAD = 1e-3
+"""Cameras whose radius about their centre is below this fraction of their median distance to the sparse
+points have no spread to measure the scene by (one view, or a camera turning on the spot)."""
+
+
 def scene_extent(ds: PosedDataset, train: list[int]) -> float:
-    """Radius of the training cameras around their centre, times 1.1 (graphdeco's normalisation)."""
+    """Radius of the training cameras around their centre, times 1.1 (graphdeco's normalisation). Where
+    the cameras have no spread (DEGENERATE_SPREAD) the scene is measured by its sparse points instead:
+    their median distance from the cameras' centre, times 1.1; the means' learning rate and the
+    densification thresholds scale with it, so a zero radius would freeze the means and prune every
+    grown Gaussian as too large."""
     c = torch.stack([ds.frames[i].camera.center for i in train])
-    return float(1.1 * (c - c.mean(0)).norm(dim=1).max().clamp_min(1e-6))
+    radius = (c - c.mean(0)).norm(dim=1).max()
+    if ds.points is not None and len(ds.points):
+        centre = c.double().mean(0).cpu().numpy()
+        depth = float(np.median(np.linalg.norm(ds.points - centre, axis=1)))
+        if float(radius) < DEGENERATE_SPREAD * depth:
+            return 1.1 * depth
+    return float(1.1 * radius.clamp_min(1e-6))
 
 
 def init_params(ds: PosedDataset, cfg: GSTrainConfig, g: torch.Generator) -> dict[str, torch.Tensor]:

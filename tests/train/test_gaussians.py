@@ -132,3 +132,22 @@ def test_random_initialisation_is_announced(tiny_scene, caplog):
         and "500 random Gaussians in the cameras' common view" in r.getMessage()
         for r in caplog.records
     )
+
+
+def test_scene_extent_falls_back_to_the_points_when_the_cameras_have_no_spread(tiny_scene):
+    """One training view (or cameras turning on one spot) has radius 0: the means' learning rate and the
+    densification thresholds scale with the extent, so 3DGS froze its means and pruned every grown
+    Gaussian. Such cameras measure the scene by the sparse points' median distance; a ring keeps
+    graphdeco's camera radius."""
+    import numpy as np
+
+    from fmgs.train.gaussians import scene_extent
+
+    ds = load_dataset(tiny_scene)
+    train = list(range(len(ds.frames)))
+    c = torch.stack([ds.frames[i].camera.center for i in train])
+    assert scene_extent(ds, train) == float(1.1 * (c - c.mean(0)).norm(dim=1).max())
+    one = ds.frames[3].camera.center.double().numpy()
+    depth = float(np.median(np.linalg.norm(ds.points - one, axis=1)))
+    assert scene_extent(ds, [3]) == pytest.approx(1.1 * depth, rel=1e-12)
+    assert scene_extent(ds, [3, 3]) == scene_extent(ds, [3]) > 0.1

@@ -117,7 +117,7 @@ def target_scales(views: list[ViewTarget], balance: str) -> tuple[float, float]:
     if balance == "paper":
         return 1.0, 1.0
 
-    def mean_square(pick) -> float:
+    def mean_square(pick, name: str) -> float:
         total = count = 0.0
         for v in views:
             t = pick(v)
@@ -126,9 +126,13 @@ def target_scales(views: list[ViewTarget], balance: str) -> tuple[float, float]:
             t = t[v.mask] if v.mask is not None else t
             total += float(t.float().square().sum())
             count += t.numel()
-        return max(total / max(count, 1.0), 1e-12)
+        if not total > 0:  # dividing by a vanishing scale would multiply the term by 1e12 or more
+            raise ValidationError(
+                "balance", f'"scale" needs {name} targets that are not all zero on the supervised pixels'
+            )
+        return total / count
 
-    return mean_square(lambda v: v.clip), mean_square(lambda v: v.dino)
+    return mean_square(lambda v: v.clip, "language"), mean_square(lambda v: v.dino, "DINO")
 
 
 def _mean_loss(fn, pred: torch.Tensor, tgt: torch.Tensor, **kw) -> torch.Tensor:

@@ -296,7 +296,12 @@ def test_a_view_with_no_supervised_pixel_adds_no_target_loss(setup, tmp_path):
         assert parts["clip"] == 0 and parts["dino"] == 0
         assert float(loss.detach()) == pytest.approx(_dotsim_part(parts, dotsim), rel=1e-6)
         assert all(torch.isfinite(p.grad).all() for p in model.parameters() if p.grad is not None)
-    assert field_mod.target_scales([empty], "scale") == (1e-12, 1e-12)  # the floor, never 0 / 0
+    with pytest.raises(ValidationError, match="not all zero"):  # no scale to divide by: refused, not 1e12
+        field_mod.target_scales([empty], "scale")
+    zero = view._replace(dino=torch.zeros_like(view.dino))
+    with pytest.raises(ValidationError, match="DINO targets"):
+        field_mod.target_scales([zero], "scale")
+    assert all(s > 0 for s in field_mod.target_scales([empty, view], "scale"))  # one empty view is fine
 
 
 def _dotsim_part(parts: dict, dotsim: bool) -> float:

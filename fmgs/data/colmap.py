@@ -164,11 +164,20 @@ def _read_text(path: Path) -> ColmapModel:
         cam = ColmapCamera(int(p[0]), p[1], int(p[2]), int(p[3]), [float(x) for x in p[4:]])
         cameras[cam.id] = _check_camera(cam)
     images = {}
-    # images.txt holds two lines per image; the second (2D points) may be empty, so parse by shape:
-    # a pose line has 10 fields, the last being the name (which may contain spaces).
+    # images.txt holds two lines per image: the pose (10 fields, the last being the name, which may
+    # contain spaces), then its 2D points (x y point3D_id triples; empty when it has none). The line after
+    # a pose is its points line even when it looks like a pose (an integral first x), unless it is not
+    # triples of numbers (files written without the empty lines); other lines are told apart by shape.
+    after_pose = False
     for line in (path / "images.txt").read_text().splitlines():
         s = line.strip()
-        if not s or s.startswith("#"):
+        if s.startswith("#"):
+            continue
+        if after_pose:
+            after_pose = False
+            if _is_points_line(s):
+                continue
+        if not s:
             continue
         p = s.split(maxsplit=9)
         if len(p) < 10 or not p[0].isdigit() or not p[8].lstrip("-").isdigit():
@@ -179,6 +188,7 @@ def _read_text(path: Path) -> ColmapModel:
             continue
         img = ColmapImage(int(p[0]), np.array(nums[:4]), np.array(nums[4:7]), int(p[8]), p[9])
         images[img.id] = _check_image(img)
+        after_pose = True
     ids, pts, cols = [], [], []
     if (path / "points3D.txt").is_file():
         for line in _lines(path / "points3D.txt"):
@@ -187,6 +197,19 @@ def _read_text(path: Path) -> ColmapModel:
             pts.append([float(x) for x in p[1:4]])
             cols.append([int(x) for x in p[4:7]])
     return ColmapModel(cameras, images, *_points(ids, pts, cols))
+
+
+def _is_points_line(s: str) -> bool:
+    """Whether an images.txt line is a 2D-points line: empty, or x y point3D_id triples of numbers."""
+    fields = s.split()
+    if len(fields) % 3:
+        return False
+    try:
+        for x in fields:
+            float(x)
+    except ValueError:
+        return False
+    return True
 
 
 def _points(ids: list[int], pts: list, cols: list) -> tuple[np.ndarray, np.ndarray]:

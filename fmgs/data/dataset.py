@@ -58,22 +58,23 @@ class PosedDataset:
     def image(self, i: int, scale: float = 1.0) -> tuple[torch.Tensor, Camera]:
         """Frame i as float32 RGB [H,W,3] in [0,1], resized by ``scale``, with the matching camera.
 
-        An alpha channel (RGBA) is composited onto black.
+        An alpha channel (RGBA) is composited onto black; a 16-bit grey image is scaled by its full range.
+        An image that does not decode raises ValidationError naming the file.
         """
         from PIL import Image
 
         f = self.frames[i]
         cam = f.camera.scaled(scale) if scale != 1.0 else f.camera
-        with Image.open(f.image_path) as im:
-            if im.size != (f.camera.width, f.camera.height):
-                raise ValidationError(
-                    str(f.image_path),
-                    f"image is {im.size[0]}x{im.size[1]}, camera says {f.camera.width}x{f.camera.height}",
-                )
-            im = im.convert("RGBA") if im.mode in ("RGBA", "LA", "P") else im.convert("RGB")
-            if (cam.width, cam.height) != im.size:
-                im = im.resize((cam.width, cam.height), Image.Resampling.LANCZOS)
-            a = np.asarray(im, dtype=np.float32) / 255.0
+        try:
+            with Image.open(f.image_path) as im:
+                if im.size != (f.camera.width, f.camera.height):
+                    raise ValidationError(
+                        str(f.image_path),
+                        f"image is {im.size[0]}x{im.size[1]}, camera says {f.camera.width}x{f.camera.height}",
+                    )
+                a = _pixels(im, (cam.width, cam.height), f.image_path)
+        except OSError as e:  # PIL's UnidentifiedImageError and a truncated file's error are OSErrors
+            raise ValidationError(str(f.image_path), f"cannot decode the image ({e})") from e
         if a.shape[-1] == 4:
             a = a[..., :3] * a[..., 3:]
         return torch.from_numpy(np.ascontiguousarray(a)), cam
@@ -85,6 +86,28 @@ class PosedDataset:
         else:
             pts = np.stack([f.camera.center.numpy() for f in self.frames])
         return pts.min(0), pts.max(0)
+
+
+_GREY16 = ("I;16", "I;16L", "I;16B", "I;16N", "I")
+"""PIL modes of 16-bit grey images (PNG, TIFF): converting them to RGB clips every value above 255."""
+
+
+def _pixels(im, size: tuple[int, int], path: Path) -> np.ndarray:
+    """An opened PIL image resized to ``size`` as float32 [H,W,3] (or [H,W,4] with alpha) in [0,1]."""
+    from PIL import Image
+
+    if im.mode in _GREY16:
+        grey = im.convert("F")
+        if grey.size != size:
+            grey = grey.resize(size, Image.Resampling.LANCZOS)
+        g = np.clip(np.asarray(grey, dtype=np.float32) / 65535.0, 0.0, 1.0)
+        return np.repeat(g[..., None], 3, axis=-1)
+    if im.mode == "F":
+        raise ValidationError(str(path), "floating-point images are not supported: store 8- or 16-bit")
+    im = im.convert("RGBA") if im.mode in ("RGBA", "LA", "P", "PA") else im.convert("RGB")
+    if im.size != size:
+        im = im.resize(size, Image.Resampling.LANCZOS)
+    return np.asarray(im, dtype=np.float32) / 255.0
 
 
 def load_dataset(path: str | Path, undistort_dir: str | Path | None = None) -> PosedDataset:
@@ -145,22 +168,22 @@ def read_colmap(
         if not p.is_file():
             missing.append(img.name)
             continue
-        frames.append(
-            Frame(
-                img.name,
-                p,
-                Camera.from_colmap(
-                    img.qvec, img.tvec, cam.model, cam.params, cam.width, cam.height, name=img.name
-                ),
+        try:
+            camera = Camera.from_colmap(
+                img.qvec, img.tvec, cam.model, cam.params, cam.width, cam.height, name=img.name
             )
-        )
+        except ValidationError as e:
+            raise ValidationError(str(model_dir), f"image {img.name} (camera {cam.id}): {e}") from e
+        frames.append(Frame(img.name, p, camera))
     _report_missing(str(model_dir), missing, len(model.images), image_dir)
     frames.sort(key=lambda f: f.name)
     return PosedDataset(model_dir, frames, model.points, model.colors)
 
 
 def _report_missing(source: str, missing: list[str], total: int, where: Path) -> None:
-    """One warning for all missing images; an error when none is left."""
+    """One warning for all missing images; an error when none is left (or none is listed)."""
+    if total == 0:
+        raise ValidationError(source, "lists no images")
     if missing and len(missing) == total:
         raise ValidationError(
             source, f"none of its {total} images exists under {where} (first: {missing[0]})"

@@ -131,18 +131,28 @@ def _lens(path: Path, i: int, fr: dict, meta: dict, image: Path | None) -> Colma
             raise ValidationError(str(path), f"frame {i}: no image to read its size from; give w and h")
         from PIL import Image
 
-        with Image.open(image) as im:
-            w, h = im.size
+        try:
+            with Image.open(image) as im:
+                w, h = im.size
+        except OSError as e:
+            raise ValidationError(str(image), f"cannot read the image's size ({e})") from e
     w, h = int(num("w", w)), int(num("h", h))
+
+    def angle(key) -> float | None:
+        a = num(key)
+        if a is not None and not 0.0 < a < math.pi:
+            raise ValidationError(str(path), f"frame {i}: {key} = {a} is not a field of view in (0, pi)")
+        return a
+
     fx = num("fl_x")
     if fx is None:
-        angle = num("camera_angle_x")
-        if angle is None:
+        angle_x = angle("camera_angle_x")
+        if angle_x is None:
             raise ValidationError(str(path), f"frame {i}: no focal length (fl_x or camera_angle_x)")
-        fx = 0.5 * w / math.tan(0.5 * angle)
+        fx = 0.5 * w / math.tan(0.5 * angle_x)
     fy = num("fl_y")
     if fy is None:
-        angle_y = num("camera_angle_y")
+        angle_y = angle("camera_angle_y")
         fy = 0.5 * h / math.tan(0.5 * angle_y) if angle_y is not None else fx
     cx, cy = num("cx", w / 2), num("cy", h / 2)
     k1, k2, k3, k4, p1, p2 = (num(k, 0.0) for k in _DIST_KEYS)

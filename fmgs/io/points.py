@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
+from fmgs.errors import ValidationError
 from fmgs.io.atomic import atomic_path
 
 
@@ -27,14 +28,20 @@ def write_point_ply(path: Path, pts: np.ndarray, cols: np.ndarray) -> None:
 
 
 def read_point_ply(path: Path) -> tuple[np.ndarray, np.ndarray]:
-    """(points [P,3] float64, colours [P,3] uint8; grey where the file has none)."""
-    from plyfile import PlyData
+    """(points [P,3] float64, colours [P,3] uint8; grey where the file has none). Points with a NaN or
+    Inf coordinate are dropped; a file that is not a point PLY raises ValidationError naming it."""
+    from plyfile import PlyData, PlyParseError
 
-    v = PlyData.read(str(path))["vertex"]
-    pts = np.stack([np.asarray(v[k], dtype=np.float64) for k in ("x", "y", "z")], 1)
+    try:
+        ply = PlyData.read(str(path))
+        v = ply["vertex"]
+        pts = np.stack([np.asarray(v[k], dtype=np.float64) for k in ("x", "y", "z")], 1)
+    except (PlyParseError, ValueError, EOFError, OSError, KeyError) as e:
+        raise ValidationError(str(path), f"not a readable point PLY with vertex x, y, z ({e})") from e
     names = {p.name for p in v.properties}
     if {"red", "green", "blue"} <= names:
         cols = np.stack([np.asarray(v[k]) for k in ("red", "green", "blue")], 1).astype(np.uint8)
     else:
         cols = np.full((len(pts), 3), 128, dtype=np.uint8)
-    return pts, cols
+    keep = np.isfinite(pts).all(axis=1)
+    return pts[keep], cols[keep]

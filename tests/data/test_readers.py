@@ -205,3 +205,105 @@ def test_distorted_model_is_undistorted(snow, tmp_path):
     assert all(c.model == "PINHOLE" for c in read_model(tmp_path / "und" / "sparse").cameras.values())
     img, _ = ds.image(0)
     assert img.shape[-1] == 3 and float(img.std()) > 0.01
+
+
+def _tiny_transforms(root, n=2, size=(8, 6), **top):
+    """A transforms.json with ``n`` PNG frames of ``size`` at the identity pose (the images: mid grey)."""
+    from PIL import Image
+
+    (root / "images").mkdir(parents=True, exist_ok=True)
+    frames = []
+    for i in range(n):
+        Image.new("RGB", size, (128, 128, 128)).save(root / "images" / f"{i}.png")
+        frames.append({"file_path": f"images/{i}.png", "transform_matrix": np.eye(4).tolist()})
+    meta = {"w": size[0], "h": size[1], "fl_x": 10.0, "fl_y": 10.0, **top, "frames": frames}
+    (root / "transforms.json").write_text(json.dumps(meta))
+    return meta
+
+
+def test_sixteen_bit_grey_and_undecodable_images(tmp_path):
+    """A 16-bit grey PNG keeps its values (converted to RGB it clipped to white); a file that does not
+    decode is named, not a PIL traceback."""
+    from PIL import Image
+
+    _tiny_transforms(tmp_path, n=3)
+    grey = np.full((6, 8), 0.25 * 65535, dtype=np.uint16)
+    Image.fromarray(grey).save(tmp_path / "images" / "0.png")
+    assert Image.open(tmp_path / "images" / "0.png").mode.startswith("I")
+    (tmp_path / "images" / "1.png").write_bytes(b"not an image")
+    good = (tmp_path / "images" / "2.png").read_bytes()
+    ds = read_transforms(tmp_path / "transforms.json")
+    img, _ = ds.image(0)
+    assert img.shape == (6, 8, 3) and torch.allclose(img, torch.full_like(img, 0.25), atol=1e-4)
+    small, cam = ds.image(0, scale=0.5)
+    assert small.shape == (cam.height, cam.width, 3) and torch.allclose(
+        small, torch.full_like(small, 0.25), atol=1e-3
+    )
+    with pytest.raises(ValidationError, match=r"1\.png: cannot decode the image"):
+        ds.image(1)
+    (tmp_path / "images" / "2.png").write_bytes(good[: len(good) // 2])
+    with pytest.raises(ValidationError, match=r"2\.png: cannot decode the image"):
+        ds.image(2)
+
+
+@pytest.mark.parametrize(
+    ("edit", "message"),
+    [
+        (lambda m: m.update(camera_angle_x=0.0, fl_x=None), r"camera_angle_x = 0\.0 is not a field of view"),
+        (
+            lambda m: m.update(camera_angle_y=-0.5, fl_y=None),
+            r"camera_angle_y = -0\.5 is not a field of view",
+        ),
+        (lambda m: m.update(frames=[]), r"transforms\.json: lists no images"),
+        (lambda m: m.update(ply_file_path="absent.ply"), r"absent\.ply: not a readable point PLY"),
+    ],
+)
+def test_bad_transforms_are_named(tmp_path, edit, message):
+    """A zero field of view divided by zero, an empty frame list ran to a misleading error at the field
+    stage, a missing point file was a FileNotFoundError."""
+    meta = _tiny_transforms(tmp_path)
+    edit(meta)
+    meta = {k: v for k, v in meta.items() if v is not None}
+    (tmp_path / "transforms.json").write_text(json.dumps(meta))
+    with pytest.raises(ValidationError, match=message):
+        load_dataset(tmp_path)
+
+
+def test_point_files_drop_non_finite_points(tmp_path):
+    from fmgs.io.points import write_point_ply
+
+    _tiny_transforms(tmp_path, ply_file_path="points.ply")
+    pts = np.array([[0.0, 0, 1], [np.nan, 0, 1], [1, np.inf, 1], [1, 1, 1]])
+    write_point_ply(tmp_path / "points.ply", pts, np.arange(12, dtype=np.uint8).reshape(4, 3))
+    ds = load_dataset(tmp_path)
+    np.testing.assert_array_equal(ds.points, pts[[0, 3]])
+    np.testing.assert_array_equal(ds.colors, [[0, 1, 2], [9, 10, 11]])
+
+
+@pytest.mark.parametrize("backend", ["fmgs", "pycolmap"])
+def test_a_points_line_with_an_integral_first_x_is_not_an_image(tmp_path, backend):
+    """images.txt's 2D-points line '2 4 -1 ...' has the shape of a pose line of image 2: read as one, it
+    replaced image 2 (b.png) with a bogus image named '2 2 -1' of camera -1."""
+    (tmp_path / "cameras.txt").write_text("1 PINHOLE 10 10 5 5 5 5\n")
+    (tmp_path / "images.txt").write_text(
+        "# Image list\n"
+        "2 1 0 0 0 0 0 0 1 b.png\n3 4 -1 5.5 5.5 7 6 6 -1 2 2 -1\n"
+        "1 1 0 0 0 1 0 0 1 a.png\n2 4 -1 5.5 5.5 7 6 6 -1 2 2 -1\n"
+    )
+    m = read_model(tmp_path, backend=backend)
+    assert {i: (im.name, im.camera_id) for i, im in m.images.items()} == {2: ("b.png", 1), 1: ("a.png", 1)}
+    # Files without the (empty) points lines still read.
+    (tmp_path / "images.txt").write_text("2 1 0 0 0 0 0 0 1 b.png\n1 1 0 0 0 1 0 0 1 a.png\n")
+    assert sorted(im.name for im in read_model(tmp_path, backend=backend).images.values()) == [
+        "a.png",
+        "b.png",
+    ]
+
+
+def test_a_zero_focal_length_names_the_model_and_image(tmp_path):
+    (tmp_path / "sparse").mkdir()
+    (tmp_path / "sparse" / "cameras.txt").write_text("1 PINHOLE 8 6 0 10 4 3\n")
+    (tmp_path / "sparse" / "images.txt").write_text("1 1 0 0 0 0 0 0 1 0.png\n\n")
+    _tiny_transforms(tmp_path, n=1)
+    with pytest.raises(ValidationError, match=r"sparse: image 0\.png \(camera 1\): K: focal lengths"):
+        load_dataset(tmp_path)

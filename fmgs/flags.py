@@ -16,6 +16,7 @@ import ast
 import dataclasses
 import inspect
 import itertools
+import math
 import textwrap
 import tomllib
 import types
@@ -56,14 +57,25 @@ def _base(tp: Any) -> tuple[Any, bool]:
     return tp, False
 
 
+def _float(s: str) -> float:
+    """A float flag's value; NaN is no setting (every comparison with it is false, so no check holds)."""
+    try:
+        v = float(s)
+    except ValueError:
+        v = math.nan
+    if math.isnan(v):
+        raise argparse.ArgumentTypeError(f"expected a number, got {s!r}")
+    return v
+
+
 def _tuple_parser(tp: Any):
     items = typing.get_args(tp)
-    conv = items[0] if items and items[0] in (int, float) else float
+    conv = int if items and items[0] is int else _float
 
     def parse(s: str) -> tuple:
         try:
             vals = tuple(conv(v) for v in s.split(","))
-        except ValueError as e:
+        except (ValueError, argparse.ArgumentTypeError) as e:
             raise argparse.ArgumentTypeError(f"expected comma-separated numbers, got {s!r}") from e
         if items and Ellipsis not in items and len(vals) != len(items):
             raise argparse.ArgumentTypeError(f"expected {len(items)} comma-separated numbers, got {s!r}")
@@ -75,7 +87,9 @@ def _tuple_parser(tp: Any):
 def _parser_for(tp: Any, optional: bool):
     if tp is Path:
         conv = Path
-    elif tp in (int, float, str):
+    elif tp is float:
+        conv = _float
+    elif tp in (int, str):
         conv = tp
     elif typing.get_origin(tp) is tuple:
         conv = _tuple_parser(tp)
@@ -175,6 +189,8 @@ def _value(tp: Any, val: Any, what: str) -> Any:
         ok = isinstance(val, int | float) and not isinstance(val, bool)
         if not ok or (base is int and isinstance(val, float) and not val.is_integer()):
             raise ValueError(f"{what} must be {base.__name__}, got {val!r}")
+        if isinstance(val, float) and math.isnan(val):
+            raise ValueError(f"{what} must be a number, got nan")
         return base(val)
     if typing.get_origin(base) is tuple:
         if isinstance(val, str):
@@ -182,7 +198,7 @@ def _value(tp: Any, val: Any, what: str) -> Any:
                 return _tuple_parser(base)(val)
             except argparse.ArgumentTypeError as e:
                 raise ValueError(f"{what}: {e}") from e
-        if not isinstance(val, list | tuple) or not all(_is_num(v) for v in val):
+        if not isinstance(val, list | tuple) or not all(_is_num(v) and v == v for v in val):
             raise ValueError(f"{what} must be a list of numbers, got {val!r}")
         items = typing.get_args(base)
         if items and Ellipsis not in items and len(val) != len(items):

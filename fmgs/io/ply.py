@@ -82,7 +82,10 @@ def read_ply(path: str | os.PathLike) -> GaussianSet:
             path, GRAPHDECO_PLY, f"f_rest_* properties must be f_rest_0..f_rest_{{3k-1}}, got {len(rest)}"
         )
     k = len(rest) // 3 + 1
-    sh_degree_from_bases(k)
+    try:
+        sh_degree_from_bases(k)
+    except ValidationError as e:
+        raise fail(path, GRAPHDECO_PLY, f"{len(rest)} f_rest_* properties: {e.reason}") from e
     unknown = [n for n in names if n not in _LAYOUT | _IGNORED | {FILTER_3D} and not _REST.match(n)]
     if unknown:
         log.warning("%s: ignoring vertex properties %s (not in the graphdeco 3DGS layout)", path, unknown)

@@ -108,6 +108,9 @@ def test_train_gs_short_flags_and_tuples():
     assert cfg == replace(GSTrainConfig.reduced(500), image_scale=0.5, background=(1.0, 1.0, 1.0))
     with pytest.raises(SystemExit):
         _args("train-gs", "D", "--out", "O", "--background", "1,1")
+    for bad in (("--background", "nan,1,1"), ("--lr-background", "nan")):  # NaN is no setting
+        with pytest.raises(SystemExit):
+            _args("train-gs", "D", "--out", "O", *bad)
 
 
 @pytest.mark.parametrize(
@@ -119,6 +122,8 @@ def test_train_gs_short_flags_and_tuples():
         ('name = "n"\nfield_dtype = "int8"\n', "field_dtype must be one of"),
         ("[gs\n", "cannot read config file"),
         ('name = "n"\n[targets]\nscale_blend = "median"\n', "scale_blend must be one of"),
+        ("[field]\nlr = nan\n", "field: lr must be a number, got nan"),  # NaN passed every range check
+        ("[field.select]\nopacity_min = nan\n", "opacity_min must be a number, got nan"),
     ],
 )
 def test_bad_settings_exit_2_naming_the_setting(tmp_path, toml, message):

@@ -192,3 +192,17 @@ def test_safetensors_round_trip_and_errors(tmp_path):
     (tmp_path / "junk.safetensors").write_bytes(b"\x00" * 20)
     with pytest.raises(ValidationError, match="cannot read"):
         load_gaussians(tmp_path / "junk.safetensors")
+
+
+def test_an_unsupported_sh_degree_names_the_file(tmp_path):
+    """72 f_rest properties (degree 4) or 12 (no degree): the error named only 'sh', not the file."""
+    for rest in (72, 12):
+        names = ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", *(f"f_rest_{i}" for i in range(rest))]
+        names += ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
+        rec = np.zeros(3, dtype=[(n, "<f4") for n in names])
+        rec["rot_0"] = 1.0
+        PlyData([PlyElement.describe(rec, "vertex")]).write(str(tmp_path / "d.ply"))
+        with pytest.raises(
+            ValidationError, match=rf"d\.ply: {rest} f_rest_\* properties: SH coefficient count"
+        ):
+            read_ply(tmp_path / "d.ply")

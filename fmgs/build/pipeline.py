@@ -7,7 +7,8 @@ exactly those, a later run of the same build too (unless ``allow_newer_model``),
 each model's revision and the sha256 of its files (``extra.models``).
 
 Stages, each skipped when its output is already complete in the work folder:
-  1 poses     photos -> pycolmap SfM -> WORK/sfm/undistorted   (skipped for a posed dataset)
+  1 poses     photos -> pycolmap SfM -> WORK/sfm/undistorted   (skipped for a posed dataset; redone, and
+              the later stages with it, when the photos or the SfM settings changed)
               a ROS 2 recording -> poses from tf -> WORK/recording (SfM when it has no usable tf)
   2 geometry  3DGS training -> WORK/gs/point_cloud.ply         (skipped when a .ply is given)
   3 features  targets -> WORK/features (CLIP + DINO, or label masks) (resumes per image)
@@ -52,8 +53,8 @@ from fmgs.gaussians import GaussianSet
 from fmgs.io.atomic import atomic_path
 from fmgs.io.ply import read_ply
 from fmgs.query.relevancy import CANONICAL_PHRASES
-from fmgs.scene.package import check_scene_name, export_scene
-from fmgs.sfm import run_sfm
+from fmgs.scene.package import check_replaceable, check_scene_name, export_scene
+from fmgs.sfm import completed_sfm, run_sfm
 from fmgs.train.evaluate import LOW_VIEW_PSNR_DB, evaluate
 from fmgs.train.field import FieldTrainResult, train_field
 from fmgs.train.floaters import floater_mask
@@ -274,6 +275,18 @@ def _import_recording(source: Path, work: Path, cfg: BuildConfig) -> ImportResul
     return import_recording(source, out, cfg.recording, fp)
 
 
+def _forget_posed_stages(work: Path) -> None:
+    """Remove what an earlier run made from other poses (WORK/gs, features, field) before SfM runs:
+    stages 2 to 4 resume by their settings alone, so they would carry on from the old poses."""
+    import shutil
+
+    old = [d for d in (work / "gs", work / "features", work / "field") if d.exists()]
+    for d in old:
+        shutil.rmtree(d)
+    if old:
+        _stage(1, "poses", "new poses: the geometry, features and field of the last run start over")
+
+
 def _report_geometry(gaussians, ds, cfg: BuildConfig, work: Path, background, rec=None) -> None:
     """Print the geometry's held-out PSNR/SSIM (every HOLDOUT_EVERY-th view; the mean and the worst view)
     and the floaters it leaves (fmgs.train.floaters), and store them in WORK/geometry.json with every view's;
@@ -323,6 +336,7 @@ def build_scene(
     revisions even where an earlier run of this build recorded others."""
 
     check_scene_name(cfg.name)
+    check_replaceable(Path(cfg.models) / cfg.name)  # refused now, not after hours of training
     source = Path(source)
     # "auto" threads are counted once, before any stage: counted at each stage, the load of the build's
     # own 3DGS stage left its field stage one thread on an otherwise idle 2-core machine.
@@ -334,7 +348,11 @@ def build_scene(
             f"{source} is not a folder (photos or a posed dataset) or a ROS 2 recording (.mcap, .db3)",
         )
     work = Path(cfg.work) if cfg.work else Path(cfg.models) / ".work" / cfg.name
-    work.mkdir(parents=True, exist_ok=True)
+    for what, folder in (("model repository", Path(cfg.models)), ("work folder", work)):
+        try:  # before any stage: a file in the way, or no permission, would stop the build at its end
+            folder.mkdir(parents=True, exist_ok=True)
+        except OSError as e:
+            raise ValidationError(what, f"cannot create {folder} ({e})") from e
     t0 = time.perf_counter()
     models = resolve_build_models(cfg.targets, work, offline, allow_newer_model)
     revisions = model_revisions(cfg.targets, models)
@@ -351,20 +369,22 @@ def build_scene(
                 "poses",
                 "the scene's frame will be SfM's, not the robot's: answers need aligning to its map",
             )
-            sfm_data = work / "sfm" / "undistorted"
-            if _is_dataset(sfm_data):
+            sfm_data = completed_sfm(data / "images", work / "sfm", cfg.sfm)
+            if sfm_data is not None and _is_dataset(sfm_data):
                 data = sfm_data
             else:
+                _forget_posed_stages(work)
                 data = Path(run_sfm(data / "images", work / "sfm", cfg.sfm).dataset_dir)
     elif _is_dataset(source):
         _stage(1, "poses", f"posed dataset {source}")
         data = source
     else:
-        data = work / "sfm" / "undistorted"
-        if _is_dataset(data):
+        data = completed_sfm(source, work / "sfm", cfg.sfm)
+        if data is not None and _is_dataset(data):  # the same photos and settings as the last run's
             _stage(1, "poses", f"complete ({data})")
         else:
             _stage(1, "poses", f"pycolmap SfM on {source}")
+            _forget_posed_stages(work)
             r = run_sfm(source, work / "sfm", cfg.sfm)
             data = Path(r.dataset_dir)
     ds = load_dataset(data)
@@ -392,6 +412,8 @@ def build_scene(
             # A finished run with other settings starts over; an interrupted one (no train.json) resumes.
             train_gaussians(ds, work / "gs", gcfg, progress=progress, resume=not record)
     gaussians = read_ply(ply)
+    if gaussians.num == 0:
+        raise ValidationError(str(ply), "holds no Gaussians: there is no geometry to distil features into")
 
     # A given .ply is scored on the dataset's background; our own run on the one it trained with.
     background = dataset_background(ds) if cfg.ply else trained_background(ply.parent, ds)

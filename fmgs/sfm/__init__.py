@@ -13,6 +13,7 @@ _EXPORTS = {
     "PoseErrors": "fmgs.sfm.pipeline",
     "SfMResult": "fmgs.sfm.pipeline",
     "align_similarity": "fmgs.sfm.pipeline",
+    "completed_sfm": "fmgs.sfm.pipeline",
     "photo_names": "fmgs.sfm.pipeline",
     "pose_errors": "fmgs.sfm.pipeline",
     "read_intrinsics": "fmgs.sfm.pipeline",

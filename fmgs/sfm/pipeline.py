@@ -67,6 +67,44 @@ def photo_names(images: Path) -> list[str]:
     return names
 
 
+SFM_RECORD = "sfm.json"
+"""The finished run's result, settings and photos' fingerprint, written last in its output folder."""
+
+
+def photos_fingerprint(images: Path, names: list[str], cfg: SfMConfig) -> str:
+    """Name, size and modification time of each photo (and of the intrinsics file): SfM is redone when
+    they change."""
+    files = [images / n for n in names]
+    if cfg.intrinsics_file:
+        files.append(Path(cfg.intrinsics_file))
+    return ";".join(
+        f"{f.name}:{f.stat().st_size}:{f.stat().st_mtime_ns}" if f.is_file() else f"{f.name}:missing"
+        for f in files
+    )
+
+
+def completed_sfm(images: str | Path, out: str | Path, cfg: SfMConfig) -> Path | None:
+    """The undistorted dataset of an earlier ``run_sfm`` into ``out`` of the same photos with the same
+    settings, else None (a run stopped before its record was written counts as not done)."""
+    out = Path(out)
+    try:
+        rec = json.loads((out / SFM_RECORD).read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
+        return None
+    if not isinstance(rec, dict) or not isinstance(rec.get("config"), dict):
+        return None
+    defaults = json.loads(json.dumps(asdict(SfMConfig())))  # settings added since count at their default
+    if {**defaults, **rec["config"]} != json.loads(json.dumps(asdict(cfg))):
+        return None
+    try:
+        names = photo_names(Path(images))
+    except ValidationError:
+        return None
+    if rec.get("photos") != photos_fingerprint(Path(images), names, cfg):
+        return None
+    return out / "undistorted"
+
+
 def read_intrinsics(path: str | Path, names: list[str]) -> dict[str, tuple[str, int, int, list[float]]]:
     """Per-photo known intrinsics from a JSON file: {name: {"model", "width", "height", "params"}} ->
     {name: (model, width, height, params)}, checked against CAMERA_PARAMS and the photos' names."""
@@ -152,6 +190,7 @@ def run_sfm(images: str | Path, out: str | Path, cfg: SfMConfig = SfMConfig()) -
     known = read_intrinsics(cfg.intrinsics_file, names) if cfg.intrinsics_file else {}
     t0 = time.perf_counter()
     out.mkdir(parents=True, exist_ok=True)
+    (out / SFM_RECORD).unlink(missing_ok=True)  # an interrupted rerun must not pass for the last run
     colmap_log = out / "colmap.log"
     colmap_log.unlink(missing_ok=True)
     db = out / "database.db"
@@ -268,8 +307,10 @@ def run_sfm(images: str | Path, out: str | Path, cfg: SfMConfig = SfMConfig()) -
         focal_source,
         best.num_cameras(),
     )
-    with atomic_path(out / "sfm.json") as tmp:
-        tmp.write_text(json.dumps({**asdict(res), "dataset_dir": str(und), "config": asdict(cfg)}, indent=1))
+    record = {**asdict(res), "dataset_dir": str(und), "config": asdict(cfg)}
+    record["photos"] = photos_fingerprint(images, names, cfg)
+    with atomic_path(out / SFM_RECORD) as tmp:
+        tmp.write_text(json.dumps(record, indent=1))
     return res
 
 

@@ -107,6 +107,12 @@ def test_build_rejects_bad_names_and_sources(tmp_path, capsys):
     assert "scene name" in capsys.readouterr().err
     assert main(["build", str(tmp_path / "missing"), "--name", "ok", "--models", str(tmp_path / "m")]) == 2
     assert "not a folder" in capsys.readouterr().err
+    # A folder of other things where the package goes is refused before any stage, not at the export.
+    (tmp_path / "m" / "ok").mkdir(parents=True)
+    (tmp_path / "m" / "ok" / "notes.txt").write_text("mine")
+    assert main(["build", str(tmp_path), "--name", "ok", "--models", str(tmp_path / "m")]) == 2
+    assert "holds no scene package" in capsys.readouterr().err
+    assert not (tmp_path / "m" / ".work").exists() and (tmp_path / "m" / "ok" / "notes.txt").is_file()
 
 
 @pytest.mark.slow
@@ -175,3 +181,76 @@ def test_build_rejects_a_bad_extra_file(tmp_path, capsys):
     assert "must hold a JSON object" in capsys.readouterr().err
     assert main([*args, "--extra", str(tmp_path / "missing.json")]) == 2
     assert "cannot read" in capsys.readouterr().err
+
+
+def test_a_ply_without_gaussians_or_an_unwritable_repository_stops_before_any_stage(tmp_path, capsys):
+    """A .ply with no Gaussians ran to an IndexError in the field stage; a file where the model
+    repository goes was a NotADirectoryError traceback."""
+    from fmgs.gaussians import GaussianSet
+    from fmgs.io.ply import write_ply
+    from fmgs.synth import SynthConfig, generate
+
+    generate(tmp_path / "scene", SynthConfig(views=9, width=32, height=24, points=800, supersample=1))
+    empty = GaussianSet(
+        torch.zeros(0, 3), torch.zeros(0, 4), torch.zeros(0, 3), torch.zeros(0), torch.zeros(0, 1, 3)
+    )
+    write_ply(empty, tmp_path / "empty.ply")
+    args = ["build", str(tmp_path / "scene"), "--name", "e", "--targets", "labels", "--device", "cpu"]
+    assert main([*args, "--models", str(tmp_path / "m"), "--ply", str(tmp_path / "empty.ply")]) == 2
+    assert "empty.ply: holds no Gaussians" in capsys.readouterr().err
+    assert not (tmp_path / "m" / "e").exists() and not (tmp_path / "m" / ".work" / "e" / "features").exists()
+    (tmp_path / "file").write_text("")
+    assert main([*args, "--models", str(tmp_path / "file")]) == 2
+    assert "model repository: cannot create" in capsys.readouterr().err
+    assert main([*args, "--models", str(tmp_path / "m"), "--work", str(tmp_path / "file")]) == 2
+    assert "work folder: cannot create" in capsys.readouterr().err
+
+
+def test_photos_are_posed_again_when_they_or_the_sfm_settings_change(tmp_path, monkeypatch, capsys):
+    """A finished SfM was reused whatever the --sfm-* settings or the photos were, and so were the
+    geometry, features and field made from its poses."""
+    import os
+    from dataclasses import asdict
+
+    from PIL import Image
+
+    from fmgs.build import pipeline
+    from fmgs.errors import FmgsError
+    from fmgs.sfm.config import SfMConfig
+    from fmgs.sfm.pipeline import SFM_RECORD, photo_names, photos_fingerprint
+
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    for i in range(3):
+        Image.new("RGB", (8, 6), (i, i, i)).save(photos / f"{i}.png")
+    work = tmp_path / "m" / ".work" / "p"
+    (work / "sfm" / "undistorted").mkdir(parents=True)
+    (work / "sfm" / "undistorted" / "transforms.json").write_text("{}")  # a dataset, as far as stage 1 sees
+    record = {
+        "config": asdict(SfMConfig()),
+        "photos": photos_fingerprint(photos, photo_names(photos), SfMConfig()),
+    }
+    (work / "sfm" / SFM_RECORD).write_text(json.dumps(record))
+    (work / "gs").mkdir()
+    ran = []
+
+    def fake_sfm(images, out, cfg):
+        ran.append(cfg)
+        raise FmgsError("SfM ran")
+
+    def loaded(path, *a, **k):  # stop once stage 1 has chosen its dataset
+        raise FmgsError(f"loaded {path}")
+
+    monkeypatch.setattr(pipeline, "run_sfm", fake_sfm)
+    monkeypatch.setattr(pipeline, "load_dataset", loaded)
+    args = ["build", str(photos), "--name", "p", "--models", str(tmp_path / "m"), "--targets", "labels"]
+    args += ["--device", "cpu"]
+    assert main(args) == 2
+    out = capsys.readouterr()
+    assert "[1/5] poses: complete" in out.out and "loaded" in out.err and not ran and (work / "gs").is_dir()
+    assert main([*args, "--sfm-camera-model", "PINHOLE"]) == 2
+    assert "SfM ran" in capsys.readouterr().err and ran[-1].camera_model == "PINHOLE"
+    assert not (work / "gs").exists()  # the old poses' geometry starts over
+    st = (photos / "1.png").stat()
+    os.utime(photos / "1.png", ns=(st.st_atime_ns, st.st_mtime_ns + 10**9))  # a photo replaced
+    assert main(args) == 2 and len(ran) == 2

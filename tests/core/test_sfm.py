@@ -11,7 +11,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from fmgs.errors import ValidationError
-from fmgs.sfm import SfMConfig, align_similarity, pose_errors, read_intrinsics, run_sfm
+from fmgs.sfm import SfMConfig, align_similarity, completed_sfm, pose_errors, read_intrinsics, run_sfm
 
 
 def test_umeyama_recovers_a_similarity():
@@ -118,6 +118,10 @@ def test_known_intrinsics_are_held_and_colmap_logs_to_a_file(six_photos, tmp_pat
     cap = capfd.readouterr()
     assert cap.out == "" and "sift" not in cap.err.lower()
     assert "Feature extraction" in (tmp_path / "colmap.log").read_text()
+    # Its record lets a build reuse it for the same photos and settings only.
+    cfg = SfMConfig(camera_model="PINHOLE", camera_params=tuple(known))
+    assert completed_sfm(photos, tmp_path, cfg) == tmp_path / "undistorted"
+    assert completed_sfm(photos, tmp_path, SfMConfig()) is None
 
 
 def test_per_photo_intrinsics_file(six_photos, tmp_path):

@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from fmgs.data.rosbag_config import RecordingConfig
-from fmgs.data.tf import CLOCK_JUMP_S, TfTree
+from fmgs.data.tf import CLOCK_JUMP_S, NotAPose, TfTree, stamp_text
 from fmgs.errors import ValidationError
 from fmgs.io.atomic import atomic_path
 from fmgs.io.points import write_point_ply
@@ -48,10 +48,15 @@ IMPORT_RECORD = "recording.json"
 """What an import read, kept and dropped, written last in the dataset folder (its completion mark)."""
 
 
+def _storage_files(folder: Path) -> list[Path]:
+    return sorted(q for q in folder.iterdir() if q.is_file() and q.suffix in (".mcap", ".db3"))
+
+
 def is_recording(path: str | Path) -> bool:
-    """A rosbag2 folder (metadata.yaml), or one .mcap, .db3 or ROS 1 .bag file."""
+    """A rosbag2 folder (metadata.yaml, or .mcap/.db3 files left without it by a recorder that was
+    stopped before writing it), or one .mcap, .db3 or ROS 1 .bag file."""
     p = Path(path)
-    return (p.is_dir() and (p / "metadata.yaml").is_file()) or (
+    return (p.is_dir() and ((p / "metadata.yaml").is_file() or bool(_storage_files(p)))) or (
         p.is_file() and p.suffix in RECORDING_SUFFIXES
     )
 
@@ -66,6 +71,15 @@ def open_recording(path: str | Path) -> Iterator:
     p = Path(path)
     if not p.exists():
         raise ValidationError(str(p), "no such recording")
+    if p.is_dir() and not (p / "metadata.yaml").is_file():  # a recorder stopped before writing it
+        files = _storage_files(p)
+        if len(files) != 1:
+            raise ValidationError(
+                str(p),
+                f"has no metadata.yaml and {len(files)} storage files ({', '.join(f.name for f in files)}); "
+                "`ros2 bag reindex` writes it, or pass one file",
+            )
+        p = files[0]
     try:
         reader = AnyReader([p], default_typestore=get_typestore(Stores.ROS2_HUMBLE))
         reader.open()
@@ -152,19 +166,36 @@ def _messages(reader, cons: list) -> Iterator:
 
 
 def _load_tf(reader, tree: TfTree) -> TfTree:
+    """The recording's /tf and /tf_static in ``tree``; samples that are not a pose are skipped and
+    counted (``tree.skipped``), with one warning naming the first, as tf2 drops them."""
+    first = ""
     for con, t, raw in _messages(reader, [c for c in reader.connections if c.msgtype == TF_TYPE]):
         msg = reader.deserialize(raw, con.msgtype)
         static = con.topic.endswith("tf_static")
         for tr in msg.transforms:
             q, v = tr.transform.rotation, tr.transform.translation
-            tree.add(
-                tr.header.frame_id, tr.child_frame_id, _stamp(tr, t), (q.x, q.y, q.z, q.w), (v.x, v.y, v.z),
-                static, con.topic,
-            )  # fmt: skip
+            try:
+                tree.add(
+                    tr.header.frame_id, tr.child_frame_id, _stamp(tr, t), (q.x, q.y, q.z, q.w),
+                    (v.x, v.y, v.z), static, con.topic,
+                )  # fmt: skip
+            except NotAPose as e:
+                tree.skipped += 1
+                first = first or str(e)
+    if tree.skipped:
+        log.warning(
+            "skipped %d tf samples that are not poses, as tf2 does (the first: %s)", tree.skipped, first
+        )
     return tree
 
 
 # ---------------------------------------------------------------------------------------------- images
+
+
+def _at(msg) -> str:
+    """The message's header stamp as ' at TIME', or '' where it has none."""
+    ns = _stamp(msg, 0)
+    return f" at {stamp_text(ns)}" if ns else ""
 
 
 def decode_colour(msg, msgtype: str, topic: str) -> np.ndarray:
@@ -175,7 +206,9 @@ def decode_colour(msg, msgtype: str, topic: str) -> np.ndarray:
         try:
             return np.asarray(Image.open(io.BytesIO(bytes(msg.data))).convert("RGB"))
         except Exception as e:
-            raise ValidationError(topic, f"cannot decode a compressed image ({msg.format!r}: {e})") from e
+            raise ValidationError(
+                topic, f"cannot decode the compressed image{_at(msg)} ({msg.format!r}: {e})"
+            ) from e
     enc = msg.encoding
     if enc not in COLOUR_ENCODINGS:
         raise ValidationError(
@@ -195,7 +228,9 @@ def decode_depth(msg, msgtype: str, topic: str) -> np.ndarray:
     if msgtype != "sensor_msgs/msg/Image" or msg.encoding not in DEPTH_ENCODINGS:
         what = msg.format if msgtype.endswith("CompressedImage") else msg.encoding
         raise ValidationError(
-            topic, f"unsupported depth {what!r}; depth must be a raw Image in {', '.join(DEPTH_ENCODINGS)}"
+            topic,
+            f"unsupported depth {what!r}; depth must be a raw Image in {', '.join(DEPTH_ENCODINGS)} "
+            "(--depth-topic none builds without it)",
         )
     if msg.encoding == "32FC1":
         d = _rows(msg, 1, np.float32, topic)[..., 0].astype(np.float64)
@@ -211,7 +246,9 @@ def _rows(msg, ch: int, dtype, topic: str) -> np.ndarray:
     row = w * ch * dt.itemsize
     data = np.asarray(msg.data, np.uint8)
     if step < row or len(data) < h * step:
-        raise ValidationError(topic, f"image of {w}x{h} {msg.encoding} has {len(data)} bytes, step {step}")
+        raise ValidationError(
+            topic, f"image{_at(msg)} of {w}x{h} {msg.encoding} has {len(data)} bytes, step {step}"
+        )
     a = data[: h * step].reshape(h, step)[:, :row]
     return np.ascontiguousarray(a).view(dt).reshape(h, w, ch).astype(dtype)
 
@@ -244,16 +281,19 @@ def lens_from_info(info, topic: str) -> Lens:
     """transforms.json camera keys of a CameraInfo: K shifted by half a pixel (ROS counts the top-left
     pixel's centre as (0, 0), we as (0.5, 0.5)); plumb_bob and rational_polynomial (k4-k6 zero) as OPENCV,
     equidistant as OPENCV_FISHEYE."""
-    K = np.asarray(info.k, np.float64).reshape(3, 3)
-    if K[0, 0] <= 0 or K[1, 1] <= 0 or info.width <= 0 or info.height <= 0:
+    ros1 = not hasattr(info, "k")  # ROS 1's CameraInfo names its arrays K and D
+    K = np.asarray(info.K if ros1 else info.k, np.float64).reshape(3, 3)
+    d = [float(x) for x in (info.D if ros1 else info.d)]
+    if not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0 or info.width <= 0 or info.height <= 0:
         raise ValidationError(
             topic, f"CameraInfo has no usable K or size (K={K.tolist()}, {info.width}x{info.height})"
         )
+    if not np.all(np.isfinite(d)):
+        raise ValidationError(topic, f"CameraInfo's distortion D={d} is not finite")
     keys = {
         "w": int(info.width), "h": int(info.height), "fl_x": float(K[0, 0]), "fl_y": float(K[1, 1]),
         "cx": float(K[0, 2]) + 0.5, "cy": float(K[1, 2]) + 0.5,
     }  # fmt: skip
-    d = [float(x) for x in info.d]
     model = info.distortion_model
     if not any(d):
         keys["camera_model"] = "PINHOLE"
@@ -310,12 +350,19 @@ class ImportResult:
     depth_topic: str = ""
     depth_points: int = 0
     camera_info_topic: str = ""
+    unposed_why: str = ""
+    """Why the frames go to SfM (not posed): what the recording's tf lacks."""
+    tf_skipped: int = 0
+    """tf samples skipped as not a pose (NaN, infinite, a zero quaternion), as tf2 skips them."""
 
     def line(self) -> str:
         why = ", ".join(f"{k} {v}" for k, v in sorted(self.dropped.items()) if v) or "none"
         where = f"poses from tf in frame {self.fixed_frame!r}" if self.posed else "no usable tf: poses by SfM"
+        if not self.posed and self.unposed_why:
+            where += f" ({self.unposed_why})"
         pts = f"; {self.depth_points:,} points from {self.depth_topic}" if self.depth_topic else ""
-        return f"{self.image_topic}: read {self.read}, kept {self.kept} (dropped: {why}); {where}{pts}"
+        bad = f"; {self.tf_skipped} tf samples skipped (not poses)" if self.tf_skipped else ""
+        return f"{self.image_topic}: read {self.read}, kept {self.kept} (dropped: {why}); {where}{pts}{bad}"
 
 
 def _pick(topic: str, have: list[str], what: str, flag: str, all_topics: list[str]) -> str:
@@ -334,6 +381,25 @@ def _pick(topic: str, have: list[str], what: str, flag: str, all_topics: list[st
     raise ValidationError(
         flag, f"the recording has {len(have)} {what} topics ({', '.join(have)}); choose one with {flag}"
     )
+
+
+def _require_images(reader, topic: str, flag: str) -> None:
+    """ValidationError naming a chosen topic that holds something other than images."""
+    other = sorted({c.msgtype for c in reader.connections if c.topic == topic} - set(IMAGE_TYPES))
+    if other:
+        raise ValidationError(
+            flag, f"{topic} holds {', '.join(other)}, not images (sensor_msgs Image or CompressedImage)"
+        )
+
+
+def _check_frame(tree: TfTree, fixed: str, frame: str, topic: str, what: str, stamp_ns: int, hint: str = ""):
+    """ValidationError naming the message (topic, time, frame) whose frame tf does not join to ``fixed``."""
+    try:
+        tree.check_connected(fixed, frame)
+    except ValidationError as e:
+        raise ValidationError(
+            topic, f"{what} at {stamp_text(stamp_ns)} is in frame {frame!r}: {e.reason}{hint}"
+        ) from e
 
 
 def _moved(T: np.ndarray, last: np.ndarray, cfg: RecordingConfig) -> bool:
@@ -395,6 +461,7 @@ def _import(path, out: Path, final: Path, cfg: RecordingConfig, fingerprint: str
         names = sorted({c.topic for c in r.connections})
         colour, depth_topics = _camera_topics(r)
         topic = _pick(cfg.image_topic, colour, "colour camera", "--image-topic", names)
+        _require_images(r, topic, "--image-topic")
         info_topic = cfg.camera_info_topic or _info_topic_for(topic)
         info = _first_info(r, info_topic)
         if info is None:
@@ -413,6 +480,8 @@ def _import(path, out: Path, final: Path, cfg: RecordingConfig, fingerprint: str
                 "--depth-topic",
                 f"no topic {depth_topic!r}; depth topics: {', '.join(depth_topics) or 'none'}",
             )
+        if depth_topic:
+            _require_images(r, depth_topic, "--depth-topic")
 
         # Image stamps and frames first (messages are read again for the kept ones only).
         cons = [c for c in r.connections if c.topic == topic]
@@ -434,13 +503,14 @@ def _import(path, out: Path, final: Path, cfg: RecordingConfig, fingerprint: str
             raise ValidationError(topic, "holds no images")
         tree = _load_tf(r, TfTree(cfg.max_tf_gap_s))
         cam_frame = frame_ids[0]
-        fixed = cfg.fixed_frame or next((f for f in FIXED_FRAMES if f in tree.frames), "")
+        fixed = cfg.fixed_frame.lstrip("/") or next((f for f in FIXED_FRAMES if f in tree.frames), "")
         dropped: Counter[str] = Counter()
         posed = bool(fixed) and cam_frame in tree.frames
         if cfg.fixed_frame and not posed:
-            tree.check_connected(cfg.fixed_frame, cam_frame)  # names what is missing
-        if posed:
-            tree.check_connected(fixed, cam_frame)
+            tree.check_connected(fixed, cam_frame)  # names what is missing
+        if posed:  # every frame the images name, the first time each appears
+            for f in dict.fromkeys(frame_ids):
+                _check_frame(tree, fixed, f, topic, "the image", stamps[frame_ids.index(f)])
         poses: list[np.ndarray | None] = []
         for s, f in zip(stamps, frame_ids, strict=True):
             if not posed:
@@ -500,8 +570,16 @@ def _import(path, out: Path, final: Path, cfg: RecordingConfig, fingerprint: str
 
         res = ImportResult(
             str(final), posed, topic, cam_frame, fixed if posed else "", len(stamps), len(kept),
-            {k: v for k, v in dropped.items() if v}, camera_info_topic=info_topic,
+            {k: v for k, v in dropped.items() if v}, camera_info_topic=info_topic, tf_skipped=tree.skipped,
         )  # fmt: skip
+        if not posed:
+            frames = ", ".join(sorted(tree.frames))
+            if not tree.frames:
+                res.unposed_why = "the recording has no tf"
+            elif not fixed:
+                res.unposed_why = f"no frame map or odom in tf ({frames}); name one with --fixed-frame"
+            else:
+                res.unposed_why = f"the camera's frame {cam_frame!r} is not in tf ({frames})"
         if posed:
             meta = {**lens.keys, "frames": []}
             for k in kept:
@@ -562,14 +640,26 @@ def _depth_points(r, topic, tree, fixed, kept, stamps, poses, out: Path, lens: L
             continue
         k = pair[j]
         msg = r.deserialize(raw, con.msgtype)
-        d = decode_depth(msg, con.msgtype, topic)[::stride, ::stride]
+        d = decode_depth(msg, con.msgtype, topic)
+        if d.shape != (dlens.height, dlens.width):
+            whose = f"its CameraInfo ({_info_topic_for(topic)})" if info is not None else (
+                f"with no CameraInfo on {_info_topic_for(topic)}, the colour camera's"
+            )  # fmt: skip
+            raise ValidationError(
+                topic,
+                f"depth images are {d.shape[1]}x{d.shape[0]}; {whose} is {dlens.width}x{dlens.height}",
+            )
+        d = d[::stride, ::stride]
         vs, us = np.nonzero(d > 0)
         z = d[vs, us]
         K = dlens.K  # our convention: pixel (u, v)'s centre is at (u + 0.5, v + 0.5)
         x = ((us * stride + 0.5) - K[0, 2]) / K[0, 0] * z
         y = ((vs * stride + 0.5) - K[1, 2]) / K[1, 1] * z
         p_cam = np.stack([x, y, z], 1)
-        T, _ = tree.lookup(fixed, msg.header.frame_id.lstrip("/"), dstamps[j])
+        frame = msg.header.frame_id.lstrip("/")
+        hint = "; --depth-topic none builds without depth"
+        _check_frame(tree, fixed, frame, topic, "the depth image", dstamps[j], hint)
+        T, _ = tree.lookup(fixed, frame, dstamps[j])
         if T is None:
             continue
         pw = p_cam @ T[:3, :3].T + T[:3, 3]

@@ -23,6 +23,11 @@ GAP_PERIODS = 3.0
 median interval are a dropout."""
 
 
+def stamp_text(ns: int) -> str:
+    """A message time as ROS prints it: seconds and nanoseconds."""
+    return f"{ns // 1_000_000_000}.{ns % 1_000_000_000:09d}"
+
+
 def quat_to_matrix(q: np.ndarray) -> np.ndarray:
     """[3,3] rotation of a quaternion (x, y, z, w) of any non-zero norm."""
     x, y, z, w = np.asarray(q, np.float64) / np.linalg.norm(q)
@@ -88,6 +93,11 @@ class _Edge:
     trans: list[np.ndarray] = field(default_factory=list)
 
 
+class NotAPose(ValidationError):
+    """A transform sample with a NaN or infinite value or a zero quaternion: tf2 drops such a sample with
+    a warning, and so does the import (``TfTree.skipped`` counts them)."""
+
+
 class TfTree:
     """Transforms as a recording's /tf and /tf_static hold them; ``lookup`` answers tf2's
     lookupTransform(target, source, stamp)."""
@@ -96,11 +106,21 @@ class TfTree:
         self.max_gap_ns = int(max_gap_s * 1e9)
         self._edges: dict[str, _Edge] = {}
         self._arrays: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray, float]] = {}
+        self.skipped = 0
+        """Samples refused as not a pose (NotAPose) by the reader that filled the tree."""
 
     def add(self, parent: str, child: str, stamp_ns: int, quat, trans, static: bool, topic: str = "/tf"):
         """One transform parent -> child. A child has one parent (tf2's rule); a static edge keeps its
-        latest value; a dynamic edge's stamps must not jump back by CLOCK_JUMP_S or more."""
+        latest value; a dynamic edge's stamps must not jump back by CLOCK_JUMP_S or more; a sample that is
+        not a pose raises NotAPose (the tree is unchanged)."""
         parent, child = parent.lstrip("/"), child.lstrip("/")
+        q, v = np.asarray(quat, float), np.asarray(trans, float)
+        if not (np.all(np.isfinite(q)) and np.all(np.isfinite(v)) and np.linalg.norm(q) > 1e-6):
+            raise NotAPose(
+                topic,
+                f"{parent} -> {child} at {stamp_text(int(stamp_ns))}: quaternion {q.tolist()} with "
+                f"translation {v.tolist()} is not a pose (NaN, infinite or a zero quaternion)",
+            )
         e = self._edges.get(child)
         if e is None:
             e = self._edges[child] = _Edge(parent, static)
@@ -109,12 +129,7 @@ class TfTree:
                 topic, f"frame {child!r} has two parents, {e.parent!r} and {parent!r} (tf allows one)"
             )
         if static:
-            e.static, e.stamps, e.quats, e.trans = (
-                True,
-                [0],
-                [np.asarray(quat, float)],
-                [np.asarray(trans, float)],
-            )
+            e.static, e.stamps, e.quats, e.trans = True, [0], [q], [v]
             return
         if e.static:  # a frame published both ways: the dynamic samples win, as in tf2's cache
             e.static, e.stamps, e.quats, e.trans = False, [], [], []
@@ -126,8 +141,8 @@ class TfTree:
                 "recording before the jump",
             )
         e.stamps.append(int(stamp_ns))
-        e.quats.append(np.asarray(quat, float))
-        e.trans.append(np.asarray(trans, float))
+        e.quats.append(q)
+        e.trans.append(v)
         self._arrays.pop(child, None)
 
     @property

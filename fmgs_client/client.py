@@ -32,6 +32,7 @@ from fmgs_client.types import (
     SceneInfo,
     SegmentResult,
     TextAnswer,
+    require_finite,
 )
 from fmgs_wire import DEFAULT_PORT
 from fmgs_wire.images import PNG_SCALE, decode_png
@@ -75,7 +76,8 @@ T = TypeVar("T")
 class FmgsError(RuntimeError):
     """A failed call: ``code`` is the gRPC status name (e.g. ``"NOT_FOUND"``), ``details`` the message.
 
-    Malformed answers (bad tensors, chunks out of order) are reported with code ``"DATA_LOSS"``.
+    Malformed answers (bad tensors, NaN or infinite numbers, chunks out of order, render outputs asked for
+    but left out) are reported with code ``"DATA_LOSS"``.
     """
 
     def __init__(self, code: str, details: str) -> None:
@@ -96,6 +98,11 @@ def _rows(t: pb.Tensor, name: str, tail: tuple[int, ...], dtype: type) -> np.nda
     if a.ndim != 1 + len(tail) or a.shape[1:] != tail:
         raise TensorError(name, f"expected shape [k{''.join(f',{d}' for d in tail)}], got {list(a.shape)}")
     return a.astype(dtype, copy=False)
+
+
+def _ms(value: float, what: str) -> float:
+    """A server time in milliseconds; ValueError naming ``what`` when it is NaN or infinite."""
+    return float(require_finite(np.float64(value), f"{what}.elapsed_ms"))
 
 
 @dataclass
@@ -141,9 +148,9 @@ def assemble_text_answers(
         if st.rows != st.first.total:
             raise ChunkError(f"text[{i}]: got {st.rows} rows, the first chunk announced {st.first.total}")
 
-        def get(n: str, st: _TextState = st) -> np.ndarray:
+        def get(n: str, st: _TextState = st, i: int = i) -> np.ndarray:
             tail, dtype = _TEXT_ROWS[n]
-            return join(st.parts.get(n, []), (0, *tail), dtype)
+            return require_finite(join(st.parts.get(n, []), (0, *tail), dtype), f"text[{i}].{n}")
 
         index, relevancy = get("index"), get("relevancy")
         extra = {n: get(n) if (n in fields or n in st.parts) else None for n in GAUSSIAN_FIELDS}
@@ -162,7 +169,7 @@ def assemble_text_answers(
                 relevancy=relevancy,
                 **extra,
                 instances=instances,
-                elapsed_ms=float(st.first.elapsed_ms),
+                elapsed_ms=_ms(st.first.elapsed_ms, f"text[{i}]"),
                 rescored=int(st.first.rescored),
                 presence=presence,
             )
@@ -204,7 +211,7 @@ def _render_finish(st: _RenderState) -> RenderResult:
         a = join(parts)
         if a.shape[0] != h:
             raise ChunkError(f"render[{seq}].{n}: got {a.shape[0]} rows of {h}")
-        images[n] = a.astype(np.float32, copy=False)
+        images[n] = require_finite(a, f"render[{seq}].{n}").astype(np.float32, copy=False)
     png = {n: getattr(f, f"{n}_png") for n in _IMAGE_TAIL if getattr(f, f"{n}_png")}
     for n, data in png.items():
         if images[n] is None:
@@ -215,7 +222,10 @@ def _render_finish(st: _RenderState) -> RenderResult:
             if img.shape != (h, w, *_IMAGE_TAIL[n]):
                 raise ChunkError(f"render[{seq}].{n}_png: image {img.shape} for a {w}x{h} render")
             images[n] = (img / np.float32(_PNG_SCALE[n])).astype(np.float32)
-    argmax = Pixel(int(f.argmax.x), int(f.argmax.y), float(f.argmax.value)) if f.HasField("argmax") else None
+    argmax = None
+    if f.HasField("argmax"):
+        value = float(require_finite(np.float64(f.argmax.value), f"render[{seq}].argmax"))
+        argmax = Pixel(int(f.argmax.x), int(f.argmax.y), value)
     return RenderResult(
         sequence=seq,
         width=w,
@@ -226,7 +236,7 @@ def _render_finish(st: _RenderState) -> RenderResult:
         alpha=images["alpha"],
         argmax=argmax,
         png=png,
-        elapsed_ms=float(f.elapsed_ms),
+        elapsed_ms=_ms(f.elapsed_ms, f"render[{seq}]"),
     )
 
 
@@ -251,6 +261,15 @@ def assemble_render_stream(
         raise ChunkError(f"stream ended before the last chunk of sequence {sorted(open_)}")
     for seq in sorted(open_):
         yield _render_finish(open_[seq])
+
+
+def _asked_for(results: Iterable[RenderResult], outputs: Sequence[str]) -> Iterator[RenderResult]:
+    """The results, each checked to hold every output asked for (ChunkError naming those left out)."""
+    for r in results:
+        missing = [n for n in outputs if getattr(r, n) is None]
+        if missing:
+            raise ChunkError(f"render[{r.sequence}]: no {', '.join(missing)} although asked for")
+        yield r
 
 
 def assemble_render(chunks: Iterable[pb.RenderChunk]) -> RenderResult:
@@ -298,7 +317,7 @@ def assemble_segment(chunks: Iterable[pb.SegmentChunk]) -> SegmentResult:
         pixel_labels=labels,
         gaussian_index=gidx,
         gaussian_labels=glab,
-        elapsed_ms=float(first.elapsed_ms),
+        elapsed_ms=_ms(first.elapsed_ms, "segment"),
     )
 
 
@@ -344,12 +363,14 @@ def assemble_geometry(chunks: Iterable[pb.GeometryChunk], max_rows: int | None =
         raise ChunkError(f"geometry: got {rows} rows, the first chunk announced {len(out['index'])}")
     if len(first.bounds) != 6:
         raise ChunkError(f"geometry: bounds has {len(first.bounds)} numbers, expected 6")
+    for n, a in out.items():
+        require_finite(a, f"geometry.{n}")
     return Geometry(
         **out,
         num_gaussians=int(first.num_gaussians),
         qualified=int(first.qualified),
-        bounds=np.asarray(first.bounds, np.float64),
-        elapsed_ms=float(first.elapsed_ms),
+        bounds=require_finite(np.asarray(first.bounds, np.float64), "geometry.bounds"),
+        elapsed_ms=_ms(first.elapsed_ms, "geometry"),
     )
 
 
@@ -360,8 +381,8 @@ def point_result(resp: pb.PointQueryResponse, n_texts: int, n_points: int) -> Po
         a = from_tensor(getattr(resp, n), f"points.{n}")
         if a.shape != (n_texts, n_points):
             raise TensorError(f"points.{n}", f"expected shape [{n_texts},{n_points}], got {list(a.shape)}")
-        out[n] = a.astype(np.float32, copy=False)
-    return PointResult(out["relevancy"], out["similarity"], float(resp.elapsed_ms))
+        out[n] = require_finite(a, f"points.{n}").astype(np.float32, copy=False)
+    return PointResult(out["relevancy"], out["similarity"], _ms(resp.elapsed_ms, "points"))
 
 
 # ---------------------------------------------------------------- grpc.health.v1
@@ -648,9 +669,10 @@ class FmgsClient:
         ``encoding="png"`` asks for PNG bytes (smaller on the wire); they are decoded into the same
         arrays, quantised (8-bit, depth in millimetres), and kept in ``RenderResult.png``.
         """
+        outputs = tuple(outputs)
         req = self._render_request(scene, camera, text, outputs, encoding, canonical_phrases)
         chunks = self._read_stream(lambda t: self._stub.Render(req, metadata=self._metadata, timeout=t))
-        return self._decode(lambda: assemble_render(chunks))
+        return self._decode(lambda: next(_asked_for([assemble_render(chunks)], outputs)))
 
     def stream(
         self,
@@ -685,7 +707,7 @@ class FmgsClient:
 
         call = self._stub.StreamRender(requests(), metadata=self._metadata, timeout=timeout)
         try:
-            it = assemble_render_stream(self._stream(call))
+            it = _asked_for(assemble_render_stream(self._stream(call)), outputs)
             while True:
                 try:
                     res = self._decode(lambda: next(it, None))

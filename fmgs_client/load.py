@@ -5,6 +5,7 @@ Bounded in requests and in time; reports latency percentiles, throughput and eve
 
 from __future__ import annotations
 
+import math
 import statistics
 import threading
 import time
@@ -41,6 +42,18 @@ class LoadConfig:
     max_seconds: float = 300.0
     """Stop sending after this long, whatever is left."""
 
+    def __post_init__(self) -> None:
+        if isinstance(self.texts, str) or not self.texts or not all(isinstance(t, str) for t in self.texts):
+            raise ValueError(f"texts: need one or more strings, got {self.texts!r}")
+        for name in ("clients", "requests", "render_every", "top_k"):
+            low = 1 if name == "clients" else 0
+            if getattr(self, name) < low:
+                raise ValueError(f"{name} must be >= {low}, got {getattr(self, name)}")
+        for name in ("timeout_s", "max_seconds"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v > 0):
+                raise ValueError(f"{name} must be a positive number of seconds, got {v}")
+
 
 @dataclass
 class LoadReport:
@@ -69,10 +82,14 @@ class LoadReport:
         return self.ok / self.seconds if self.seconds > 0 else 0.0
 
     def summary(self) -> str:
-        med = statistics.median(self.latencies_ms) if self.latencies_ms else float("nan")
+        if self.latencies_ms:
+            med = statistics.median(self.latencies_ms)
+            lat = f"p50 {med:.1f} ms, p99 {self.percentile(99):.1f} ms"
+        else:
+            lat = "no latencies (no request OK)"
         return (
             f"{self.sent} requests in {self.seconds:.1f} s: {self.ok} OK ({self.throughput:.1f}/s), "
-            f"p50 {med:.1f} ms, p99 {self.percentile(99):.1f} ms; codes {dict(self.codes)}"
+            f"{lat}; codes {dict(self.codes)}"
         )
 
 

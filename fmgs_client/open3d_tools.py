@@ -115,6 +115,11 @@ def view_camera(
     answer: TextAnswer, width: int, height: int, up: tuple[float, float, float] = (0, 0, 1), fov: float = 60.0
 ) -> CameraSpec:
     """A camera that frames the answer's points (and boxes): from above-diagonal, looking at their centre."""
+    if width < 1 or height < 1:
+        raise ValueError(f"view_camera: width and height must be at least 1, got {width}x{height}")
+    u = np.asarray(up, np.float64)
+    if u.shape != (3,) or not np.all(np.isfinite(u)) or not np.any(u):
+        raise ValueError(f"view_camera: up must be 3 finite numbers, not all zero, got {u.tolist()}")
     allp = np.concatenate([_means(answer)] + [b.corners() for i in answer.instances for b in (i.aabb, i.obb)])
     if not len(allp):
         allp = np.zeros((1, 3))
@@ -124,7 +129,7 @@ def view_camera(
     # Fit the bounding sphere into the narrower field of view.
     fov_v = 2 * math.degrees(math.atan(math.tan(math.radians(fov) / 2) * height / width))
     dist = 1.15 * radius / math.sin(math.radians(min(fov, fov_v)) / 2)
-    u = np.asarray(up, np.float64) / np.linalg.norm(up)
+    u = u / np.linalg.norm(u)
     side = np.cross(u, np.eye(3)[np.argmin(np.abs(u))])
     side /= np.linalg.norm(side)
     d = np.cross(u, side) * 0.6 + side * 0.6 + u * 0.5

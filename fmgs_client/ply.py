@@ -11,6 +11,8 @@ from pathlib import Path
 
 import numpy as np
 
+from fmgs_client.types import require_finite
+
 # numpy dtype <-> PLY scalar type names (little-endian on disk).
 _PLY_TYPES = {
     np.dtype("float32"): "float",
@@ -67,10 +69,12 @@ def write_ply(
     colors: np.ndarray | None = None,
     scalars: dict[str, np.ndarray] | None = None,
 ) -> Path:
-    """Write points [N,3] (as float32), optional colours uint8 [N,3] and scalar properties [N] each."""
+    """Write points [N,3] (as float32), optional colours uint8 [N,3] and scalar properties [N] each;
+    ValueError (nothing written) for NaN or infinity among the points or a float property."""
     pts = np.asarray(points, np.float32)
     if pts.ndim != 2 or pts.shape[1] != 3:
         raise ValueError(f"write_ply: points must be [N,3], got {pts.shape}")
+    require_finite(pts, "write_ply: points")
     n = len(pts)
     fields: list[tuple[str, np.dtype, np.ndarray]] = [
         (ax, np.dtype("float32"), pts[:, i]) for i, ax in enumerate("xyz")
@@ -86,6 +90,7 @@ def write_ply(
             raise ValueError(f"write_ply: property {name!r} must be [{n}], got {a.shape}")
         if not name.isidentifier() or name in ("x", "y", "z", "red", "green", "blue"):
             raise ValueError(f"write_ply: bad property name {name!r}")
+        require_finite(a, f"write_ply: property {name!r}")
         fields.append((name, _scalar_dtype(name, a), a))
     rec = np.empty(n, dtype=[(name, dt.newbyteorder("<")) for name, dt, _ in fields])
     for name, dt, a in fields:

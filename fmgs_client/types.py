@@ -18,6 +18,17 @@ from fmgs_wire.proto.fmgs.v1 import fmgs_pb2 as pb
 _STATE_PREFIX = "SCENE_STATE_"
 
 
+def require_finite(values: Any, what: str) -> np.ndarray:
+    """``values`` as an array; ValueError naming ``what`` when a float among them is NaN or infinite
+    (a malformed answer: nothing downstream should draw or write such a number)."""
+    a = np.asarray(values)
+    if a.dtype.kind in "fc":
+        bad = a.size - int(np.count_nonzero(np.isfinite(a)))
+        if bad:
+            raise ValueError(f"{what}: {bad} of {a.size} values are NaN or infinite")
+    return a
+
+
 @dataclass(frozen=True, eq=False)
 class SceneInfo:
     """A scene in the server's repository and, when loaded, what it holds."""
@@ -66,7 +77,8 @@ class SceneInfo:
         state = name.removeprefix(_STATE_PREFIX).lower()
         if len(m.bounds) not in (0, 6):
             raise ValueError(f"SceneInfo.bounds: expected 6 numbers, got {len(m.bounds)}")
-        bounds = np.asarray(m.bounds, np.float64).reshape(2, 3) if len(m.bounds) else None
+        bounds = require_finite(np.asarray(m.bounds, np.float64), "SceneInfo.bounds")
+        bounds = bounds.reshape(2, 3) if len(m.bounds) else None
         return cls(
             name=m.name,
             state=state,
@@ -110,6 +122,7 @@ class Box:
                 f"{what}: expected 3 centre, 3 extent and 9 (or 0) rotation numbers, got "
                 f"{len(m.center)}, {len(m.extent)}, {len(m.rotation)}"
             )
+        require_finite(np.asarray([*m.center, *m.extent, *m.rotation], np.float64), what)
         rot = np.asarray(m.rotation, np.float64).reshape(3, 3) if len(m.rotation) else np.eye(3)
         return cls(np.asarray(m.center, np.float64), np.asarray(m.extent, np.float64), rot)
 
@@ -136,9 +149,10 @@ class Instance:
         """Convert a wire ``Instance``."""
         if len(m.centroid) != 3:
             raise ValueError(f"Instance {m.id}.centroid: expected 3 numbers, got {len(m.centroid)}")
+        require_finite(np.asarray(m.score, np.float64), f"Instance {m.id}.score")
         return cls(
             id=int(m.id),
-            centroid=np.asarray(m.centroid, np.float64),
+            centroid=require_finite(np.asarray(m.centroid, np.float64), f"Instance {m.id}.centroid"),
             aabb=Box.from_proto(m.aabb, f"Instance {m.id}.aabb"),
             obb=Box.from_proto(m.obb, f"Instance {m.id}.obb"),
             score=float(m.score),

@@ -241,6 +241,11 @@ class Inspector:
 
         threading.Thread(target=run, daemon=True).start()
 
+    def _fail(self, line: str) -> None:
+        """A failure as the status bar's red line (the window goes on)."""
+        self.last_error = line
+        self._set_status(line)
+
     def _set_status(self, line: str | None) -> None:
         state = self.info.state if self.info is not None else "no scene"
         parts = [self.address, f"{self.scene or '-'} ({state})"]
@@ -529,7 +534,11 @@ class Inspector:
             self._set_status("nothing to export: run a query first")
             return
         v = self.answers[self.selected]
-        paths = export_answer(v.answer, self.out_dir / f"{self._stem()}.ply")
+        try:
+            paths = export_answer(v.answer, self.out_dir / f"{self._stem()}.ply")
+        except (OSError, ValueError) as e:
+            self._fail(f"Answer PLY: {e}")
+            return
         self._set_status("wrote " + ", ".join(str(p) for p in paths))
 
     def on_screenshot(self, path: str | Path | None = None) -> None:
@@ -538,18 +547,25 @@ class Inspector:
 
         def done(img) -> None:
             def saved() -> None:
-                self.o3d.io.write_image(str(out), img)
-                self._set_status(f"wrote {out}")
+                if self.o3d.io.write_image(str(out), img):
+                    self._set_status(f"wrote {out}")
+                else:
+                    self._fail(f"Screenshot: could not write {out}")
 
             self._post(saved)
 
         self.view.scene.scene.render_to_image(done)
         self.window.post_redraw()  # the image comes with the next frame drawn
 
-    def on_save_camera(self, path: str | Path | None = None) -> Path:
-        """The current view as camera JSON (``fmgs-client render --camera FILE``), at the 3D view's size."""
+    def on_save_camera(self, path: str | Path | None = None) -> Path | None:
+        """The current view as camera JSON (``fmgs-client render --camera FILE``), at the 3D view's size;
+        None when it could not be written (the status bar says why)."""
         out = Path(path) if path else self.out_dir / f"{self._stem()}-camera.json"
-        out.write_text(json.dumps(self._view_camera().to_dict(), indent=1))
+        try:
+            out.write_text(json.dumps(self._view_camera().to_dict(), indent=1))
+        except OSError as e:
+            self._fail(f"Camera JSON: {e}")
+            return None
         self._set_status(f"wrote {out}")
         return out
 

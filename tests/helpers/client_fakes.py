@@ -174,6 +174,9 @@ class FakeFmgs(pb_grpc.FmgsServicer):
         imgs = {"relevancy": rel}
         if pb.RENDER_OUTPUT_RGB in request.outputs:
             imgs["rgb"] = np.repeat(rel[..., None], 3, -1)
+        for out, name in ((pb.RENDER_OUTPUT_DEPTH, "depth"), (pb.RENDER_OUTPUT_ALPHA, "alpha")):
+            if out in request.outputs:  # every output asked for comes back, as from the real server
+                imgs[name] = np.ones((h, w), np.float32)
         return render_chunks(request.sequence, imgs, 3, argmax=(w - 1, h - 1, float(rel.max())))
 
     def Render(self, request, context):

@@ -12,6 +12,23 @@ from fmgs.data import HOLDOUT_EVERY
 from fmgs.field.config import FieldConfig, SelectConfig
 
 
+def _check(cfg, *, positive: str = "", non_negative: str = "", unit: str = "") -> None:
+    """ValueError naming every field of ``cfg`` outside its range: ``positive`` (> 0), ``non_negative``
+    (>= 0) and ``unit`` ([0, 1]) are space-separated field names (NaN fails every range)."""
+    bad = [
+        f"{name} must be {want}, got {getattr(cfg, name)!r}"
+        for names, want, ok in (
+            (positive, "> 0", lambda v: v > 0),
+            (non_negative, ">= 0", lambda v: v >= 0),
+            (unit, "in [0, 1]", lambda v: 0 <= v <= 1),
+        )
+        for name in names.split()
+        if not ok(getattr(cfg, name))
+    ]
+    if bad:
+        raise ValueError(f"{type(cfg).__name__}: " + "; ".join(bad))
+
+
 @dataclass(frozen=True)
 class DensifyConfig:
     """When and how to grow and prune (defaults: graphdeco 3DGS for 30K steps)."""
@@ -38,6 +55,14 @@ class DensifyConfig:
     """Opacities are clamped to at most this at each reset."""
     max_gaussians: int = 3_000_000
     """Growth stops at this count (memory guard)."""
+
+    def __post_init__(self) -> None:
+        _check(
+            self,
+            positive="refine_every reset_every max_gaussians reset_opacity",
+            non_negative="refine_start refine_stop grad_threshold dense_percent prune_screen_px prune_world",
+            unit="prune_opacity reset_opacity",
+        )
 
     def scaled(self, factor: float) -> DensifyConfig:
         """The same schedule compressed to ``factor`` times as many steps (for reduced runs).
@@ -124,6 +149,20 @@ class GSTrainConfig:
     oversubscribes a busy machine: train-gs made 0.26 steps/s with 2 threads on a 2-core EPYC under a
     load of 6-8 against 2.6 with 1; idle, 2 threads won (benchmarks/results/THREADS.md)."""
 
+    def __post_init__(self) -> None:
+        _check(
+            self,
+            positive="steps image_scale sh_every lr_means lr_means_final max_init_points reference_tile",
+            non_negative="lr_sh_dc lr_opacity lr_scales lr_quats random_init lr_background holdout_every "
+            "checkpoint_every threads",
+            unit="ssim_weight background_transmittance",
+        )
+        if not 0 <= self.sh_degree <= 3 or not 0 < self.init_opacity < 1:
+            raise ValueError(
+                f"GSTrainConfig: sh_degree must be in 0..3 and init_opacity in (0, 1), got "
+                f"{self.sh_degree!r} and {self.init_opacity!r}"
+            )
+
     @classmethod
     def reduced(cls, steps: int, **kw) -> GSTrainConfig:
         """A run whose SH and densification schedule are compressed by steps / 30,000 (the defaults at
@@ -189,6 +228,11 @@ class FieldTrainConfig:
             raise ValueError("need steps >= 1, 0 <= lam <= 1 and an odd dotsim_kernel >= 3")
         if self.balance not in BALANCES:
             raise ValueError(f"balance must be one of {BALANCES}, not {self.balance!r}")
+        _check(
+            self,
+            positive="huber_delta lr lr_final adam_eps",
+            non_negative="dotsim_weight dotsim_start weight_decay threads holdout_every checkpoint_every",
+        )
 
     def reduced(self, steps: int, **kw) -> FieldTrainConfig:
         """The same schedule compressed to ``steps`` (dotsim starts at the same fraction; unchanged at

@@ -124,6 +124,11 @@ def test_train_gs_short_flags_and_tuples():
         ('name = "n"\n[targets]\nscale_blend = "median"\n', "scale_blend must be one of"),
         ("[field]\nlr = nan\n", "field: lr must be a number, got nan"),  # NaN passed every range check
         ("[field.select]\nopacity_min = nan\n", "opacity_min must be a number, got nan"),
+        # Out-of-range training settings were accepted (a negative count, a zero or negative rate).
+        ("[gs]\nmax_init_points = -1\n", "GSTrainConfig: max_init_points must be > 0, got -1"),
+        ("[gs]\nlr_means = 0.0\n", "lr_means must be > 0"),
+        ("[gs.densify]\nrefine_every = 0\n", "DensifyConfig: refine_every must be > 0"),
+        ("[field]\nlr = -1.0\n", "FieldTrainConfig: lr must be > 0, got -1.0"),
     ],
 )
 def test_bad_settings_exit_2_naming_the_setting(tmp_path, toml, message):

@@ -6,7 +6,8 @@ Layout::
                                  "targets": {"clip": {"encoder": id, "dim": Dc, "unit_norm": true},
                                              "dino": {"encoder": id, "dim": Dd, "unit_norm": false}},
                                  "images": {<Frame.name>: {"file": <name>.safetensors,
-                                                           "height": h, "width": w}}}
+                                                           "height": h, "width": w}},
+                                 "settings": {...}}  (optional)
     <cache>/<name>.safetensors  clip [h,w,Dc] float16, optional dino [h,w,Dd] float16,
                                 optional mask [h,w] uint8 (1 = supervise, 0 = ignore; absent = all);
                                 metadata {"format", "version", "image"}
@@ -14,7 +15,10 @@ Layout::
 ``clip`` is the language-aligned target (hybrid CLIP, label-name text embeddings, ...; the encoder id
 says which) and is unit-norm wherever the mask is set. ``dino`` is present exactly when the manifest
 lists a dino target. Each image file is written atomically and the manifest is rewritten (atomically)
-after every image, so an interrupted extraction leaves a valid cache that can be resumed.
+after every image, so an interrupted extraction leaves a valid cache that can be resumed. ``settings``
+(optional, any JSON object) records what besides the encoders decided the maps (the extraction drivers:
+crop scales, blend, map size, label names, ...); a resumed run with other settings is refused, as it
+would mix maps of both.
 """
 
 from __future__ import annotations
@@ -151,10 +155,18 @@ class FeatureCacheWriter:
     Usage: ``with FeatureCacheWriter(d, {"clip": TargetInfo(...)}) as w: w.add(name, clip=...)``.
     """
 
-    def __init__(self, cache_dir: str | os.PathLike, targets: Mapping[str, TargetInfo]) -> None:
-        """Create ``cache_dir`` (or resume it: its manifest's targets must equal ``targets``)."""
+    def __init__(
+        self,
+        cache_dir: str | os.PathLike,
+        targets: Mapping[str, TargetInfo],
+        settings: Mapping[str, Any] | None = None,
+    ) -> None:
+        """Create ``cache_dir`` (or resume it: its manifest's targets must equal ``targets``, and its
+        recorded ``settings``, when it holds images made with some, must equal these; None keeps the
+        recorded ones)."""
         self.root = Path(cache_dir)
         self.targets = _check_targets("targets", targets)
+        self.settings = _check_settings("settings", settings)
         self._images: dict[str, ImageEntry] = {}
         if (self.root / MANIFEST).is_file():
             existing = FeatureCache.open(self.root)
@@ -163,6 +175,14 @@ class FeatureCacheWriter:
                     str(self.root / MANIFEST),
                     f"cache holds targets {_describe(existing.targets)}, this run writes "
                     f"{_describe(self.targets)}; use a new cache folder",
+                )
+            if self.settings is None:
+                self.settings = existing.settings
+            elif existing.settings not in (None, self.settings) and existing.entries:
+                raise ValidationError(
+                    str(self.root / MANIFEST),
+                    f"cache was made with other settings ({_settings_diff(existing.settings, self.settings)})"
+                    "; use a new cache folder",
                 )
             self._images = dict(existing.entries)
         self._write_manifest()
@@ -238,8 +258,27 @@ class FeatureCacheWriter:
                 for n, e in sorted(self._images.items())
             },
         }
+        if self.settings is not None:
+            doc["settings"] = self.settings
         with atomic_path(self.root / MANIFEST) as tmp:
             tmp.write_text(json.dumps(doc, indent=1))
+
+
+def _check_settings(where: str, settings: Any) -> dict[str, Any] | None:
+    """``settings`` as JSON reads it back (tuples as lists), or None; a JSON object is required."""
+    if settings is None:
+        return None
+    if not isinstance(settings, Mapping):
+        raise ValidationError(where, f"settings must be an object, got {type(settings).__name__}")
+    try:
+        return json.loads(json.dumps(dict(settings), allow_nan=False))
+    except (TypeError, ValueError) as e:
+        raise ValidationError(where, f"settings must be plain JSON ({e})") from e
+
+
+def _settings_diff(then: Mapping[str, Any], now: Mapping[str, Any]) -> str:
+    keys = [k for k in {**then, **now} if then.get(k) != now.get(k)]
+    return "; ".join(f"{k}: {then.get(k)!r} then, {now.get(k)!r} now" for k in keys)
 
 
 def _describe(targets: Mapping[str, TargetInfo]) -> str:
@@ -249,11 +288,19 @@ def _describe(targets: Mapping[str, TargetInfo]) -> str:
 class FeatureCache:
     """Read access to a cache folder written by ``FeatureCacheWriter`` (or any producer of the format)."""
 
-    def __init__(self, root: Path, targets: dict[str, TargetInfo], entries: dict[str, ImageEntry]) -> None:
+    def __init__(
+        self,
+        root: Path,
+        targets: dict[str, TargetInfo],
+        entries: dict[str, ImageEntry],
+        settings: dict[str, Any] | None = None,
+    ) -> None:
         """Prefer ``FeatureCache.open``."""
         self.root = root
         self.targets = targets
         self.entries = entries
+        self.settings = settings
+        """What besides the encoders made the maps (FeatureCacheWriter), None when not recorded."""
 
     @classmethod
     def open(cls, cache_dir: str | os.PathLike) -> FeatureCache:
@@ -303,7 +350,10 @@ class FeatureCache:
                     f"images[{name!r}] must be {{file: plain file name, height: int, width: int}}, got {e!r}",
                 )
             entries[name] = ImageEntry(e["file"], e["height"], e["width"])
-        return cls(root, targets, entries)
+        settings = doc.get("settings")
+        if settings is not None and not isinstance(settings, dict):
+            raise ValidationError(str(path), f"'settings' must be an object, got {settings!r}")
+        return cls(root, targets, entries, settings)
 
     @property
     def image_names(self) -> list[str]:

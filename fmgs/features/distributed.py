@@ -27,9 +27,11 @@ from fmgs.features.clip import load_image_encoder
 from fmgs.features.dino import load_dense_encoder
 from fmgs.features.extract import (
     ExtractConfig,
+    clip_settings,
     image_label_targets,
     image_targets,
     label_embeddings,
+    label_settings,
     read_label_names,
 )
 from fmgs.features.models import DEFAULT_REVISION
@@ -120,6 +122,18 @@ def maps_task(job: TargetJob, indices: list[int]) -> list[dict]:
     return [w.maps(i) for i in indices]
 
 
+def job_settings(job: TargetJob, ds) -> dict:
+    """The settings the serial driver records for ``job``'s cache (fmgs.features.extract.clip_settings /
+    label_settings), computed without loading an encoder: the recorded ones leave out the crops' pixel
+    size, which the encoder's id (in the targets) decides."""
+    spec = job.spec
+    cfg = ExtractConfig(spec.feature_scale, spec.feature_side, progress=False)
+    if spec.kind == "labels":
+        names = read_label_names(spec.names or ds.root / "scene.json")
+        return label_settings(names, frozenset({0}), cfg)
+    return clip_settings(spec_pyramid(None, spec), cfg, spec.segmenter)
+
+
 def extract_features_ray(
     job: TargetJob,
     cache_dir: str | os.PathLike,
@@ -147,7 +161,7 @@ def extract_features_ray(
     targets = ray.get(remote(describe_task).remote(job))
     from tqdm.auto import tqdm
 
-    with FeatureCacheWriter(cache_dir, targets) as writer:
+    with FeatureCacheWriter(cache_dir, targets, job_settings(job, ds)) as writer:
         todo = [i for i in range(len(ds)) if not writer.has(ds.frames[i].name)]
         fn = remote(task or maps_task)
         pending = [fn.remote(job, todo[s : s + batch]) for s in range(0, len(todo), batch)]

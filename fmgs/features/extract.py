@@ -58,6 +58,33 @@ def feature_size(
     return c.height, c.width
 
 
+def clip_settings(pyramid: PyramidConfig, cfg: ExtractConfig, segmenter_id: str | None) -> dict:
+    """What besides the encoders decides an image's CLIP (and DINO) maps, as the cache records it
+    (FeatureCacheWriter's ``settings``): a resumed run with others is refused."""
+    return {
+        "kind": "clip",
+        "crop_scales": list(pyramid.scales),
+        "overlap": pyramid.overlap,
+        "crop_stride": pyramid.max_stride,
+        "scale_blend": pyramid.blend,
+        "segmenter": segmenter_id,
+        "feature_scale": cfg.feature_scale,
+        "feature_side": cfg.feature_side,
+        "image_scale": cfg.image_scale,
+    }
+
+
+def label_settings(names: Sequence[str], ignore: frozenset[int] | set[int], cfg: ExtractConfig) -> dict:
+    """What besides the text encoder decides an image's label targets (``clip_settings``' twin)."""
+    return {
+        "kind": "labels",
+        "names": list(names),
+        "ignore": sorted(int(v) for v in ignore),
+        "feature_scale": cfg.feature_scale,
+        "feature_side": cfg.feature_side,
+    }
+
+
 def _todo(ds: PosedDataset, writer: FeatureCacheWriter, indices: Sequence[int] | None) -> list[int]:
     idx = list(range(len(ds))) if indices is None else list(indices)
     return [i for i in idx if not writer.has(ds.frames[i].name)]
@@ -84,7 +111,9 @@ def extract_targets(
         targets["dino"] = TargetInfo(dino_encoder.id, dino_encoder.dim, False)
     from tqdm.auto import tqdm
 
-    with FeatureCacheWriter(cache_dir, targets) as writer:
+    seg_id = None if segmenter is None else str(getattr(segmenter, "id", type(segmenter).__name__))
+    settings = clip_settings(pyramid, cfg, seg_id)
+    with FeatureCacheWriter(cache_dir, targets, settings) as writer:
         for i in tqdm(_todo(ds, writer, indices), desc="features", unit="image", disable=not cfg.progress):
             writer.add(**image_targets(ds, i, clip_encoder, dino_encoder, pyramid, cfg, segmenter))
     return FeatureCache.open(cache_dir)
@@ -166,7 +195,7 @@ def extract_labels(
     targets = {"clip": TargetInfo(text_encoder.id, text_encoder.dim, True)}
     from tqdm.auto import tqdm
 
-    with FeatureCacheWriter(cache_dir, targets) as writer:
+    with FeatureCacheWriter(cache_dir, targets, label_settings(names, ignore, cfg)) as writer:
         for i in tqdm(
             _todo(ds, writer, indices), desc="label targets", unit="image", disable=not cfg.progress
         ):
@@ -193,6 +222,11 @@ def image_label_targets(
     """One frame's label targets, as FeatureCacheWriter.add's keyword arguments (image_name, clip, mask)."""
     label_path = labels if callable(labels) else (lambda f, d=Path(labels): d / Path(f.name).name)
     frame = ds.frames[i]
-    lab = read_label_map(label_path(frame), frame.camera.width, frame.camera.height).to(cfg.device)
-    t = label_embedding_map(lab, emb, feature_size(frame.camera, cfg.feature_scale, cfg.feature_side), ignore)
+    path = label_path(frame)
+    lab = read_label_map(path, frame.camera.width, frame.camera.height).to(cfg.device)
+    hw = feature_size(frame.camera, cfg.feature_scale, cfg.feature_side)
+    try:
+        t = label_embedding_map(lab, emb, hw, ignore)
+    except ValidationError as e:  # name the label image, not just the value
+        raise ValidationError(str(path), f"{e.reason} ({len(emb)} label names)") from e
     return {"image_name": frame.name, "clip": t.clip, "mask": t.mask}

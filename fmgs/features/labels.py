@@ -44,7 +44,8 @@ def label_embedding_map(
     out_hw: tuple[int, int],
     ignore: frozenset[int] | set[int] = frozenset({0}),
 ) -> LabelTargets:
-    """labels [H,W] integer in [0, L), embeddings [L,D] (row l for label l) -> targets at out_hw = (h, w)."""
+    """labels [H,W] integer in [0, L) or in ``ignore`` (an ignored id needs no row: 255 "void" with fewer
+    names), embeddings [L,D] (row l for label l) -> targets at out_hw = (h, w)."""
     if labels.ndim != 2 or labels.dtype.is_floating_point or labels.dtype == torch.bool:
         raise ValidationError(
             "labels", f"expected an integer [H,W] map, got {labels.dtype} {tuple(labels.shape)}"
@@ -53,7 +54,7 @@ def label_embedding_map(
         raise ValidationError("embeddings", f"expected finite [L,D], got {tuple(embeddings.shape)}")
     L = embeddings.shape[0]
     present = torch.unique(labels).tolist()
-    bad = [v for v in present if not 0 <= v < L]
+    bad = [v for v in present if not 0 <= v < L and v not in ignore]
     if bad:
         raise ValidationError("labels", f"label value {bad[0]} outside [0, {L}) (all bad values: {bad[:10]})")
     h, w = int(out_hw[0]), int(out_hw[1])

@@ -5,11 +5,16 @@ from __future__ import annotations
 
 import json
 import os
+from collections.abc import Callable
 from pathlib import Path
+from typing import TypeVar
 
 import torch
 
+from fmgs.errors import ValidationError
 from fmgs.features.models import ModelFiles, ModelNotFoundError, local_weight_hashes
+
+T = TypeVar("T")
 
 
 def save_net_folder(folder: str | os.PathLike, net: torch.nn.Module, config: dict, config_name: str,
@@ -29,14 +34,39 @@ def save_net_folder(folder: str | os.PathLike, net: torch.nn.Module, config: dic
 def read_net_folder(model_id: str, prefix: str, config_name: str,
                     weights_name: str) -> tuple[dict, dict[str, torch.Tensor], ModelFiles]:  # fmt: skip
     """The folder a ``PREFIX:FOLDER`` id names -> (its config, its state dict in float32, its files);
-    ModelNotFoundError naming both files when either is missing."""
+    ModelNotFoundError naming both files when either is missing, ValidationError naming the file that
+    cannot be read."""
+    from safetensors import SafetensorError
     from safetensors.torch import load_file
 
-    folder = Path(model_id.removeprefix(prefix)).expanduser()
+    rest = model_id.removeprefix(prefix)
+    if not rest.strip():
+        raise ValidationError("encoder id", f"{model_id!r} names no folder")
+    folder = Path(rest).expanduser()
     if not (folder / config_name).is_file() or not (folder / weights_name).is_file():
         raise ModelNotFoundError(model_id, [f"{folder} (needs {config_name} and {weights_name})"])
-    config = json.loads((folder / config_name).read_text())
-    state = {
-        k: v.float() if v.is_floating_point() else v for k, v in load_file(str(folder / weights_name)).items()
-    }
+    try:
+        config = json.loads((folder / config_name).read_text())
+    except (OSError, UnicodeDecodeError, ValueError) as e:
+        raise ValidationError(str(folder / config_name), f"cannot read the config ({e})") from e
+    if not isinstance(config, dict):
+        got = type(config).__name__
+        raise ValidationError(str(folder / config_name), f"expected a JSON object, got {got}")
+    try:
+        weights = load_file(str(folder / weights_name))
+    except (SafetensorError, OSError) as e:
+        raise ValidationError(str(folder / weights_name), f"cannot read the weights ({e})") from e
+    state = {k: v.float() if v.is_floating_point() else v for k, v in weights.items()}
     return config, state, ModelFiles(model_id, folder, "local", files=local_weight_hashes(folder))
+
+
+def build_net(model_id: str, make: Callable[[], T]) -> T:
+    """``make()`` (a stand-in built from its folder's config and weights), a ValidationError naming the id
+    when the config lacks a setting or the weights do not fit the network it describes."""
+    try:
+        return make()
+    except ValidationError:
+        raise
+    except (KeyError, TypeError, ValueError, RuntimeError) as e:
+        why = f"{type(e).__name__}: {e}"
+        raise ValidationError(model_id, f"its config and weights do not make the model ({why[:400]})") from e

@@ -74,9 +74,13 @@ def read_checkpoint(path: Path) -> dict[str, torch.Tensor]:
             "file the model's repository ships beside it (open_clip_model.safetensors), or convert the .bin "
             "once, on a machine where you trust it, with safetensors.torch.save_file",
         )
+    from safetensors import SafetensorError
     from safetensors.torch import load_file
 
-    sd = load_file(str(path))
+    try:
+        sd = load_file(str(path))
+    except (SafetensorError, OSError) as e:
+        raise ValidationError(str(path), f"not a readable safetensors checkpoint ({e})") from e
     return {k.removeprefix("module."): v for k, v in sd.items()}
 
 

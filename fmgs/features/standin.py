@@ -28,7 +28,7 @@ from torch import nn
 from fmgs.errors import ValidationError
 from fmgs.features.crop_content import window as crop_window
 from fmgs.features.models import MINILM_ID, ModelFiles
-from fmgs.features.net_folder import read_net_folder, save_net_folder
+from fmgs.features.net_folder import build_net, read_net_folder, save_net_folder
 from fmgs.features.pyramid import PyramidConfig
 from fmgs.vecmath import safe_normalize
 
@@ -121,11 +121,14 @@ def save_standin(folder: str | os.PathLike, net: StandinNet, config: dict) -> Pa
 def load_standin(model_id: str, device: str | torch.device = "cpu") -> StandinImageEncoder:
     """The encoder of a ``standin:FOLDER`` id."""
     config, state, files = read_net_folder(model_id, PREFIX, CONFIG, WEIGHTS)
-    net = StandinNet(
-        int(config["dim"]), int(config["image_size"]), int(config["width"]), int(config.get("blocks", 1))
-    )
-    net.load_state_dict(state)
-    enc = StandinImageEncoder(net, config, model_id, device)
+
+    def make() -> StandinImageEncoder:
+        c = config
+        net = StandinNet(int(c["dim"]), int(c["image_size"]), int(c["width"]), int(c.get("blocks", 1)))
+        net.load_state_dict(state)
+        return StandinImageEncoder(net, config, model_id, device)
+
+    enc = build_net(model_id, make)
     enc.files = files
     return enc
 

@@ -24,7 +24,7 @@ from torch import nn
 
 from fmgs.errors import ValidationError
 from fmgs.features.models import ModelFiles
-from fmgs.features.net_folder import read_net_folder, save_net_folder
+from fmgs.features.net_folder import build_net, read_net_folder, save_net_folder
 
 CONFIG = "standin_dino.json"
 WEIGHTS = "standin_dino.safetensors"
@@ -101,8 +101,12 @@ def save_standin_dino(folder: str | os.PathLike, net: DenseStandinNet, config: d
 def load_standin_dino(model_id: str, device: str | torch.device = "cpu") -> DenseStandinEncoder:
     """The encoder of a ``standin-dino:FOLDER`` id."""
     config, state, files = read_net_folder(model_id, PREFIX, CONFIG, WEIGHTS)
-    net = DenseStandinNet(int(config["dim"]), int(config["width"]))
-    net.load_state_dict(state)
-    enc = DenseStandinEncoder(net, config, model_id, device)
+
+    def make() -> DenseStandinEncoder:
+        net = DenseStandinNet(int(config["dim"]), int(config["width"]))
+        net.load_state_dict(state)
+        return DenseStandinEncoder(net, config, model_id, device)
+
+    enc = build_net(model_id, make)
     enc.files = files
     return enc

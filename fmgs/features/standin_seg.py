@@ -27,7 +27,7 @@ from torch import nn
 
 from fmgs.errors import ValidationError
 from fmgs.features.models import ModelFiles
-from fmgs.features.net_folder import read_net_folder, save_net_folder
+from fmgs.features.net_folder import build_net, read_net_folder, save_net_folder
 from fmgs.features.segment_pool import MIN_PIXELS, relabel
 
 CONFIG = "standin_seg.json"
@@ -210,8 +210,12 @@ def load_segmenter(model_id: str, device: str | torch.device = "cpu", *, revisio
 def load_standin_seg(model_id: str, device: str | torch.device = "cpu") -> SegStandinEncoder:
     """The segmenter of a ``standin-seg:FOLDER`` id."""
     config, state, files = read_net_folder(model_id, PREFIX, CONFIG, WEIGHTS)
-    net = SegStandinNet(int(config["width"]))
-    net.load_state_dict(state)
-    enc = SegStandinEncoder(net, config, model_id, device)
+
+    def make() -> SegStandinEncoder:
+        net = SegStandinNet(int(config["width"]))
+        net.load_state_dict(state)
+        return SegStandinEncoder(net, config, model_id, device)
+
+    enc = build_net(model_id, make)
     enc.files = files
     return enc

@@ -223,6 +223,8 @@ def load_dual_encoder(
     ``model_type`` one of ``allowed`` for ``role``), or an open_clip checkpoint file mapped onto CLIPModel."""
 
     ref = parse_encoder_id(model_id)
+    if ref.family.startswith("standin"):  # the CLIP stand-in has its own loaders; the others are no CLIP
+        raise ValidationError(model_id, f"a {ref.family} model cannot serve as the {role}")
     if ref.family == "openclip-file":
         model, tokenizer, files = load_openclip_file(ref)
         return model, lambda: tokenizer, files, True

@@ -12,8 +12,8 @@ import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 
-from fmgs_server.errors import ResourceExhausted
-from fmgs_server.slots import gave_up, queue_wait
+from fmgs_server.errors import Cancelled, ResourceExhausted
+from fmgs_server.slots import POLL_S, gave_up, queue_wait
 
 MiB = 1 << 20
 
@@ -94,7 +94,8 @@ class WorkBudget:
     @contextmanager
     def reserve(self, nbytes: int, context, what: str, patient: bool = False) -> Iterator[None]:
         """Hold ``nbytes`` for the duration; waits for room at most queue_timeout_s (never past the
-        deadline), or, ``patient`` (pose streams), as long as the client is there."""
+        deadline, and no longer than the client is there: CANCELLED), or, ``patient`` (pose streams), as
+        long as the client is there."""
         if not self.total:
             yield
             return
@@ -109,7 +110,7 @@ class WorkBudget:
                 if patient:
                     if not context.is_active():
                         raise ResourceExhausted("the client went away while waiting for working memory")
-                    self._cond.wait(0.25)
+                    self._cond.wait(POLL_S)
                     continue
                 remaining = end - time.monotonic()
                 if remaining <= 0:
@@ -119,7 +120,9 @@ class WorkBudget:
                         f"server busy: {what} needs about {nbytes / MiB:.0f} MiB of working memory and "
                         f"{(self.total - self._used) / MiB:.0f} MiB are free; retry later",
                     )
-                self._cond.wait(min(remaining, 0.25))
+                if not context.is_active():
+                    raise Cancelled("the client went away while waiting for working memory")
+                self._cond.wait(min(remaining, POLL_S))
             self._used += nbytes
         try:
             yield
@@ -127,3 +130,27 @@ class WorkBudget:
             with self._cond:
                 self._used -= nbytes
                 self._cond.notify_all()
+
+    @contextmanager
+    def reserve_until_sent(self, nbytes: int, context, what: str) -> Iterator[None]:
+        """As ``reserve``, for a unary answer, which grpc serialises and sends after the handler has
+        returned: held until both the ``with`` block is left and the call has ended (the context's
+        ``add_callback``; a context without one, such as a forwarded call's, releases at the block's end)."""
+        held = self.reserve(nbytes, context, what)
+        held.__enter__()
+        left, lock = [2], threading.Lock()
+
+        def end() -> None:
+            with lock:
+                left[0] -= 1
+                last = left[0] == 0
+            if last:
+                held.__exit__(None, None, None)
+
+        add = getattr(context, "add_callback", None)
+        if add is None or not add(end):  # no callbacks, or the call has ended already
+            end()
+        try:
+            yield
+        finally:
+            end()

@@ -241,19 +241,21 @@ class FmgsService(pb_grpc.FmgsServicer):
         if engine.field is None:
             raise FailedPrecondition(f"scene {engine.name!r} has no feature field; point queries need one")
         need = budget.point_bytes(len(pts), len(values), self.cfg.point_chunk)
-        with self.budget.reserve(need, context, "this point query"), self.slots.compute(context):
-            t0 = time.perf_counter()
-            q = self.encoders.embed(self.text_model(engine), values)
-            canon = self._canonical(engine, request.canonical_phrases)
-            if canon is None:
-                canon = self.encoders.embed(self.text_model(engine), list(engine.canonical_phrases))
-            stop = lambda: stop_if_gone(context, "the point query")  # noqa: E731
-            a = query_points(engine, pts, q, canon, self.cfg.point_chunk, stop)
-        return pb.PointQueryResponse(
-            relevancy=to_tensor(a.relevancy.numpy().astype(np.float32)),
-            similarity=to_tensor(a.similarity.numpy().astype(np.float32)),
-            elapsed_ms=(time.perf_counter() - t0) * 1e3,
-        )
+        # The answer's copies (arrays, wire bytes, the message grpc serialises) are part of the estimate.
+        with self.budget.reserve_until_sent(need, context, "this point query"):
+            with self.slots.compute(context):
+                t0 = time.perf_counter()
+                q = self.encoders.embed(self.text_model(engine), values)
+                canon = self._canonical(engine, request.canonical_phrases)
+                if canon is None:
+                    canon = self.encoders.embed(self.text_model(engine), list(engine.canonical_phrases))
+                stop = lambda: stop_if_gone(context, "the point query")  # noqa: E731
+                a = query_points(engine, pts, q, canon, self.cfg.point_chunk, stop)
+            return pb.PointQueryResponse(
+                relevancy=to_tensor(a.relevancy.numpy().astype(np.float32)),
+                similarity=to_tensor(a.similarity.numpy().astype(np.float32)),
+                elapsed_ms=(time.perf_counter() - t0) * 1e3,
+            )
 
     @rpc_stream
     def Segment(self, request, context):

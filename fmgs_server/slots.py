@@ -3,10 +3,14 @@
 from __future__ import annotations
 
 import threading
+import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 
-from fmgs_server.errors import DeadlineExceeded, ResourceExhausted, ServiceError
+from fmgs_server.errors import Cancelled, DeadlineExceeded, ResourceExhausted, ServiceError
+
+POLL_S = 0.25
+"""How often a request waiting for a slot or memory checks that its client is still there."""
 
 
 def queue_wait(context, queue_timeout_s: float) -> float:
@@ -39,17 +43,23 @@ class Slots:
 
     @contextmanager
     def compute(self, context, patient: bool = False) -> Iterator[None]:
-        """A compute slot, waited for at most queue_timeout_s (and never past the deadline).
+        """A compute slot, waited for at most queue_timeout_s (and never past the deadline); a request
+        whose client goes away meanwhile stops waiting (CANCELLED) instead of taking the slot.
 
         ``patient`` (pose streams): wait as long as the client is there; a stream's next frame simply
         comes later, and its newest pose replaces any it could not render meanwhile.
         """
         if patient:
-            while not self._compute.acquire(timeout=0.25):
+            while not self._compute.acquire(timeout=POLL_S):
                 if not context.is_active():
                     raise ResourceExhausted("the client went away while waiting for a compute slot")
-        elif not self._compute.acquire(timeout=queue_wait(context, self.queue_timeout_s)):
-            raise gave_up(context, "a compute slot", "server busy: no compute slot free; retry later")
+        else:
+            end = time.monotonic() + queue_wait(context, self.queue_timeout_s)
+            while not self._compute.acquire(timeout=max(0.0, min(POLL_S, end - time.monotonic()))):
+                if time.monotonic() >= end:
+                    raise gave_up(context, "a compute slot", "server busy: no compute slot free; retry later")
+                if not context.is_active():
+                    raise Cancelled("the client went away while waiting for a compute slot")
         try:
             yield
         finally:

@@ -127,8 +127,8 @@ class SceneRepository:
                 return s.engine
             s.checked = now
             v = scene_version(self.root / name)
-            if s.engine is not None and v == s.loaded_version:
-                return s.engine
+            if s.engine is not None and v in (s.loaded_version, s.version):
+                return s.engine  # unchanged, or a replacement that failed to load (tried once per version)
             if s.engine is None and s.state == FAILED and v == s.version:
                 raise FailedPrecondition(f"scene {name!r} failed to load: {s.reason}")
             self._load_locked(s, v)
@@ -147,7 +147,7 @@ class SceneRepository:
         """Reload from disk now (admin), even if unchanged."""
         s = self.slot(name)
         with s.lock:
-            self._load_locked(s, scene_version(self.root / name), force=True)
+            self._load_locked(s, scene_version(self.root / name))
             s.checked = time.monotonic()
             if s.engine is None:
                 raise FailedPrecondition(f"scene {name!r} failed to load: {s.reason}")
@@ -162,13 +162,13 @@ class SceneRepository:
         self.on_change(name, UNLOADED)
         return s
 
-    def _load_locked(self, s: SceneSlot, version: str, force: bool = False) -> None:
+    def _load_locked(self, s: SceneSlot, version: str) -> None:
         old = s.engine
         s.state, s.version = LOADING, version
         t0 = time.perf_counter()
         try:
             engine = self.loader(self.root / s.name)
-            if scene_version(self.root / s.name) != version and not force:
+            if scene_version(self.root / s.name) != version:  # it may mix two versions' files
                 raise FmgsError("the scene's files changed while loading; retry")
             need = engine.nbytes()
             if self.memory_budget and need > self.memory_budget:

@@ -31,6 +31,19 @@ def test_read_tokens(tmp_path):
     assert str(f) in str(e.value)
 
 
+def test_token_files_saved_with_a_byte_order_mark_or_crlf(tmp_path):
+    """Regression: a file saved with a UTF-8 byte order mark (Windows editors, PowerShell) kept it in its
+    first token, which then never matched; CRLF line ends and blank lines are ignored."""
+    f = tmp_path / "tokens"
+    f.write_bytes(b"\xef\xbb\xbfalpha\r\n  beta \r\n\r\n# old\r\n")
+    assert read_tokens(f) == [b"alpha", b"beta"]
+    f.write_bytes(b"\xef\xbb\xbf# readers\r\ngamma\r\n")
+    assert read_tokens(f) == [b"gamma"]
+    f.write_bytes(b"\xef\xbb\xbf\r\n\r\n")  # nothing but the mark: refused, never an open server
+    with pytest.raises(ValueError, match="no tokens in the file"):
+        read_tokens(f)
+
+
 def test_admin_methods_are_the_scene_admin_rpcs():
     names = {f"/fmgs.v1.Fmgs/{m.name}" for m in pb.DESCRIPTOR.services_by_name["Fmgs"].methods}
     assert ADMIN_METHODS == {

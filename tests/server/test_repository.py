@@ -136,6 +136,19 @@ def test_failed_reload_keeps_serving_the_previous_version(tmp_path):
     assert slot.reason == "reload failed, serving the previous version: truncated file"
 
 
+def test_a_broken_replacement_is_tried_once_per_version(tmp_path):
+    """Regression: while the previous version served, every access past reload_check_s loaded the broken
+    replacement again (holding the scene's lock, so its requests waited on each failing load)."""
+    _write(tmp_path, "a", generation=1)
+    r = Repo(tmp_path, reload_check_s=0.0)
+    e1 = r.repo.get("a")
+    _write(tmp_path, "a", fail="truncated file")
+    assert r.repo.get("a") is e1 and r.repo.get("a") is e1
+    assert r.loads == ["a", "a"]
+    _write(tmp_path, "a", generation=2, bytes=101)  # a good replacement is loaded on the next access
+    assert r.repo.get("a").generation == 2 and r.loads == ["a", "a", "a"]
+
+
 def test_files_changing_during_a_load_fail_it(tmp_path):
     _write(tmp_path, "a", generation=1)
     r = Repo(tmp_path)
@@ -148,6 +161,30 @@ def test_files_changing_during_a_load_fail_it(tmp_path):
     r.repo.loader = racing_load
     with pytest.raises(FailedPrecondition, match="changed while loading; retry"):
         r.repo.get("a")
+
+
+def test_files_changing_during_a_reload_keep_the_previous_version(tmp_path):
+    """Regression: an admin reload accepted an engine whose files changed while it loaded (it may mix
+    the old manifest with the new arrays), recorded as the version from before the load."""
+    _write(tmp_path, "a", generation=1)
+    r = Repo(tmp_path, reload_check_s=60.0)
+    e1 = r.repo.get("a")
+
+    def racing_load(folder: Path) -> FakeEngine:
+        engine = FakeEngine(folder)
+        _write(tmp_path, "a", generation=1000, bytes=101)  # another writer replaces the package meanwhile
+        return engine
+
+    r.repo.loader = racing_load
+    slot = r.repo.reload("a")
+    assert slot.state == READY and slot.engine is e1
+    assert (
+        slot.reason
+        == "reload failed, serving the previous version: the scene's files changed while loading; retry"
+    )
+    r.repo.loader = r._load
+    slot = r.repo.reload("a")
+    assert slot.engine.generation == 1000 and slot.reason == ""
 
 
 def test_unload_keeps_engines_in_flight(tmp_path):

@@ -246,22 +246,31 @@ class EmbeddingIndex:
         return a[:, :n] + b[:, :n] - lower_canon
 
     def exact_dots(self, rows: torch.Tensor, vectors: torch.Tensor) -> torch.Tensor:
-        """[k,n] float64 f.v for rows [k] (any order), from the stored embeddings, RESCORE_CHUNK rows at a
-        time. ValidationError when a stored row is not finite (a damaged package)."""
+        """[k,n] float64 f.v for rows [k] (any order), from the stored embeddings; on the CPU summed in a
+        fixed order (kernels.half_dots64, float_dots64), so a row's value never depends on which rows are
+        scored with it (equal rows tie). Rows read through ``read_rows`` or from a CUDA table go
+        RESCORE_CHUNK at a time. ValidationError when a stored row is not finite (a damaged package)."""
         v64 = vectors.double().to(self.device)
         r = rows.cpu().numpy()
         uniq, inv = np.unique(r, return_inverse=True)
         out = torch.empty(len(uniq), len(v64), dtype=torch.float64, device=self.device)
         if self.half_rows is not None:  # float64 in a fixed order from the float16 bits (no float64 copy)
             self.half_rows.exact_dots(uniq, v64, out)
-        chunk = tuning.RESCORE_CHUNK
-        for s in range(0, len(uniq) if self.half_rows is None else 0, chunk):
-            part = uniq[s : s + chunk]
+        elif self.device.type == "cpu":  # float32 rows, summed in a fixed order too
+            from fmgs.query.kernels import float_dots64
+
+            v = v64.numpy()
             if self.state is None:
+                float_dots64(self.table.detach().numpy(), uniq.astype(np.int64), v, out.numpy())
+            for s in range(0, len(uniq) if self.state is not None else 0, tuning.RESCORE_CHUNK):
+                part = uniq[s : s + tuning.RESCORE_CHUNK]
+                f = self.read_rows(part).detach().float().contiguous().numpy()
+                float_dots64(f, np.arange(len(part)), v, out[s : s + len(part)].numpy())
+        else:  # the exact path's CUDA table
+            for s in range(0, len(uniq), tuning.RESCORE_CHUNK):
+                part = uniq[s : s + tuning.RESCORE_CHUNK]
                 f = self.table[torch.from_numpy(part).to(self.device)]
-            else:
-                f = self.read_rows(part)
-            out[s : s + len(part)] = f.double() @ v64.T
+                out[s : s + len(part)] = f.double() @ v64.T
         check_rows_finite(out, uniq)
         return out[torch.from_numpy(inv).to(self.device)]
 

@@ -664,3 +664,20 @@ def _half_dots64(A, rows, V, out, sink):  # pragma: no cover
                     out[t + 3, k] = c3
             t += g
         sink[b] = s  # kept, so the reads ahead are not optimised away
+
+
+@numba.njit(parallel=True, cache=True)
+def float_dots64(A: np.ndarray, rows: np.ndarray, V: np.ndarray, out: np.ndarray) -> None:  # pragma: no cover
+    """out[t,k] = sum_j A[rows[t],j] V[k,j] in float64, summed in order j = 0..D-1, for float32 rows A
+    [M,D] and V [n,D] float64 holding float32 values (each product is exact in float64): the exact score
+    of float32 embeddings, a function of the row alone (a BLAS product's order depends on the batch, so
+    equal rows could differ in the last bit). Twin: ``reference.float_dots_reference`` (bit for bit)."""
+    D = A.shape[1]
+    n = V.shape[0]
+    for t in numba.prange(rows.shape[0]):
+        r = rows[t]
+        for k in range(n):
+            c = 0.0
+            for j in range(D):
+                c += np.float64(A[r, j]) * V[k, j]
+            out[t, k] = c

@@ -83,6 +83,16 @@ def half_dots_reference(A: np.ndarray, rows: np.ndarray, V: np.ndarray) -> np.nd
     return out
 
 
+def float_dots_reference(A: np.ndarray, rows: np.ndarray, V: np.ndarray) -> np.ndarray:
+    """Twin of ``kernels.float_dots64``: [m,n] float64 dots of the float32 rows A[rows] with V, summed in
+    order j = 0..D-1."""
+    f = A[rows].astype(np.float64)
+    out = np.zeros((len(rows), len(V)))
+    for j in range(A.shape[1]):
+        out += f[:, j : j + 1] * np.asarray(V, np.float64)[None, :, j]
+    return out
+
+
 def at_least_reference(x: np.ndarray, cut: float) -> np.ndarray:
     """Twin of ``kernels.at_least`` (and ``simd.compress_at_least``): positions [m] int64 of x [M]
     float32 with x >= float32(cut), in order."""

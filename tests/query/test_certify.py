@@ -606,3 +606,24 @@ def test_second_tier_sample_holds_the_strided_rows(scene, monkeypatch):
     without = idx.nbytes()
     monkeypatch.setattr(tuning, "TIER2_FIRST_MIN_SAMPLE", 0)
     assert idx.nbytes() - without == sum(a.nbytes for a in s)
+
+
+@pytest.mark.parametrize(
+    "cfg", [IndexConfig(exact_below=10**9), IndexConfig(rank=4, exact_below=0, rerank=2)]
+)
+@pytest.mark.parametrize("seed", [1, 3])
+def test_float32_copies_tie_exactly_whatever_rows_are_scored_with_them(cfg, seed):
+    # Float32 input (the Python API's, not a package's float16): a row's exact margin must not depend on
+    # the batch it is rescored in, or equal rows stop tying and the order is no longer by row.
+    g = torch.Generator().manual_seed(seed)
+    emb = safe_normalize(torch.randn(1, 32, generator=g)).repeat(500, 1)
+    emb[::7] = safe_normalize(torch.randn(1, 32, generator=g))
+    canon = emb @ safe_normalize(torch.randn(3, 32, generator=g)).T
+    idx = EmbeddingIndex.build(emb, canon, cfg)
+    d = idx.exact_dots(torch.arange(500), emb[1:2])
+    assert len(d[emb[:, 0] == emb[1, 0]].unique()) == 1
+    for rows in (torch.arange(7), torch.tensor([499, 1]), torch.arange(3, 400, 3)):
+        assert torch.equal(idx.exact_dots(rows, emb[1:2]), d[rows])
+    for q in (emb[1], emb[0], safe_normalize(torch.randn(1, 32, generator=g))[0]):
+        for k in (1, 7, 100, 430, 500):
+            _same(idx.rank(q, k), rank_reference(emb, canon, q, k))

@@ -9,6 +9,7 @@ import pytest
 from fmgs.query import kernels
 from fmgs.query.reference import (
     at_least_reference,
+    float_dots_reference,
     half_decode_reference,
     half_dots_reference,
     int8_upper_reference,
@@ -85,6 +86,18 @@ def test_float64_pass_equals_the_ordered_sum():
             assert np.array_equal(
                 o, half_dots_reference(A, r, V[:1].repeat(n, 0) * np.arange(1, n + 1)[:, None])
             )
+
+
+def test_float32_rows_float64_pass_equals_the_ordered_sum():
+    rng = np.random.default_rng(5)
+    A = (rng.standard_normal((200, 67)) * np.logspace(-30, 30, 67)).astype(np.float32)
+    A[3] = np.finfo(np.float32).max
+    V = rng.standard_normal((3, 67)).astype(np.float32).astype(np.float64)
+    for m in (1, 2, 7, 200):
+        r = rng.integers(0, len(A), m).astype(np.int64)
+        out = np.empty((m, 3))
+        kernels.float_dots64(A, r, V, out)
+        assert np.array_equal(out, float_dots_reference(A, r, V))
 
 
 def test_float64_pass_reads_damaged_values_as_infinite():

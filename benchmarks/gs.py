@@ -69,6 +69,7 @@ def report(args) -> None:
         d = Path(d)
         t = json.loads((d / "train.json").read_text())
         e = json.loads((d / "eval" / "eval.json").read_text())
+        e["psnr"] = float(e["psnr"])  # eval.json writes an exact view's +inf as "inf" (strict JSON)
         data = (d / "data.txt").read_text().strip() if (d / "data.txt").is_file() else "?"
         cfg = t["config"]
         size, views = f"scale {cfg['image_scale']}", "?"

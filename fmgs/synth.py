@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from fmgs.data.distortion import OpenCVDistortion
+from fmgs.errors import ValidationError
 from fmgs.io.atomic import atomic_path
 from fmgs.io.points import write_point_ply
 from fmgs.synthworld import COLOURS, sample_objects, texture_shade, world_object
@@ -184,7 +185,9 @@ def _meshes(cfg: SynthConfig):
         return _world_meshes(cfg)
     limit = len(OBJECTS) if cfg.preset == "cluttered" else 8
     if not 1 <= cfg.objects <= limit:
-        raise ValueError(f"objects must be in 1..{limit} for preset {cfg.preset!r}, got {cfg.objects}")
+        raise ValidationError(
+            "synth", f"objects must be in 1..{limit} for preset {cfg.preset!r}, got {cfg.objects}"
+        )
     rng = np.random.default_rng(cfg.seed)
     g = o3d.geometry.TriangleMesh
     makers = _shape_makers()  # each classic object's last word is its shape
@@ -332,6 +335,16 @@ def _shade(albedo: np.ndarray, normals: np.ndarray) -> np.ndarray:
     return np.clip(albedo * (0.35 + 0.65 * lam)[..., None], 0.0, 1.0)
 
 
+def check_sizes(cfg: SynthConfig, views: bool = True) -> None:
+    """ValidationError naming the first of the image size, the view count (``views``: the rig places the
+    cameras) or the point count that no dataset can have."""
+    for name, value, low in (("width", cfg.width, 1), ("height", cfg.height, 1), ("points", cfg.points, 0)):
+        if value < low:
+            raise ValidationError("synth", f"{name} must be at least {low}, got {value}")
+    if views and cfg.views < 1:
+        raise ValidationError("synth", f"views must be at least 1, got {cfg.views}")
+
+
 def generate(out: str | Path, cfg: SynthConfig = SynthConfig(), viewmats: np.ndarray | None = None) -> Path:
     """Render the scene into ``out`` (created); returns the path of its transforms.json.
 
@@ -341,11 +354,14 @@ def generate(out: str | Path, cfg: SynthConfig = SynthConfig(), viewmats: np.nda
     from PIL import Image
 
     out = Path(out)
-    for sub in ("images", "labels", "depth"):
-        (out / sub).mkdir(parents=True, exist_ok=True)
+    check_sizes(cfg, views=viewmats is None)
+    if out.exists() and not out.is_dir():
+        raise ValidationError(str(out), "is a file, not a folder for the dataset")
     if cfg.backdrop not in BACKDROPS:
         raise ValueError(f"backdrop must be one of {BACKDROPS}, got {cfg.backdrop!r}")
-    items = _meshes(cfg)
+    items = _meshes(cfg)  # checks the object counts before any folder is made
+    for sub in ("images", "labels", "depth"):
+        (out / sub).mkdir(parents=True, exist_ok=True)
     scene = o3d.t.geometry.RaycastingScene()
     geom_label = {}
     for label, (_, _, mesh, _) in enumerate(items, start=1):

@@ -16,6 +16,8 @@ from typing import NamedTuple
 
 import numpy as np
 
+from fmgs.errors import ValidationError
+
 COLOURS: dict[str, tuple[float, float, float]] = {
     "red": (0.85, 0.12, 0.1),
     "orange": (0.95, 0.5, 0.1),
@@ -95,9 +97,9 @@ def sample_objects(rng: np.random.Generator, n: int, novel: int = 0) -> list[Wor
     """``n`` objects of distinct shapes, ``novel`` of them with a held-out colour-shape pair (the others
     never have one); colours and textures drawn at random."""
     if not 1 <= n <= len(SHAPES):
-        raise ValueError(f"objects must be in 1..{len(SHAPES)} for preset 'world', got {n}")
+        raise ValidationError("synth", f"objects must be in 1..{len(SHAPES)} for preset 'world', got {n}")
     if not 0 <= novel <= n:
-        raise ValueError(f"novel must be in 0..{n}, got {novel}")
+        raise ValidationError("synth", f"novel must be in 0..{n}, got {novel}")
     held = list(HELD_OUT)
     picks = [held[i] for i in rng.choice(len(held), novel, replace=False)] if novel else []
     shapes = [s for _, s in picks]

@@ -31,6 +31,14 @@ def load_scene(path: Path):
     return load_gaussians(path) if path.suffix == ".safetensors" else read_ply(path)
 
 
+def out_folder(path, what: str, flag: str = "--out") -> None:
+    """ValidationError naming ``flag`` when ``path`` (the folder for ``what``) is a file."""
+    from fmgs.errors import ValidationError
+
+    if path and Path(path).exists() and not Path(path).is_dir():
+        raise ValidationError(flag, f"{path} is a file, not a folder for {what}")
+
+
 def numbers(flag: str, text: str, count: int, expected: str) -> tuple[float, ...]:
     """``count`` comma-separated numbers from a flag's text; ValidationError naming the flag otherwise."""
     from fmgs.errors import ValidationError

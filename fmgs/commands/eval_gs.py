@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import math
 from pathlib import Path
 
 from fmgs.commands.common import load_scene, numbers, undistort_flag
@@ -28,17 +29,29 @@ def add_parser(sub) -> None:
 def run(args: argparse.Namespace) -> int:
     """PSNR and SSIM of a 3DGS scene on the dataset's held-out views."""
     from fmgs.data.dataset import load_dataset
+    from fmgs.errors import ValidationError
     from fmgs.train.evaluate import evaluate
     from fmgs.train.floaters import floater_mask
     from fmgs.train.gaussians import dataset_background, trained_background
 
+    if not math.isfinite(args.scale) or args.scale <= 0:
+        raise ValidationError("--scale", f"must be a positive number, got {args.scale}")
+    if args.background != "auto":
+        bg = numbers("--background", args.background, 3, "auto or R,G,B in [0,1]")
+        if not all(0.0 <= v <= 1.0 for v in bg):  # NaN fails too
+            raise ValidationError("--background", f"expected auto or R,G,B in [0,1], got {args.background!r}")
+    if args.out and Path(args.out).exists() and not Path(args.out).is_dir():
+        raise ValidationError("--out", f"{args.out} is a file, not a folder for eval.json and the renders")
     ds = load_dataset(args.data, undistort_dir=args.undistort_dir)
     g = load_scene(Path(args.scene))
+    if args.out:
+        try:
+            (Path(args.out) / "renders").mkdir(parents=True, exist_ok=True)
+        except OSError as e:
+            raise ValidationError("--out", f"cannot make {args.out} ({e})") from e
     if args.background == "auto":  # what the scene was trained with (its train.json), else the dataset's
         scene = Path(args.scene)
         bg = trained_background(scene.parent, ds) if scene.is_file() else dataset_background(ds)
-    else:
-        bg = numbers("--background", args.background, 3, "auto or R,G,B in [0,1]")
     res = evaluate(g, ds, args.out, scale=args.scale, background=bg, progress=True)
     print(res.table())
     print(floater_mask(g, ds)[1].line())

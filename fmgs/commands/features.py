@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from fmgs.commands.common import config_flag, settings, undistort_flag
+from fmgs.commands.common import config_flag, out_folder, settings, undistort_flag
 
 TARGET_ALIASES = {"kind": "--targets"}
 """The short name the command has always had for TargetSpec.kind."""
@@ -47,6 +47,7 @@ def run(args: argparse.Namespace) -> int:
     from fmgs.data.dataset import load_dataset
 
     spec = target_spec(args)
+    out_folder(args.out, "the feature cache")
     revisions = model_revisions(spec, resolve_build_models(spec))  # every model, before any image
     if args.ray is not None:
         from fmgs.features.distributed import TargetJob, extract_features_ray

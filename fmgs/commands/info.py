@@ -18,19 +18,22 @@ def add_parser(sub) -> None:
     i = sub.add_parser(
         "info",
         help="validate a scene (.ply, .splat or .safetensors) and print a summary, or describe a scene "
-        "package folder (e.g. models/demo)",
+        "package folder (e.g. models/demo) or a sharded scene (`fmgs shard`)",
     )
-    i.add_argument("scene", help="scene file, or scene package folder")
+    i.add_argument("scene", help="scene file, scene package folder, or sharded scene folder")
     i.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
     """Validate a scene file and print its size, SH degree, bounds and opacity statistics; or describe a
     scene package folder from its manifest."""
-    from fmgs.scene.manifest import FILENAME
+    from fmgs.scene.manifest import FILENAME, SHARDS_FILE
 
     if Path(args.scene).is_dir() and (Path(args.scene) / FILENAME).is_file():
         print(json.dumps(package_info(Path(args.scene)), indent=2))
+        return 0
+    if Path(args.scene).is_dir() and (Path(args.scene) / SHARDS_FILE).is_file():
+        print(json.dumps(sharded_info(Path(args.scene)), indent=2, allow_nan=False))
         return 0
     g = load_scene(Path(args.scene))
     lo, hi = g.means.min(0).values.tolist(), g.means.max(0).values.tolist()
@@ -79,3 +82,24 @@ def package_info(path: Path) -> dict:
         "build": build,
         "files": {p.name: p.stat().st_size for p in sorted(path.iterdir()) if p.is_file()},
     }
+
+
+def sharded_info(path: Path) -> dict:
+    """What a sharded scene (``fmgs shard``) holds, from its shards.json (validated; no tensor is read):
+    the source's name, encoder and counts, and each shard's folder, counts and k-d cell (an open side
+    as "inf" or "-inf", as shards.json writes it)."""
+    from fmgs.scene.shards import ShardManifest
+
+    d = ShardManifest.read(path).to_dict()
+    return {
+        "sharded_scene": str(path),
+        "name": d["name"],
+        "encoder": d["encoder"],
+        "gaussians": d["counts"]["gaussians"],
+        "embedded": d["counts"]["selected"],
+        "shards": [
+            {"folder": s["folder"], "gaussians": s["counts"]["gaussians"],
+             "embedded": s["counts"]["selected"], "cell": s["cell"]}
+            for s in d["shards"]
+        ],
+    }  # fmt: skip

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import math
 import time
 from pathlib import Path
 
@@ -39,8 +40,13 @@ def run(args: argparse.Namespace) -> int:
     import torch
     from PIL import Image
 
+    from fmgs.errors import ValidationError
+    from fmgs.io.atomic import atomic_path
     from fmgs.render.rgb import render_rgb
 
+    if not math.isfinite(args.scale) or args.scale <= 0:
+        raise ValidationError("--scale", f"must be a positive number, got {args.scale}")
+    fmt = image_format(args.out)
     g = load_scene(Path(args.scene))
     cam = render_camera(args).scaled(args.scale)
     t0 = time.perf_counter()
@@ -48,11 +54,33 @@ def run(args: argparse.Namespace) -> int:
         out = render_rgb(g, cam, background=torch.zeros(3), backend=args.backend)
     dt = time.perf_counter() - t0
     img = (out.image.clamp(0, 1).numpy() * 255 + 0.5).astype(np.uint8)
-    Image.fromarray(img).save(args.out)
+    try:  # a whole image or none: an interrupted or failed write leaves what was at --out
+        with atomic_path(args.out) as tmp:
+            Image.fromarray(img).save(tmp, format=fmt)
+    except OSError as e:
+        raise ValidationError("--out", f"cannot write {args.out} ({e})") from e
     print(
         f"wrote {args.out} ({cam.name}, {cam.width}x{cam.height}, {dt * 1000:.1f} ms, backend {args.backend})"
     )
     return 0
+
+
+def image_format(out: str) -> str:
+    """The PIL format of ``--out`` from its extension (.png, .jpg, ...); ValidationError for a folder
+    or an extension no image format has."""
+    from PIL import Image
+
+    from fmgs.errors import ValidationError
+
+    if Path(out).is_dir():
+        raise ValidationError("--out", f"{out} is a folder: name the image file (e.g. render.png)")
+    Image.init()
+    fmt = Image.registered_extensions().get(Path(out).suffix.lower())
+    if fmt is None or fmt not in Image.SAVE:
+        raise ValidationError(
+            "--out", f"{out}: not an image file name (its extension names no image format; use .png)"
+        )
+    return fmt
 
 
 def render_camera(args: argparse.Namespace):

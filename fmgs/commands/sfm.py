@@ -6,7 +6,7 @@ import argparse
 from dataclasses import replace
 from pathlib import Path
 
-from fmgs.commands.common import config_flag, settings
+from fmgs.commands.common import config_flag, out_folder, settings
 
 
 def add_parser(sub) -> None:
@@ -31,6 +31,7 @@ def run(args: argparse.Namespace) -> int:
 
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     cfg = settings(args, SfMConfig)
+    out_folder(args.out, "the reconstruction")
     if args.per_image_camera:
         cfg = replace(cfg, single_camera=False)
     r = run_sfm(args.images, args.out, cfg)

@@ -71,9 +71,14 @@ def add_parser(sub) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Render a synthetic labelled scene (Open3D ray casting) as a transforms.json dataset."""
+    from pathlib import Path
+
+    from fmgs.errors import ValidationError
     from fmgs.synth import SynthConfig, generate
 
-    w, h = (int(v) for v in args.size.lower().split("x"))
+    w, h = image_size(args.size)
+    if Path(args.out).exists() and not Path(args.out).is_dir():
+        raise ValidationError("--out", f"{args.out} is a file, not a folder")
     dist = numbers("--distortion", args.distortion, 4, "four numbers k1,k2,p1,p2")
     cfg = SynthConfig(
         views=args.views,
@@ -93,7 +98,6 @@ def run(args: argparse.Namespace) -> int:
     if args.robot_bag is not None:
         from dataclasses import replace
 
-        from fmgs.errors import ValidationError
         from fmgs.synthbag import RobotPathConfig, write_robot_bag
 
         if args.robot_bag <= 0:
@@ -106,3 +110,15 @@ def run(args: argparse.Namespace) -> int:
     secs = time.perf_counter() - t0
     print(f"wrote {path} ({cfg.views} views, {w}x{h}, {cfg.objects} objects) in {secs:.1f} s")
     return 0
+
+
+def image_size(text: str) -> tuple[int, int]:
+    """``--size WxH``: two whole numbers of pixels, each at least 1; ValidationError naming the flag."""
+    from fmgs.errors import ValidationError
+
+    parts = text.lower().split("x")
+    if len(parts) != 2 or not all(p.strip().isdecimal() for p in parts) or min(map(int, parts)) < 1:
+        raise ValidationError(
+            "--size", f"expected WxH in whole pixels (each at least 1, e.g. 128x96), got {text!r}"
+        )
+    return int(parts[0]), int(parts[1])

@@ -11,6 +11,7 @@ from fmgs.commands.common import (
     config_flag,
     load_scene,
     no_dotsim_flag,
+    out_folder,
     settings,
     undistort_flag,
 )
@@ -78,6 +79,7 @@ def run(args: argparse.Namespace) -> int:
     from fmgs.features.text import load_text_encoder
     from fmgs.train.field import train_field
 
+    out_folder(args.out, "the checkpoint and field_train.json")
     ds = load_dataset(args.data, undistort_dir=args.undistort_dir)
     g = load_scene(Path(args.gaussians))
     cache = FeatureCache.open(args.features)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from fmgs.commands.common import AUTO_DEVICE, config_flag, settings, undistort_flag
+from fmgs.commands.common import AUTO_DEVICE, config_flag, out_folder, settings, undistort_flag
 
 GS_ALIASES = {"image_scale": "--scale", "densify.grad_threshold": "--grad-threshold"}
 """The short names the command has always had for two GSTrainConfig fields."""
@@ -40,6 +40,7 @@ def run(args: argparse.Namespace) -> int:
     from fmgs.train.gaussians import train_gaussians
 
     cfg = gs_config(args)
+    out_folder(args.out, "the checkpoint and point_cloud.ply")
     ds = load_dataset(args.data, undistort_dir=args.undistort_dir)
     res = train_gaussians(ds, args.out, cfg, resume=not args.restart)
     print(

@@ -112,7 +112,20 @@ def evaluate(
     )
     if out_dir is not None:
         with atomic_path(Path(out_dir) / "eval.json") as tmp:
-            tmp.write_text(json.dumps({**res.summary(), "scale": scale, "views": rows}, indent=1))
+            doc = _strict({**res.summary(), "scale": scale, "views": rows})
+            tmp.write_text(json.dumps(doc, indent=1, allow_nan=False))
         with atomic_path(Path(out_dir) / "eval.md") as tmp:
             tmp.write_text(res.table() + "\n")
     return res
+
+
+def _strict(x):
+    """``x`` with each non-finite float as strict JSON allows: the PSNR of a view rendered exactly
+    (+inf) as the string "inf", as shards.json writes its open cells ("-inf" likewise), NaN as null."""
+    if isinstance(x, float) and not np.isfinite(x):
+        return None if np.isnan(x) else ("inf" if x > 0 else "-inf")
+    if isinstance(x, dict):
+        return {k: _strict(v) for k, v in x.items()}
+    if isinstance(x, list | tuple):
+        return [_strict(v) for v in x]
+    return x

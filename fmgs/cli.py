@@ -39,6 +39,14 @@ def main(argv: list[str] | None = None) -> int:
         except FmgsError as e:
             print(f"fmgs: error: {e}", file=sys.stderr)
             return 2
+        except KeyboardInterrupt:  # outputs are written atomically: nothing half-written is left
+            print(f"fmgs: {args.command}: interrupted", file=sys.stderr)
+            return 130
+        except BrokenPipeError:  # the reader went away (`fmgs info ... | head`): not an error of ours
+            import os
+
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+            return 141
     except ModuleNotFoundError as e:
         if e.name not in _CORE_MODULES:
             raise

@@ -159,3 +159,31 @@ def test_commands_refuse_a_file_as_their_out_folder(tmp_path, capsys):
         assert main([*argv, "--out", str(f)]) == 2, argv
         assert f"--out: {f} is a file, not a folder for {what}" in capsys.readouterr().err
     assert f.read_text() == "keep"
+
+
+_RAISING = """
+import argparse, sys
+from fmgs import cli
+def stop(args):
+    raise {error}
+class Parser:
+    def parse_args(self, argv):
+        return argparse.Namespace(command="synth", func=stop)
+cli.build_parser = Parser
+sys.exit(cli.main(["synth"]))
+"""
+
+
+@pytest.mark.parametrize(
+    "error, code, said",
+    [("KeyboardInterrupt", 130, "fmgs: synth: interrupted"), ("BrokenPipeError", 141, "")],
+    ids=["ctrl-c", "closed pipe"],
+)
+def test_ctrl_c_and_a_closed_pipe_end_quietly(error, code, said):
+    """Ctrl-C printed a KeyboardInterrupt traceback and `fmgs info ... | head` a BrokenPipeError one: now
+    one line and 130 (the shell's code for SIGINT), and 141 (SIGPIPE's) with nothing said."""
+    import subprocess
+    import sys
+
+    r = subprocess.run([sys.executable, "-c", _RAISING.format(error=error)], capture_output=True, text=True)
+    assert r.returncode == code and r.stderr.strip() == said, r.stderr

@@ -157,18 +157,20 @@ def test_a_pose_stream_that_is_never_read_holds_one_frame_and_frees_all_when_it_
     try:
         with grpc.insecure_channel(srv.address) as ch:
             stub = pb_grpc.FmgsStub(ch)
-            sent = threading.Event()
+            done = threading.Event()
 
             def poses():
-                for i in range(400):  # far more frames than the transport buffers
+                # New poses until the test ends: the server renders the newest each time, so its frames
+                # pile up in the transport until one stalls there (how many fit depends on the load).
+                for i in range(100_000):
+                    if done.is_set():
+                        return
                     yield pb.RenderRequest(scene="s", camera=CAM, text="red cube", sequence=i)
-                sent.set()
-                time.sleep(30)
+                    time.sleep(0.002)
 
             call = stub.StreamRender(poses(), timeout=60)  # never read
-            assert sent.wait(10)
             budget = srv.service.budget
-            assert _until(lambda: budget.used > 0)  # the frame stalled on the unread transport
+            assert _until(lambda: budget.used > 0, 30.0)  # a frame stalled on the unread transport
             frame = budget_mod.render_bytes(
                 48, 40, ("relevancy",), False, srv.service.repo.get("s").num_gaussians
             )
@@ -177,6 +179,7 @@ def test_a_pose_stream_that_is_never_read_holds_one_frame_and_frees_all_when_it_
                 next(stub.StreamRender(iter([RENDER]), timeout=10))
             assert e.value.code() == grpc.StatusCode.RESOURCE_EXHAUSTED  # max_streams
             call.cancel()
+            done.set()
             assert _until(lambda: _idle(srv, 1), 5.0)
     finally:
         srv.stop(0)

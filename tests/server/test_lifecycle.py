@@ -150,41 +150,6 @@ def test_a_point_query_holds_its_memory_until_its_answer_is_sent(models, monkeyp
         srv.stop(0)
 
 
-def test_a_pose_stream_that_is_never_read_holds_one_frame_and_frees_all_when_it_goes(models):
-    from fmgs_server import budget as budget_mod
-
-    srv = _serve(models, workers=1, max_streams=1)
-    try:
-        with grpc.insecure_channel(srv.address) as ch:
-            stub = pb_grpc.FmgsStub(ch)
-            done = threading.Event()
-
-            def poses():
-                # New poses until the test ends: the server renders the newest each time, so its frames
-                # pile up in the transport until one stalls there (how many fit depends on the load).
-                for i in range(100_000):
-                    if done.is_set():
-                        return
-                    yield pb.RenderRequest(scene="s", camera=CAM, text="red cube", sequence=i)
-                    time.sleep(0.002)
-
-            call = stub.StreamRender(poses(), timeout=60)  # never read
-            budget = srv.service.budget
-            assert _until(lambda: budget.used > 0, 30.0)  # a frame stalled on the unread transport
-            frame = budget_mod.render_bytes(
-                48, 40, ("relevancy",), False, srv.service.repo.get("s").num_gaussians
-            )
-            assert budget.used == frame  # one frame's worth, however many poses wait
-            with pytest.raises(grpc.RpcError) as e:
-                next(stub.StreamRender(iter([RENDER]), timeout=10))
-            assert e.value.code() == grpc.StatusCode.RESOURCE_EXHAUSTED  # max_streams
-            call.cancel()
-            done.set()
-            assert _until(lambda: _idle(srv, 1), 5.0)
-    finally:
-        srv.stop(0)
-
-
 def test_graceful_stop_ends_open_pose_streams_and_frees_everything(models):
     srv = _serve(models, workers=1)
     with grpc.insecure_channel(srv.address) as ch:

@@ -39,6 +39,16 @@ def out_folder(path, what: str, flag: str = "--out") -> None:
         raise ValidationError(flag, f"{path} is a file, not a folder for {what}")
 
 
+def positive_scale(flag: str, value: float) -> None:
+    """ValidationError naming ``flag`` unless ``value`` is a finite number above 0 (an image scale)."""
+    import math
+
+    from fmgs.errors import ValidationError
+
+    if not math.isfinite(value) or value <= 0:
+        raise ValidationError(flag, f"must be a positive number, got {value}")
+
+
 def numbers(flag: str, text: str, count: int, expected: str) -> tuple[float, ...]:
     """``count`` comma-separated numbers from a flag's text; ValidationError naming the flag otherwise."""
     from fmgs.errors import ValidationError

@@ -3,10 +3,9 @@
 from __future__ import annotations
 
 import argparse
-import math
 from pathlib import Path
 
-from fmgs.commands.common import load_scene, numbers, undistort_flag
+from fmgs.commands.common import load_scene, numbers, out_folder, positive_scale, undistort_flag
 
 
 def add_parser(sub) -> None:
@@ -34,14 +33,12 @@ def run(args: argparse.Namespace) -> int:
     from fmgs.train.floaters import floater_mask
     from fmgs.train.gaussians import dataset_background, trained_background
 
-    if not math.isfinite(args.scale) or args.scale <= 0:
-        raise ValidationError("--scale", f"must be a positive number, got {args.scale}")
+    positive_scale("--scale", args.scale)
     if args.background != "auto":
         bg = numbers("--background", args.background, 3, "auto or R,G,B in [0,1]")
         if not all(0.0 <= v <= 1.0 for v in bg):  # NaN fails too
             raise ValidationError("--background", f"expected auto or R,G,B in [0,1], got {args.background!r}")
-    if args.out and Path(args.out).exists() and not Path(args.out).is_dir():
-        raise ValidationError("--out", f"{args.out} is a file, not a folder for eval.json and the renders")
+    out_folder(args.out, "eval.json and the renders")
     ds = load_dataset(args.data, undistort_dir=args.undistort_dir)
     g = load_scene(Path(args.scene))
     if args.out:

@@ -3,11 +3,10 @@
 from __future__ import annotations
 
 import argparse
-import math
 import time
 from pathlib import Path
 
-from fmgs.commands.common import load_scene, undistort_flag
+from fmgs.commands.common import load_scene, positive_scale, undistort_flag
 
 
 def add_parser(sub) -> None:
@@ -44,8 +43,7 @@ def run(args: argparse.Namespace) -> int:
     from fmgs.io.atomic import atomic_path
     from fmgs.render.rgb import render_rgb
 
-    if not math.isfinite(args.scale) or args.scale <= 0:
-        raise ValidationError("--scale", f"must be a positive number, got {args.scale}")
+    positive_scale("--scale", args.scale)
     fmt = image_format(args.out)
     g = load_scene(Path(args.scene))
     cam = render_camera(args).scaled(args.scale)

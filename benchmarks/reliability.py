@@ -127,6 +127,11 @@ def _write(res: dict, out: Path, quick: bool) -> int:
     return 0
 
 
+def _ms(v: float | None) -> str:
+    """A latency cell: "n/a" where no request succeeded (LoadReport.percentile gives None)."""
+    return "n/a" if v is None else f"{v:.1f}"
+
+
 def _rep(r) -> dict:
     return {
         "sent": r.sent,
@@ -145,6 +150,8 @@ def report(res: dict, quick: bool) -> str:
     sent = sum(p["sent"] for p in soak)
     errs = sum(p["sent"] - p["ok"] for p in soak)
     rss = res["soak_rss_mib"]
+    p50s = [p["p50_ms"] for p in soak if p["p50_ms"] is not None]
+    p99s = [p["p99_ms"] for p in soak if p["p99_ms"] is not None]
     L = [
         "# Reliability report",
         "",
@@ -156,12 +163,12 @@ def report(res: dict, quick: bool) -> str:
         "| run | requests | OK | status codes | p50 ms | p99 ms | throughput/s |",
         "|---|---|---|---|---|---|---|",
         f"| 32 clients, 3 text queries : 1 render | {ld['sent']} | {ld['ok']} | {ld['codes']} | "
-        f"{ld['p50_ms']:.1f} | {ld['p99_ms']:.1f} | {ld['throughput']:.1f} |",
+        f"{_ms(ld['p50_ms'])} | {_ms(ld['p99_ms'])} | {ld['throughput']:.1f} |",
         f"| over capacity: 32 clients of renders, 8 open calls, 1 worker, 50 ms queue | {sh['sent']} | "
         f"{sh['ok']} | "
-        f"{sh['codes']} | {sh['p50_ms']:.1f} | {sh['p99_ms']:.1f} | {sh['throughput']:.1f} |",
+        f"{sh['codes']} | {_ms(sh['p50_ms'])} | {_ms(sh['p99_ms'])} | {sh['throughput']:.1f} |",
         f"| soak, 8 clients, 9 text : 1 render | {sent} | {sent - errs} | errors {errs} | "
-        f"{np.median([p['p50_ms'] for p in soak]):.1f} | {max(p['p99_ms'] for p in soak):.1f} | "
+        f"{_ms(float(np.median(p50s)) if p50s else None)} | {_ms(max(p99s, default=None))} | "
         f"{np.median([p['throughput'] for p in soak]):.1f} |",
         "",
         "Process RSS after warm-up and after each fifth of the soak (MiB): "

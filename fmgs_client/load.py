@@ -71,9 +71,13 @@ class LoadReport:
     def errors(self) -> int:
         return self.sent - self.ok
 
-    def percentile(self, p: float) -> float:
+    def percentile(self, p: float) -> float | None:
+        """The p-th percentile (0-100, nearest rank) of the OK requests' latencies in ms; None when no
+        request succeeded (a number would be made up, and NaN is not JSON)."""
+        if not 0 <= p <= 100:
+            raise ValueError(f"percentile must lie in [0, 100], got {p}")
         if not self.latencies_ms:
-            return float("nan")
+            return None
         xs = sorted(self.latencies_ms)
         return xs[min(len(xs) - 1, round(p / 100 * (len(xs) - 1)))]
 

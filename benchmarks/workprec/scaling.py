@@ -161,12 +161,14 @@ def grpc_scaling(sz: ScalingSizes, work: Path) -> list[dict]:
         for c in sz.grpc_clients:
             n = max(40, c * sz.grpc_requests_per_client)
             rep = run_load(srv.address, LoadConfig("text", texts, clients=c, requests=n, render_every=0))
+            if not rep.ok:  # no latency to report: the run is broken, not a figure
+                raise RuntimeError(f"gRPC scaling: no request succeeded with {c} clients ({dict(rep.codes)})")
             rows.append(
                 {
                     "clients": c,
                     "requests": rep.sent,
                     "ok": rep.ok,
-                    "median_ms": statistics.median(rep.latencies_ms) if rep.latencies_ms else float("nan"),
+                    "median_ms": statistics.median(rep.latencies_ms),
                     "p90_ms": rep.percentile(90),
                     "p99_ms": rep.percentile(99),
                     "throughput": rep.throughput,

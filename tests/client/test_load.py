@@ -71,3 +71,15 @@ def test_soak_10000_requests_memory_flat(models):
     print(warm.summary(), soak.summary(), f"rss {rss0 / 2**20:.1f} -> {rss1 / 2**20:.1f} MiB")
     assert warm.errors == 0 and soak.errors == 0 and soak.sent == 10_000
     assert rss1 - rss0 < 32 * 2**20, (rss0, rss1)
+
+
+def test_a_run_without_an_ok_request_has_no_percentile_and_says_so():
+    from fmgs_client.load import LoadReport
+
+    rep = LoadReport(sent=3, ok=0, seconds=1.0)
+    assert rep.percentile(50) is None and rep.percentile(99) is None  # not NaN: stored reports are JSON
+    assert "no latencies" in rep.summary()
+    rep.latencies_ms = [5.0, 1.0, 3.0]
+    assert (rep.percentile(0), rep.percentile(50), rep.percentile(100)) == (1.0, 3.0, 5.0)
+    with pytest.raises(ValueError, match="percentile"):
+        rep.percentile(101)
